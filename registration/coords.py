@@ -1,0 +1,33 @@
+"""Point-array helpers shared by every stage: validation and rescaling between image scales."""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+
+def as_points(xy: ArrayLike, name: str = "points") -> NDArray[np.float64]:
+    """Return ``xy`` as a float64 ``(N, 2)`` array; a single ``(2,)`` point becomes ``(1, 2)``.
+
+    Raises:
+        ValueError: naming ``name`` and the offending shape when it is not ``(N, 2)``.
+    """
+    arr = np.asarray(xy, dtype=np.float64)
+    if arr.ndim == 1 and arr.shape[0] == 2:
+        arr = arr[None, :]
+    if arr.ndim != 2 or arr.shape[1] != 2:
+        raise ValueError(f"{name} must have shape (N, 2), got {arr.shape}")
+    return arr
+
+
+def rescale(xy: ArrayLike, scale: float) -> NDArray[np.float64]:
+    """Map pixel coordinates to an image rescaled by ``scale`` (pixel centres at integers).
+
+    ``x_s = (x + 0.5) * scale - 0.5``; e.g. ``scale=0.25`` goes from full to quarter resolution.
+    """
+    return (as_points(xy) + 0.5) * scale - 0.5
+
+
+def image_size(image: NDArray) -> tuple[int, int]:
+    """``(width, height)`` of an ``(H, W)`` or ``(H, W, C)`` image."""
+    return int(image.shape[1]), int(image.shape[0])
