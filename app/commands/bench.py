@@ -1,0 +1,68 @@
+"""``aerialreg bench``: speed and accuracy figures, each against a baseline measured in the same run."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from app.cli import UsageError, emit_json
+
+NAME = "bench"
+HELP = "Measure speed and accuracy against in-run baselines and print the figures (markdown or --json)."
+SUITES = ("distortion", "simulate", "register", "srif", "app")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "suites",
+        nargs="*",
+        metavar="SUITE",
+        help=f"which suites to run, from {', '.join(SUITES)}, or 'all' (default: register)",
+    )
+    p.add_argument(
+        "--size",
+        default="1280x960",
+        help="frame size WxH for simulated sequences (default 1280x960)",
+    )
+    p.add_argument(
+        "--frames", type=int, default=6, help="frames per simulated sequence (default 6)"
+    )
+    p.add_argument("--scene", help="scene image to simulate from instead of the procedural city")
+    p.add_argument("--base", help="base map of the same area as --scene")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of markdown")
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise UsageError(f"--size must look like 1280x960, got {text!r}") from None
+    if w <= 0 or h <= 0:
+        raise UsageError(f"--size must be positive, got {text!r}")
+    return w, h
+
+
+def run(args: argparse.Namespace) -> int:
+    suites = list(args.suites) or ["register"]
+    if "all" in suites:
+        suites = list(SUITES)
+    unknown = [s for s in suites if s not in SUITES]
+    if unknown:
+        raise UsageError(f"unknown bench suite {unknown[0]!r}; choose from {', '.join(SUITES)}")
+    if (args.scene is None) != (args.base is None):
+        raise UsageError("--scene and --base go together")
+    args.size_wh = parse_size(args.size)
+    results = {}
+    for name in suites:
+        module = importlib.import_module(f"app.bench.{name}")
+        sys.stderr.write(f"bench: running {name} ...\n")
+        results[name] = module.run(args)
+    if args.json:
+        emit_json(results)
+    else:
+        for name in suites:
+            sys.stdout.write(f"## {importlib.import_module(f'app.bench.{name}').TITLE}\n\n")
+            sys.stdout.write(results[name].get("markdown", "") + "\n\n")
+    return 0

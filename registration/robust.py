@@ -1,0 +1,399 @@
+"""Robust model fitting: RANSAC (paper 4.3.1) and REQCON (paper 4.3.2, 4.4).
+
+Both are generic over the :class:`registration.models.GeometricModel` protocol: a model class
+with ``min_samples`` and ``estimate(src, dst, *, initial, optimizer)`` returning a model or a
+falsy ``FailedEstimation``, and models with ``residuals(src, dst)``. Both return a
+:class:`FitResult` (falsy on failure, with a reason). Randomness is injected (``rng``); nothing
+is printed.
+
+References:
+    Loveland & Rosten, section 4.3.1 (RANSAC: 4-point samples, 5 px inlier threshold, at most
+    1000 iterations, Nelder-Mead refinement) and 4.3.2 (REQCON: fit, drop the worst 5 %, refit,
+    until the mean error of the remaining points is below 2 px).
+    Fischler & Bolles, "Random sample consensus", CACM 24(6), 1981 (adaptive trial count).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from registration.coords import as_points
+
+__all__ = [
+    "FitResult",
+    "RansacConfig",
+    "ReqconConfig",
+    "adaptive_max_iterations",
+    "ransac",
+    "reqcon",
+]
+
+log = logging.getLogger(__name__)
+
+_REFINES = ("nelder-mead", "lm", "lstsq", "none")
+_OPTIMIZERS = ("nelder-mead", "lm", "lstsq")
+
+
+@dataclass(frozen=True)
+class RansacConfig:
+    """RANSAC settings (paper 4.3.1 unless noted).
+
+    Attributes:
+        sample_size: points per random sample (paper 4.3.1: 4, the minimum for a projective).
+            Must be at least the model's ``min_samples``.
+        threshold_px: inlier threshold on the Euclidean residual, destination pixels (paper: 5).
+            Smaller is stricter.
+        max_iterations: upper bound on random samples (paper: 1000).
+        confidence: probability of having drawn at least one all-inlier sample at which sampling
+            stops early (standard adaptive RANSAC; not in the paper, which always ran 1000;
+            1.0 disables early stopping).
+        refine: optimiser for the final refit on the inliers: ``"nelder-mead"`` (paper),
+            ``"lm"`` (Levenberg-Marquardt, same minimum, much faster), ``"lstsq"`` (linear
+            only) or ``"none"`` (keep the best sample's model).
+        min_inliers: fewest inliers of the final model that count as success (not in the paper;
+            guards against accepting a random sample's model; raised to ``min_samples + 1``).
+    """
+
+    sample_size: int = 4
+    threshold_px: float = 5.0
+    max_iterations: int = 1000
+    confidence: float = 0.999
+    refine: str = "nelder-mead"
+    min_inliers: int = 8
+
+    def __post_init__(self) -> None:
+        if self.sample_size < 1:
+            raise ValueError(f"sample_size must be >= 1, got {self.sample_size}")
+        if not (self.threshold_px > 0):
+            raise ValueError(f"threshold_px must be > 0, got {self.threshold_px}")
+        if self.max_iterations < 1:
+            raise ValueError(f"max_iterations must be >= 1, got {self.max_iterations}")
+        if not (0 < self.confidence <= 1):
+            raise ValueError(f"confidence must be in (0, 1], got {self.confidence}")
+        if self.refine not in _REFINES:
+            raise ValueError(f"refine must be one of {_REFINES}, got {self.refine!r}")
+        if self.min_inliers < 1:
+            raise ValueError(f"min_inliers must be >= 1, got {self.min_inliers}")
+
+
+@dataclass(frozen=True)
+class ReqconConfig:
+    """REQCON settings (paper 4.3.2 unless noted).
+
+    Attributes:
+        drop_fraction: fraction of the kept points removed per iteration, worst residuals first
+            (paper: 0.05). At least one point is removed per iteration.
+        target_mean_error_px: stop when the mean residual of the kept points is below this,
+            destination pixels (paper: 2). Smaller is stricter.
+        optimizer: inner fit: ``"nelder-mead"`` (paper), ``"lm"`` (same minimum, far faster) or
+            ``"lstsq"`` (linear only; for tests and comparison).
+        min_points: fewest points REQCON may keep; ``None`` means ``3 * model.min_samples``
+            (not in the paper: a guard against collapsing onto a few points).
+        min_fraction: also keep at least this fraction of the input (not in the paper).
+        max_iterations: upper bound on fit-and-drop rounds (not in the paper; 0.95^100 ~ 0.6 %).
+    """
+
+    drop_fraction: float = 0.05
+    target_mean_error_px: float = 2.0
+    optimizer: str = "nelder-mead"
+    min_points: int | None = None
+    min_fraction: float = 0.1
+    max_iterations: int = 100
+
+    def __post_init__(self) -> None:
+        if not (0 < self.drop_fraction < 1):
+            raise ValueError(f"drop_fraction must be in (0, 1), got {self.drop_fraction}")
+        if not (self.target_mean_error_px > 0):
+            raise ValueError(f"target_mean_error_px must be > 0, got {self.target_mean_error_px}")
+        if self.optimizer not in _OPTIMIZERS:
+            raise ValueError(f"optimizer must be one of {_OPTIMIZERS}, got {self.optimizer!r}")
+        if self.min_points is not None and self.min_points < 1:
+            raise ValueError(f"min_points must be >= 1 or None, got {self.min_points}")
+        if not (0 <= self.min_fraction < 1):
+            raise ValueError(f"min_fraction must be in [0, 1), got {self.min_fraction}")
+        if self.max_iterations < 1:
+            raise ValueError(f"max_iterations must be >= 1, got {self.max_iterations}")
+
+
+@dataclass(frozen=True, eq=False)
+class FitResult:
+    """Outcome of a robust fit; truthy exactly when ``success``.
+
+    Attributes:
+        model: the final model (``None`` when no model could be fitted at all).
+        inliers: ``(N,)`` bool over the input points: RANSAC inliers, or the points REQCON kept.
+        residuals: ``(N,)`` Euclidean residuals of *all* input points under ``model``, pixels
+            (NaN when there is no model).
+        iterations: RANSAC samples drawn, or REQCON fit rounds.
+        success: whether the fit met its criterion.
+        reason: why it failed ("" on success).
+        history: REQCON: mean residual of the kept points after each round (pixels);
+            RANSAC: best inlier count after each improvement.
+    """
+
+    model: Any
+    inliers: NDArray[np.bool_]
+    residuals: NDArray[np.float64]
+    iterations: int
+    success: bool
+    reason: str = ""
+    history: tuple[float, ...] = field(default_factory=tuple)
+
+    def __bool__(self) -> bool:
+        return bool(self.success)
+
+    @property
+    def n_inliers(self) -> int:
+        return int(np.count_nonzero(self.inliers))
+
+
+def adaptive_max_iterations(inlier_ratio: float, sample_size: int, confidence: float) -> float:
+    """Samples needed to draw one all-inlier sample with probability ``confidence``.
+
+    ``k = log(1 - confidence) / log(1 - w**s)``, rounded up. ``inf`` when ``w = 0``; ``0`` when
+    ``w = 1`` or ``confidence = 0``.
+
+    >>> adaptive_max_iterations(0.5, 4, 0.99)
+    72.0
+    """
+    if not (0 <= inlier_ratio <= 1):
+        raise ValueError(f"inlier_ratio must be in [0, 1], got {inlier_ratio}")
+    if not (0 <= confidence <= 1):
+        raise ValueError(f"confidence must be in [0, 1], got {confidence}")
+    if confidence == 0:
+        return 0.0
+    p_good = inlier_ratio**sample_size
+    if p_good <= 0:
+        return math.inf
+    if p_good >= 1:
+        return 0.0
+    if confidence >= 1:
+        return math.inf
+    return float(math.ceil(math.log1p(-confidence) / math.log1p(-p_good)))
+
+
+def _pairs(src: ArrayLike, dst: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    s, d = as_points(src, "src"), as_points(dst, "dst")
+    if s.shape != d.shape:
+        raise ValueError(f"src and dst must have the same shape, got {s.shape} and {d.shape}")
+    return s, d
+
+
+def _failed(n: int, reason: str, iterations: int, model: Any = None, **kw: Any) -> FitResult:
+    inl = kw.pop("inliers", np.zeros(n, dtype=bool))
+    res = kw.pop("residuals", np.full(n, np.nan))
+    return FitResult(model, inl, res, iterations, False, reason, **kw)
+
+
+def _safe_residuals(model: Any, src: NDArray, dst: NDArray) -> NDArray[np.float64]:
+    with np.errstate(all="ignore"):
+        r = model.residuals(src, dst)
+    return np.where(np.isfinite(r), r, np.inf)
+
+
+def ransac(
+    src: ArrayLike,
+    dst: ArrayLike,
+    model_type: Any,
+    config: RansacConfig = RansacConfig(),
+    rng: np.random.Generator | int | None = None,
+) -> FitResult:
+    """RANSAC over point pairs, then a refit of the best consensus set (paper 4.3.1).
+
+    Each trial draws ``sample_size`` distinct pairs, fits ``model_type.estimate`` (linear) and
+    counts the pairs within ``threshold_px``; degenerate samples (collinear, duplicate, folding)
+    make ``estimate`` fail and are skipped. Ties in the inlier count go to the smaller sum of
+    inlier residuals. Sampling stops after ``max_iterations`` or once
+    :func:`adaptive_max_iterations` of the best inlier ratio is reached. The best model is refit
+    on its inliers with ``config.refine`` (started from it), and the inliers are recomputed.
+
+    Args:
+        src, dst: ``(N, 2)`` pixel coordinates of corresponding points.
+        model_type: a model class (e.g. ``Projective``) with ``min_samples`` and ``estimate``.
+        config: see :class:`RansacConfig`.
+        rng: seed or generator; the same seed gives the same result.
+
+    Returns:
+        :class:`FitResult`; ``history`` holds the best inlier count after each improvement.
+    """
+    s, d = _pairs(src, dst)
+    n = len(s)
+    gen = np.random.default_rng(rng)
+    k = config.sample_size
+    min_s = int(model_type.min_samples)
+    if k < min_s:
+        raise ValueError(
+            f"sample_size={k} is below {getattr(model_type, '__name__', model_type)}'s "
+            f"min_samples={min_s}"
+        )
+    min_inliers = max(config.min_inliers, min_s + 1)
+    finite = np.isfinite(s).all(axis=1) & np.isfinite(d).all(axis=1)
+    idx_all = np.flatnonzero(finite)
+    if len(idx_all) < max(k, min_inliers):
+        return _failed(
+            n, f"needs at least {max(k, min_inliers)} finite point pairs, got {len(idx_all)}", 0
+        )
+
+    best_model, best_count, best_cost = None, -1, math.inf
+    best_inl = np.zeros(n, dtype=bool)
+    history: list[float] = []
+    n_degenerate = 0
+    limit = float(config.max_iterations)
+    trial = 0
+    while trial < min(limit, config.max_iterations):
+        trial += 1
+        sample = gen.choice(idx_all, size=k, replace=False)
+        model = model_type.estimate(s[sample], d[sample])
+        if not model:
+            n_degenerate += 1
+            continue
+        r = _safe_residuals(model, s, d)
+        inl = r < config.threshold_px
+        count = int(inl.sum())
+        cost = float(r[inl].sum())
+        if count > best_count or (count == best_count and cost < best_cost):
+            best_model, best_count, best_cost, best_inl = model, count, cost, inl
+            history.append(float(count))
+            limit = min(
+                limit,
+                adaptive_max_iterations(count / len(idx_all), k, config.confidence),
+            )
+    if best_model is None:
+        return _failed(
+            n, f"all {trial} samples were degenerate (collinear or duplicate points)", trial
+        )
+    if best_count < min_inliers:
+        return _failed(
+            n,
+            f"no consensus: the best of {trial} samples has {best_count} inliers within "
+            f"{config.threshold_px} px of {len(idx_all)} pairs (needs {min_inliers})",
+            trial,
+            best_model,
+            inliers=best_inl,
+            residuals=_safe_residuals(best_model, s, d),
+            history=tuple(history),
+        )
+
+    model = best_model
+    if config.refine != "none":
+        refit = model_type.estimate(
+            s[best_inl],
+            d[best_inl],
+            initial=None if config.refine == "lstsq" else best_model,
+            optimizer=config.refine,
+        )
+        if refit:
+            model = refit
+        else:
+            log.debug("RANSAC refit on %d inliers failed: %s", best_count, refit.reason)
+    r = _safe_residuals(model, s, d)
+    inl = r < config.threshold_px
+    if inl.sum() < best_count and model is not best_model:
+        # The refit lost consensus (it should not); keep the sample's model.
+        model = best_model
+        r = _safe_residuals(model, s, d)
+        inl = r < config.threshold_px
+    return FitResult(model, inl, r, trial, True, "", tuple(history))
+
+
+def reqcon(
+    src: ArrayLike,
+    dst: ArrayLike,
+    initial_model: Any,
+    config: ReqconConfig = ReqconConfig(),
+    *,
+    domain: ArrayLike | None = None,
+) -> FitResult:
+    """REQCON (paper 4.3.2): fit, drop the worst points, refit, until the kept points fit well.
+
+    Round ``i``: fit ``type(initial_model)`` to the kept points with ``config.optimizer``, warm
+    started from the previous round's model (round 1 from ``initial_model``; its degree and
+    normalisation are kept); if the kept points' mean residual is below
+    ``target_mean_error_px``, stop with success; otherwise drop the worst
+    ``max(1, ceil(drop_fraction * n_kept))`` kept points and go on.
+
+    Args:
+        src, dst: ``(N, 2)`` pixel coordinates of corresponding points (non-finite pairs are
+            never kept).
+        initial_model: starting model, e.g. ``PolyProjective.from_projective(coarse.rescaled(4, 4))``.
+        config: see :class:`ReqconConfig`.
+        domain: optional ``(M, 2)`` source pixels where the model must stay defined, passed to
+            the model's ``estimate`` (polyprojective: the whole frame).
+
+    Returns:
+        :class:`FitResult` with ``inliers`` = the kept points, ``history`` = the mean residual of
+        the kept points after each round. Fails (falsy, with reason) when dropping would leave
+        fewer than the guard's points, when a fit fails, or after ``max_iterations`` rounds.
+    """
+    s, d = _pairs(src, dst)
+    n = len(s)
+    model_type = type(initial_model)
+    min_s = int(getattr(initial_model, "min_samples", 1))  # instance: degree-aware
+    guard = max(
+        config.min_points if config.min_points is not None else 3 * min_s,
+        math.ceil(config.min_fraction * n),
+        min_s,
+    )
+    kept = np.isfinite(s).all(axis=1) & np.isfinite(d).all(axis=1)
+    if kept.sum() < guard:
+        return _failed(
+            n,
+            f"needs at least {guard} finite point pairs (min_points guard), got {int(kept.sum())}",
+            0,
+        )
+    model = initial_model
+    history: list[float] = []
+    for it in range(1, config.max_iterations + 1):
+        extra = {} if domain is None else {"domain": domain}
+        fit = model_type.estimate(
+            s[kept], d[kept], initial=model, optimizer=config.optimizer, **extra
+        )
+        if not fit:
+            return _failed(
+                n,
+                f"fit failed in round {it} on {int(kept.sum())} points: {fit.reason}",
+                it,
+                model,
+                inliers=kept.copy(),
+                residuals=_safe_residuals(model, s, d),
+                history=tuple(history),
+            )
+        model = fit
+        r = _safe_residuals(model, s, d)
+        mean_kept = float(np.mean(r[kept]))
+        history.append(mean_kept)
+        if mean_kept < config.target_mean_error_px:
+            return FitResult(model, kept.copy(), r, it, True, "", tuple(history))
+        n_kept = int(kept.sum())
+        n_drop = max(1, math.ceil(config.drop_fraction * n_kept))
+        if n_kept - n_drop < guard:
+            return _failed(
+                n,
+                f"mean error {mean_kept:.3g} px of {n_kept} kept points is still above "
+                f"{config.target_mean_error_px} px, and dropping {n_drop} more would go below "
+                f"the guard of {guard} points",
+                it,
+                model,
+                inliers=kept.copy(),
+                residuals=r,
+                history=tuple(history),
+            )
+        kept_idx = np.flatnonzero(kept)
+        # Stable sort so that ties drop deterministically (lowest index kept).
+        worst = kept_idx[np.argsort(-r[kept_idx], kind="stable")[:n_drop]]
+        kept[worst] = False
+    return _failed(
+        n,
+        f"mean error still {history[-1]:.3g} px after {config.max_iterations} rounds",
+        config.max_iterations,
+        model,
+        inliers=kept.copy(),
+        residuals=_safe_residuals(model, s, d),
+        history=tuple(history),
+    )

@@ -1,0 +1,487 @@
+"""Real-browser end-to-end tests of the app: Debian chromium driven by playwright.
+
+Never downloads a browser (``executable_path=/usr/bin/chromium``); skipped only when that binary
+is missing. WebGL is software-rendered here, so waits are generous and scenes small (a 640x480
+simulated sequence). Screen positions of image pixels are computed in the page from the scene
+node's world matrix and the three.js camera, then clicked; the app must report the same pixels.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+CHROMIUM = Path("/usr/bin/chromium")
+pytestmark = [
+    pytest.mark.browser,
+    pytest.mark.skipif(
+        not CHROMIUM.exists(), reason="Debian chromium (/usr/bin/chromium) is not installed"
+    ),
+]
+
+viser = pytest.importorskip("viser")
+playwright_api = pytest.importorskip("playwright.sync_api")
+
+from app.project import Project  # noqa: E402
+from app.server import App  # noqa: E402
+from registration.distortion import HarrisModel  # noqa: E402
+from tests.test_app import small_seq  # noqa: E402,F401  (session fixture: 4 frames 640x480)
+
+LAUNCH_ARGS = [
+    "--headless=new",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+]
+VIEWPORT = {"width": 1280, "height": 800}
+SHOTS = (
+    Path(os.environ.get("AERIALREG_TEST_SHOTS", ""))
+    if os.environ.get("AERIALREG_TEST_SHOTS")
+    else None
+)
+
+# Screen (CSS px) of a pixel of the image node: node-local coordinates (x right, y down, image
+# centre at the origin) -> world (the node's matrix) -> normalised device coordinates -> CSS px.
+JS_SCREEN_OF = """([node, lx, ly]) => {
+  const m = window.__viserMutable; const o = m.nodeRefFromName[node];
+  if (!o) return null;
+  o.updateMatrixWorld(true); m.camera.updateMatrixWorld();
+  const V = o.position.constructor; const v = new V(lx, ly, 0);
+  o.localToWorld(v); v.project(m.camera);
+  const r = m.canvas.getBoundingClientRect();
+  return [r.left + (v.x + 1) / 2 * r.width, r.top + (1 - v.y) / 2 * r.height];
+}"""
+# RGBA pixels of the rendered WebGL canvas at CSS points.
+JS_PIXELS_AT = """(pts) => {
+  const c = window.__viserMutable.canvas; const t = document.createElement('canvas');
+  t.width = c.width; t.height = c.height; const g = t.getContext('2d'); g.drawImage(c, 0, 0);
+  const r = c.getBoundingClientRect(); const s = c.width / r.width;
+  return pts.map(([x, y]) => Array.from(g.getImageData(Math.floor((x - r.left) * s), Math.floor((y - r.top) * s), 1, 1).data));
+}"""
+
+
+def wait_until(cond, timeout=30.0, interval=0.1, what="condition"):
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < timeout:
+        v = cond()
+        if v:
+            return v
+        time.sleep(interval)
+    raise AssertionError(f"timed out after {timeout:.0f} s waiting for {what}")
+
+
+@pytest.fixture(scope="module")
+def browser():
+    with playwright_api.sync_playwright() as p:
+        b = p.chromium.launch(executable_path=str(CHROMIUM), args=LAUNCH_ARGS)
+        yield b
+        b.close()
+
+
+@pytest.fixture
+def live_app(tmp_path, small_seq):  # noqa: F811
+    apps = []
+
+    def start(**kw) -> App:
+        server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+        app = App(
+            server,
+            Project(tmp_path / "proj"),
+            frames=str(small_seq / "frames"),
+            base=str(small_seq / "base.png"),
+            allowed_dirs=[tmp_path, small_seq],
+            **kw,
+        )
+        app.start()
+        app.worker.wait_idle()
+        apps.append(app)
+        return app
+
+    yield start
+    for app in apps:
+        app.stop()
+
+
+class Page:
+    """A playwright page on the app, recording any request that leaves localhost."""
+
+    def __init__(self, browser, port: int) -> None:
+        self.port = port
+        self.external: list[str] = []
+        self.page = browser.new_page(viewport=VIEWPORT)
+        self.page.route("**/*", self._route)
+        self.page.goto(f"http://127.0.0.1:{port}/")
+        self.page.wait_for_function(
+            "() => window.__viserMutable && window.__viserMutable.nodeRefFromName "
+            "&& !document.body.innerText.includes('Connecting...')",
+            timeout=30000,
+        )
+        self.close_notifications()
+
+    def _route(self, route) -> None:
+        url = route.request.url
+        local = any(
+            url.startswith(f"{scheme}://{host}:{self.port}")
+            for scheme in ("http", "ws")
+            for host in ("127.0.0.1", "localhost")
+        )
+        if local or url.startswith(("data:", "blob:")):
+            route.continue_()
+        else:
+            self.external.append(url)
+            route.abort()
+
+    def close_notifications(self) -> None:
+        # The "software WebGL" notice covers the canvas's top-left and swallows clicks.
+        time.sleep(0.3)
+        for btn in self.page.locator(".mantine-Notification-root button").all():
+            try:
+                btn.click(timeout=1000)
+            except Exception:
+                pass
+        time.sleep(0.6)
+
+    def wait_node(self, name: str, timeout=30.0) -> None:
+        self.page.wait_for_function(
+            f"() => window.__viserMutable.nodeRefFromName[{json.dumps(name)}] !== undefined",
+            timeout=timeout * 1000,
+        )
+
+    def screen_of(self, node: str, geom, xy) -> tuple[float, float]:
+        s = geom.scale
+        lx = (xy[0] + 0.5 - geom.width / 2) * s
+        ly = (xy[1] + 0.5 - geom.height / 2) * s
+        return tuple(self.page.evaluate(JS_SCREEN_OF, [node, lx, ly]))
+
+    def pixels(self, pts) -> np.ndarray:
+        return np.array(self.page.evaluate(JS_PIXELS_AT, [list(map(float, p)) for p in pts]), float)
+
+    def click_pixel(self, node: str, geom, xy) -> None:
+        sx, sy = self.screen_of(node, geom, xy)
+        # viser casts its click ray through the pixel centre (clientX + 0.5).
+        self.page.mouse.click(sx - 0.5, sy - 0.5)
+
+    def number_input(self, label: str):
+        return self.page.locator(
+            f"xpath=//p[normalize-space(.)={json.dumps(label, ensure_ascii=False)}]/ancestor::div[contains(@class,'mantine-Flex-root')][1]"
+            "//input[not(@type='hidden')]"
+        ).last
+
+    def set_number(self, label: str, value) -> None:
+        box = self.number_input(label)
+        box.fill(str(value))
+        box.press("Enter")
+
+    def button(self, text: str):
+        return self.page.get_by_role("button", name=text, exact=True).first
+
+    def count_dominant(self, channel: int, margin: int) -> int:
+        """Pixels of a page screenshot whose RGB ``channel`` exceeds both others by ``margin``."""
+        import cv2
+
+        png = np.frombuffer(self.page.screenshot(), np.uint8)
+        rgb = cv2.imdecode(png, cv2.IMREAD_COLOR)[..., ::-1].astype(int)
+        others = np.delete(rgb, channel, axis=2).max(axis=2)
+        return int(((rgb[..., channel] - others) > margin).sum())
+
+    def shot(self, name: str) -> None:
+        if SHOTS is not None:
+            SHOTS.mkdir(parents=True, exist_ok=True)
+            self.page.screenshot(path=str(SHOTS / f"{name}.png"))
+
+
+def zoom_to(app: App, geom, xy, span_px: float = 200.0) -> None:
+    """Point every client's camera at pixel ``xy`` of a plane, ``span_px`` image px across."""
+    from app import scene2d
+
+    centre = geom.world_from_pixel(np.asarray(xy, float))
+    region = scene2d.PlaneGeometry(int(span_px), int(span_px * 0.75), position=tuple(centre))
+    pose = scene2d.fit_camera([region])
+    for client in app.server.get_clients().values():
+        app._apply_camera(client, pose)
+    time.sleep(1.5)  # camera message, then a software-WebGL render
+
+
+def grid_points(geom, n=5, margin=0.15):
+    xs = np.linspace(geom.width * margin, geom.width * (1 - margin), n)
+    ys = np.linspace(geom.height * margin, geom.height * (1 - margin), n)
+    return np.array([(x, y) for y in ys for x in xs])
+
+
+def rendered_matches_image(page: Page, node: str, geom, image_rgb: np.ndarray) -> float:
+    """Correlation between canvas pixels and the expected image at a grid of image points."""
+    import cv2
+
+    pts = grid_points(geom, 7)
+    screen = [page.screen_of(node, geom, p) for p in pts]
+    got = page.pixels(screen)[:, :3].mean(axis=1)
+    blurred = cv2.GaussianBlur(image_rgb, (0, 0), 1.5)
+    want = np.array([blurred[int(round(y)), int(round(x))].mean() for x, y in pts])
+    return float(np.corrcoef(got, want)[0, 1])
+
+
+def test_loads_offline_shows_frame_and_gamma_changes_it(browser, live_app, small_seq):  # noqa: F811
+    import cv2
+
+    app = live_app()
+    cal = app.tabs["Calibrate"]
+    cal.grid_box.value = False  # reference lines off: compare pure image pixels
+    app.worker.wait_idle()
+    page = Page(browser, app.server.get_port())
+    page.wait_node("/calibrate/frame")
+    geom = cal.image_planes["frame"].geom
+    raw = cv2.cvtColor(app.inputs.frame(0), cv2.COLOR_BGR2RGB)
+    corr = wait_until(
+        lambda: (c := rendered_matches_image(page, "/calibrate/frame", geom, raw)) > 0.8 and c,
+        what="the frame on the canvas",
+    )
+    page.shot("calibrate")
+    # Background away from the image is the empty scene (uniform).
+    bg = page.pixels([(30, 780), (60, 770)])
+    assert np.ptp(bg[:, :3]) < 10, bg
+    before = page.pixels(
+        [page.screen_of("/calibrate/frame", geom, p) for p in grid_points(geom, 7)]
+    )
+    page.set_number("γ (exact)", 0.7)
+    wait_until(lambda: app.state.gamma == pytest.approx(0.7), what="γ = 0.7 in the state")
+    app.worker.wait_idle()
+    corrected = cal.corrected_image(0, 0.7, None)
+    wait_until(
+        lambda: rendered_matches_image(page, "/calibrate/frame", geom, corrected) > 0.8,
+        what="the corrected frame on the canvas",
+    )
+    # ... and it is the corrected image, not the raw one any more.
+    assert rendered_matches_image(page, "/calibrate/frame", geom, raw) < 0.8
+    after = page.pixels([page.screen_of("/calibrate/frame", geom, p) for p in grid_points(geom, 7)])
+    assert np.abs(after - before)[:, :3].mean() > 5.0
+    assert json.loads((app.project.session_path).read_text())["gamma"] == pytest.approx(0.7)
+    page.shot("calibrate_gamma")
+    assert page.external == [], page.external
+    assert corr > 0.8
+
+
+def test_seed_clicks_within_one_pixel_and_match_view(browser, live_app, small_seq):  # noqa: F811
+    from registration.synth import load_truth
+
+    truth = load_truth(small_seq)
+    app = live_app()
+    app.tabs["Calibrate"].set_gamma(truth.gamma)
+    page = Page(browser, app.server.get_port())
+    page.button("Seed").click()
+    wait_until(lambda: app.state.mode == "Seed", what="Seed view")
+    app.worker.wait_idle()
+    seed = app.tabs["Seed"]
+    page.wait_node("/seed/frame")
+    page.wait_node("/seed/base")
+    time.sleep(1.0)
+    fgeom, bgeom = seed.image_planes["frame"].geom, seed.image_planes["base"].geom
+    w, h = app.inputs.frame_size
+    raw_target = np.array([w * 0.45 + 0.3, h * 0.46 + 0.6])
+    corrected_target = HarrisModel(truth.gamma, w, h).corrected_from_raw(raw_target[None])[0]
+    base_target = truth.frame_to_base(0, raw_target[None])[0]
+    # Zoomed in so that one CSS pixel is a fraction of an image pixel, as an analyst would.
+    zoom_to(app, fgeom, corrected_target)
+    page.click_pixel("/seed/frame", fgeom, corrected_target)
+    wait_until(lambda: app.state.seed_frame is not None, what="the frame click")
+    zoom_to(app, bgeom, base_target)
+    page.click_pixel("/seed/base", bgeom, base_target)
+    wait_until(lambda: app.state.seed is not None, what="the map click")
+    app.fit_cameras(seed.planes())
+    got = HarrisModel(truth.gamma, w, h).corrected_from_raw([app.state.seed_frame])[0]
+    assert np.hypot(*(got - corrected_target)) < 1.0, (got, corrected_target)
+    assert np.hypot(*(np.array(app.state.seed_base) - base_target)) < 1.0
+    # Match view: the coarse step's matches appear as green (inlier) lines between the images.
+    green_before = page.count_dominant(1, 40)  # green-dominated pixels (trees, before lines)
+    page.button("Run coarse step").click()
+    wait_until(
+        lambda: app.jobs.busy or app.state.coarse is not None, what="the coarse step to start"
+    )
+    app.jobs.join(120)
+    assert app.state.coarse.success, app.errors
+    app.worker.wait_idle()
+    page.wait_node("/seed/matches")
+    time.sleep(1.5)
+    page.shot("seed_matches")
+    wait_until(
+        lambda: page.count_dominant(1, 40) > green_before + 1000,
+        what="green match lines on the canvas",
+    )
+    page.shot("seed_matches")
+    assert page.page.locator("text=inliers").count() >= 1
+
+
+def test_scrubber_changes_frame(browser, live_app, small_seq):  # noqa: F811
+    from registration.synth import load_truth
+
+    truth = load_truth(small_seq)
+    app = live_app()
+    app.tabs["Calibrate"].set_gamma(truth.gamma)
+    seq = app.tabs["Sequence"]
+    app.set_mode("Sequence")
+    assert seq.run()
+    app.jobs.join(300)
+    app.worker.wait_idle()
+    assert seq.result is not None and seq.result.is_ok(3), app.errors
+    page = Page(browser, app.server.get_port())
+    page.wait_node("/sequence/base")
+    geom = seq.image_planes["base"].geom
+    pts = [page.screen_of("/sequence/base", geom, p) for p in grid_points(geom, 9, 0.3)]
+    time.sleep(1.5)
+    before = page.pixels(pts)
+    page.set_number("Frame", 3)
+    wait_until(lambda: app.state.seq_frame == 3, what="the scrubber")
+    app.worker.wait_idle()
+    wait_until(
+        lambda: np.abs(page.pixels(pts) - before)[:, :3].mean() > 2.0, what="a changed image"
+    )
+    assert app.shown["Sequence"][0] == 3
+    page.shot("sequence")
+
+
+def test_two_tabs_moving_sliders_stay_consistent(browser, live_app):
+    app = live_app()
+    a = Page(browser, app.server.get_port())
+    b = Page(browser, app.server.get_port())
+    values_a = [0.1, 0.3, 0.5, 0.2]
+    values_b = [0.15, 0.35, 0.45, 0.25]
+    for va, vb in zip(values_a, values_b, strict=True):
+        a.set_number("γ (exact)", va)
+        b.set_number("γ (exact)", vb)
+    time.sleep(1.0)
+    app.worker.wait_idle()
+    time.sleep(0.8)  # the settle (full-resolution) render
+    app.worker.wait_idle()
+    g = app.state.gamma
+    assert g in values_a + values_b
+    cal = app.tabs["Calibrate"]
+    assert cal.gamma_number.value == pytest.approx(g)
+    assert app.shown["Calibrate"][1] == pytest.approx(g)  # the image shown is for the final γ
+    assert json.loads(app.project.session_path.read_text())["gamma"] == pytest.approx(g)
+    for p in (a, b):
+        wait_until(
+            lambda p=p: float(p.number_input("γ (exact)").input_value()) == pytest.approx(g),
+            what="synced boxes",
+        )
+
+
+def test_bad_path_and_oversized_upload_notify(browser, live_app, tmp_path):
+    app = live_app(max_upload_mb=0.01)
+    page = Page(browser, app.server.get_port())
+    page.page.get_by_text("Inputs", exact=True).first.click()
+    time.sleep(0.5)
+    frames_box = page.number_input("Frames (video, folder, glob)")
+    frames_box.fill("/etc/passwd")
+    frames_box.press("Enter")
+    page.button("Open paths").click()
+    page.page.wait_for_selector("text=Path refused", timeout=15000)
+    assert "outside the allowed folders" in page.page.inner_text("body")
+    big = tmp_path / "big.mp4"
+    big.write_bytes(b"\0" * 50_000)
+    page.page.locator("input[type=file]").first.set_input_files(str(big))
+    page.page.wait_for_selector("text=Upload refused", timeout=15000)
+    page.shot("refused")
+    # Still serving: the γ box still drives the app.
+    page.close_notifications()
+    page.set_number("γ (exact)", 0.3)
+    wait_until(lambda: app.state.gamma == pytest.approx(0.3), what="the app still responding")
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _serve(project: Path, seq: Path, port: int) -> subprocess.Popen:
+    cmd = [
+        sys.executable,
+        "-m",
+        "app.cli",
+        "app",
+        "--frames",
+        str(seq / "frames"),
+        "--base",
+        str(seq / "base.png"),
+        "--project",
+        str(project),
+        "--port",
+        str(port),
+    ]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < 60:
+        try:
+            with socket.create_connection(("127.0.0.1", port), timeout=0.5):
+                return proc
+        except OSError:
+            if proc.poll() is not None:
+                raise AssertionError(f"server exited: {proc.stderr.read()}") from None
+            time.sleep(0.2)
+    proc.kill()
+    raise AssertionError("server did not start")
+
+
+def test_kill_mid_sequence_and_restart_keeps_frames(browser, tmp_path_factory):
+    from registration.synth import SimConfig, load_truth, simulate
+
+    seq = tmp_path_factory.mktemp("longseq")
+    simulate(seq, SimConfig(frame_size=(640, 480), n_frames=10, video=False, seed=3))
+    truth = load_truth(seq)
+    project = tmp_path_factory.mktemp("proj")
+    fxy = np.array([320.0, 240.0])
+    bxy = truth.frame_to_base(0, fxy[None])[0]
+    # A session with γ and the seed already decided (as the analyst would have left it).
+    Project(project).save(
+        {"gamma": truth.gamma, "seed_frame": list(fxy), "seed_base": list(bxy), "mode": "Sequence"}
+    )
+    port = _free_port()
+    proc = _serve(project, seq, port)
+    records = project / "result" / "frames"
+    try:
+        page = Page(browser, port)
+        page.button("Register all frames").click()
+        wait_until(
+            lambda: records.is_dir() and len(list(records.glob("*.json"))) >= 2,
+            timeout=120,
+            interval=0.02,
+            what="two registered frames",
+        )
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(10)
+        page.page.close()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    done = {p.name: p.stat().st_mtime_ns for p in records.glob("*.json")}
+    assert 2 <= len(done) < 10, f"killed too late to test resuming: {len(done)} frames done"
+    proc = _serve(project, seq, port)
+    try:
+        page = Page(browser, port)
+        page.page.wait_for_selector(f"text={len(done)} ok", timeout=30000)
+        page.button("Register all frames").click()
+        wait_until(
+            lambda: len(list(records.glob("*.json"))) == 10,
+            timeout=180,
+            what="all frames registered",
+        )
+        page.page.wait_for_selector("text=10 ok", timeout=60000)
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+    after = {p.name: p.stat().st_mtime_ns for p in records.glob("*.json")}
+    assert all(after[name] == mtime for name, mtime in done.items()), "finished frames were redone"

@@ -1,0 +1,394 @@
+"""Local displacement field (paper section 5): known fields recovered, moving cars rejected."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import cv2
+import numpy as np
+import pytest
+
+from registration import local, warp
+from registration.local import (
+    NEIGHBOUR_OUTLIER,
+    NO_CONSENSUS,
+    OK,
+    RIVAL_MOTION,
+    DisplacementField,
+    LocalConfig,
+)
+from tests.conftest import shared_data
+
+W, H = 640, 480
+
+
+def texture(width: int, height: int, seed: int, scales=((2, 1.0), (4, 1.0), (8, 1.0), (16, 1.0))):
+    """Aerial-like multi-scale random texture, float32 zero mean unit variance."""
+    rng = np.random.default_rng(seed)
+    img = np.zeros((height, width), np.float32)
+    for s, a in scales:
+        n = rng.standard_normal((height // s + 2, width // s + 2)).astype(np.float32)
+        img += (
+            a
+            * cv2.resize(n, (width + 2 * s, height + 2 * s), interpolation=cv2.INTER_CUBIC)[
+                :height, :width
+            ]
+        )
+    return (img - img.mean()) / img.std()
+
+
+def to_u8(img):
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def smooth_field(xy):
+    """A few px, spatially varying (the residual a global model leaves): (N,2) -> (N,2)."""
+    x, y = xy[:, 0], xy[:, 1]
+    return np.stack(
+        [
+            1.5 + 1.2 * np.sin(2 * np.pi * x / 2000 + 0.3) + 0.4 * (y / H),
+            -1.0 + 1.0 * np.cos(2 * np.pi * y / 1600) + 0.5 * (x / W),
+        ],
+        axis=1,
+    )
+
+
+def warp_by(reference, e):
+    """registered(y) = reference(y - e(y)): content of reference at x appears at x + d(x) with
+    d(x) = e(x + d(x)). Returns (registered, true d as a function)."""
+    h, w = reference.shape
+    grid = warp.pixel_grid(w, h).reshape(-1, 2).astype(np.float64)
+    registered = warp.remap(reference, (grid - e(grid)).reshape(h, w, 2), interpolation="cubic")
+
+    def d_true(xy):
+        d = e(xy)
+        for _ in range(60):
+            d = e(xy + d)
+        return d
+
+    return registered, d_true
+
+
+# --------------------------------------------------------------------------------------------
+# Field layout and mappings
+
+
+def test_grid_nodes_are_centred_and_cover_the_crop():
+    (x0, y0), (gx, gy) = local.grid_nodes(1280, 960, 200, origin=(100, 50))
+    assert (gx, gy) == (7, 5)
+    assert (x0, y0) == (100 + 39.5, 50 + 79.5)
+    f = DisplacementField.zeros(1280, 960, 200, origin=(100, 50))
+    ext = f.extent
+    assert ext[0] <= 100 - 0.5 and ext[2] >= 100 + 1279.5
+    assert ext[1] <= 50 - 0.5 and ext[3] >= 50 + 959.5
+
+
+def test_sample_and_dense_agree_bilinear_and_nan_outside(rng):
+    vec = rng.normal(size=(3, 4, 2)).astype(np.float32)
+    f = DisplacementField((10.0, 20.0), 100.0, vec, np.ones((3, 4), bool))
+    # Exact at nodes, bilinear midway.
+    assert np.allclose(f.sample([[10, 20], [310, 220]]), [vec[0, 0], vec[2, 3]], atol=1e-6)
+    mid = f.sample([[60, 70]])[0]
+    assert np.allclose(mid, vec[:2, :2].reshape(-1, 2).mean(axis=0), atol=1e-6)
+    # Constant beyond the outer nodes, NaN outside the cells.
+    assert np.allclose(f.sample([[-39, 20]]), vec[0, 0], atol=1e-6)
+    assert np.isnan(f.sample([[-41, 20]])).all()
+    dense = f.dense(400, 300, origin=(-50, -40))
+    ys, xs = np.mgrid[0:300:7, 0:400:9]
+    pts = np.c_[xs.ravel() - 50.0, ys.ravel() - 40.0]
+    s = f.sample(pts)
+    d = dense[ys.ravel(), xs.ravel()]
+    assert np.array_equal(np.isnan(s), np.isnan(d))
+    ok = np.isfinite(s)
+    assert np.allclose(s[ok], d[ok], atol=1e-5)
+    # Round trip through plain arrays (what result folders store).
+    g = DisplacementField.from_arrays({f"field_{k}": v for k, v in f.to_arrays().items()}, "field_")
+    assert g.origin == f.origin and g.spacing == f.spacing
+    assert np.array_equal(g.vectors, f.vectors) and np.array_equal(g.valid, f.valid)
+
+
+def test_local_frame_to_base_inverts_local_base_to_frame(rng):
+    vec = rng.uniform(-3, 3, size=(4, 5, 2)).astype(np.float32)
+    f = DisplacementField((0.0, 0.0), 200.0, vec, np.ones((4, 5), bool))
+    a = np.array([[1.01, 0.02], [-0.03, 0.99]])
+    t = np.array([5.0, -7.0])
+
+    def frame_to_base(q):
+        return q @ a.T + t
+
+    def base_to_frame(b):
+        return (b - t) @ np.linalg.inv(a).T
+
+    q = rng.uniform(0, 700, size=(200, 2))
+    x = local.local_frame_to_base(frame_to_base, f, q)
+    assert np.isfinite(x).all()
+    # x + d(x) = g(q) to the 1e-4 px the iteration promises.
+    assert np.abs(x + f.sample(x) - frame_to_base(q)).max() < 1e-4
+    back = local.local_base_to_frame(base_to_frame, f, x)
+    assert np.abs(back - q).max() < 1e-3
+    # Beyond the field it is extended constantly (the global mapping decides coverage) ...
+    far = local.local_frame_to_base(frame_to_base, f, [[5000.0, 5000.0]])
+    assert np.allclose(far, frame_to_base(np.array([[5000.0, 5000.0]])) - vec[-1, -1], atol=1e-4)
+    assert np.allclose(f.sample([[9000.0, 9000.0]], outside="clamp"), vec[-1, -1], atol=1e-6)
+    # ... and NaN from the global mapping stays NaN, never an exception.
+    nan_map = local.local_frame_to_base(lambda q: np.full_like(q, np.nan), f, [[1.0, 2.0]])
+    assert np.isnan(nan_map).all()
+    assert np.isnan(
+        local.local_base_to_frame(lambda b: np.full_like(b, np.nan), f, [[1.0, 2.0]])
+    ).all()
+
+
+def test_apply_field_direction_constant_shift():
+    ref = to_u8(128 + 40 * texture(W, H, 1))
+    # Content of the reference at x sits at x + (3, -2) in the registered image.
+    registered = warp.remap(ref, warp.pixel_grid(W, H) - np.float32([3, -2]), interpolation="cubic")
+    f = DisplacementField(
+        (0.0, 0.0), 200.0, np.tile(np.float32([3, -2]), (3, 4, 1)), np.ones((3, 4), bool)
+    )
+    out = local.apply_field(registered, f, interpolation="cubic")
+    inner = (slice(10, H - 10), slice(10, W - 10))
+    assert np.abs(out[inner].astype(int) - ref[inner]).mean() < 1.0
+
+
+def test_fill_invalid_uses_neighbours():
+    vec = np.zeros((3, 3, 2), np.float32)
+    valid = np.zeros((3, 3), bool)
+    vec[0, 0] = (2, 0)
+    valid[0, 0] = True
+    vec[2, 2] = (0, 4)
+    valid[2, 2] = True
+    out = local.fill_invalid(vec, valid)
+    assert np.allclose(out[0, 0], (2, 0)) and np.allclose(out[2, 2], (0, 4))
+    assert np.allclose(out[0, 1], (2, 0))  # only (0,0) is a neighbour
+    assert np.allclose(out[1, 1], (1, 2))  # both are
+    assert np.allclose(local.fill_invalid(vec, np.zeros((3, 3), bool)), 0)
+
+
+# --------------------------------------------------------------------------------------------
+# Consensus
+
+
+def test_reqcon_drops_injected_outliers_exactly(rng):
+    disp = np.array([1.0, -0.5]) + rng.normal(0, 0.1, size=(40, 2))
+    # REQCON drops ceil(5 % of 40) = 2 per round: four outliers go in exactly two rounds.
+    outliers = [3, 17, 29, 35]
+    disp[outliers] += [[6.0, 0.0], [0.0, -7.0], [4.0, 4.0], [-5.0, 2.0]]
+    pos = rng.uniform(0, 200, size=(40, 2))
+    c = local.cell_consensus(pos, disp, (100, 100), LocalConfig())
+    assert c.status == OK
+    assert np.array_equal(np.nonzero(~c.kept)[0], outliers)
+    assert np.allclose(c.vector, [1.0, -0.5], atol=0.05)
+
+
+def test_rival_motion_rejects_two_coherent_motions(rng):
+    static = np.array([1.0, 0.0]) + rng.normal(0, 0.1, size=(60, 2))
+    cars = np.array([1.0, 8.0]) + rng.normal(0, 0.1, size=(40, 2))
+    disp = np.r_[static, cars]
+    pos = rng.uniform(0, 200, size=(100, 2))
+    c = local.cell_consensus(pos, disp, (100, 100), LocalConfig())
+    assert c.status == RIVAL_MOTION and np.isnan(c.vector).all()
+    # REQCON itself found the majority: the guard rejects, it does not pick.
+    assert c.kept[:60].all() and not c.kept[60:].any()
+    # Without the guard the same matches give the static vector (the majority).
+    c2 = local.cell_consensus(pos, disp, (100, 100), LocalConfig(rival_ratio=0))
+    assert c2.status == OK and np.allclose(c2.vector, [1.0, 0.0], atol=0.05)
+    # A small car group (15 % of the matches) is no rival.
+    c3 = local.cell_consensus(pos, np.r_[static, cars[:10]], (100, 100), LocalConfig())
+    assert c3.status == OK and np.allclose(c3.vector, [1.0, 0.0], atol=0.05)
+
+
+def test_no_consensus_from_random_matches(rng):
+    disp = rng.uniform(-10, 10, size=(30, 2))
+    c = local.cell_consensus(rng.uniform(0, 200, (30, 2)), disp, (100, 100), LocalConfig())
+    assert c.status == NO_CONSENSUS
+
+
+def test_neighbour_check_flags_the_odd_cell():
+    vec = np.tile(np.float32([1.0, -1.0]), (4, 5, 1))
+    vec[1, 2] = (1.0, 7.0)
+    vec[3, 0] = (1.5, -1.4)  # a small, genuine variation
+    valid = np.ones((4, 5), bool)
+    bad = local.neighbour_check(vec, valid, 3.0, 3)
+    assert np.argwhere(bad).tolist() == [[1, 2]]
+
+
+# --------------------------------------------------------------------------------------------
+# End to end on images
+
+
+def test_estimate_field_recovers_a_known_smooth_field():
+    ref = to_u8(128 + 40 * texture(W, H, 7))
+    registered, d_true = warp_by(ref, smooth_field)
+    f, stats = local.estimate_field(registered, ref, LocalConfig())
+    assert f.shape == (3, 4)
+    assert stats.n_valid == 12, stats.counts()
+    nodes = f.node_xy.reshape(-1, 2)
+    err = np.linalg.norm(f.vectors.reshape(-1, 2) - d_true(nodes), axis=1)
+    assert err.max() < 0.3, err
+    # The dense field: applying it leaves well under 1 px, far less than without it.
+    grid = warp.pixel_grid(W, H).reshape(-1, 2).astype(np.float64)
+    truth = d_true(grid)
+    after = np.linalg.norm(f.dense(W, H).reshape(-1, 2) - truth, axis=1)
+    before = np.linalg.norm(truth, axis=1)
+    assert np.nanmean(after) < 1.0 and np.nanmean(after) < 0.25 * before.mean()
+    # And the locally registered image matches the reference better than the global one.
+    out = local.apply_field(registered, f, interpolation="cubic")
+    inner = (slice(12, H - 12), slice(12, W - 12))
+    diff_after = np.abs(out[inner].astype(float) - ref[inner]).mean()
+    diff_before = np.abs(registered[inner].astype(float) - ref[inner]).mean()
+    assert diff_after < 0.5 * diff_before
+
+
+def test_estimate_field_on_real_aerial_imagery():
+    path = shared_data("songdo-vision-drone", "images", "00003.jpg")
+    img = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    ref = np.ascontiguousarray(img[800 : 800 + H, 1500 : 1500 + W])
+    registered, d_true = warp_by(ref, smooth_field)
+    f, stats = local.estimate_field(registered, ref, LocalConfig())
+    ok = f.valid.ravel()
+    assert ok.sum() >= 8, stats.counts()
+    err = np.linalg.norm(f.vectors.reshape(-1, 2) - d_true(f.node_xy.reshape(-1, 2)), axis=1)
+    assert err[ok].max() < 0.3, err
+
+
+def test_valid_mask_marks_cells_outside():
+    ref = to_u8(128 + 40 * texture(W, H, 3))
+    registered, _ = warp_by(ref, smooth_field)
+    mask = np.ones((H, W), bool)
+    mask[:, 420:] = False  # the frame's footprint ends here
+    registered[~mask] = 0
+    f, stats = local.estimate_field(registered, ref, LocalConfig(), valid_mask=mask)
+    assert (stats.cell_status[:, 3] == local.OUTSIDE).all()
+    assert (stats.cell_status[:, :2] == OK).all()
+    assert not f.valid[:, 3].any()
+    assert np.isfinite(f.vectors).all()
+
+
+CAR = np.full((26, 12), 230, np.float32)
+CAR[4:9, 2:10] = 40
+CAR[17:22, 2:10] = 60
+CAR[11:14, 3:9] = 120
+
+
+def _paste(img, x, y):
+    h, w = CAR.shape
+    ys, xs = np.mgrid[0 : img.shape[0], 0 : img.shape[1]].astype(np.float32)
+    sx, sy = xs - x, ys - y
+    inside = (sx >= 0) & (sx <= w - 1) & (sy >= 0) & (sy <= h - 1)
+    img[inside] = cv2.remap(CAR, sx, sy, cv2.INTER_LINEAR)[inside]
+
+
+def car_scene(flat_cell: bool):
+    """Reference and registered image with a static shift STATIC, and three lanes of identical
+    cars through cell (1, 1) that move 8 px down between the two images."""
+    pad = 20
+    bg = texture(W + 2 * pad, H + 2 * pad, 5)
+    base = 128 + 40 * bg
+    (x0, y0), _ = local.grid_nodes(W, H, 200)
+    cx, cy = x0 + 200 + pad, y0 + 200 + pad
+    if flat_cell:  # little ground texture in that cell: the cars dominate its matches
+        m = np.zeros_like(base)
+        m[int(cy) - 100 : int(cy) + 100, int(cx) - 100 : int(cx) + 100] = 1
+        m = cv2.GaussianBlur(m, (0, 0), 8)
+        base = base * (1 - m) + (128 + 6 * bg) * m
+    ref_big, reg_big = base.copy(), base.copy()
+    for lane in (-40, 0, 40):
+        for k in range(7):
+            x, y = cx + lane - 6, cy - 100 + 30 * k
+            _paste(ref_big, x, y)
+            _paste(reg_big, x, y + 8.0)
+    ref = to_u8(ref_big[pad : pad + H, pad : pad + W])
+    grid = warp.pixel_grid(W, H)
+    src = grid - np.float32(STATIC) + pad
+    registered = warp.remap(to_u8(reg_big), src, interpolation="cubic")
+    return ref, registered
+
+
+STATIC = (1.2, -0.6)
+
+
+def test_moving_cars_do_not_drag_the_cell():
+    ref, registered = car_scene(flat_cell=False)
+    f, stats = local.estimate_field(registered, ref, LocalConfig())
+    assert stats.cell_status[1, 1] == OK
+    assert np.linalg.norm(f.vectors[1, 1] - STATIC) < 0.5
+    assert np.abs(f.vectors - STATIC).max() < 0.5
+
+
+def test_guard_rejects_a_cell_dominated_by_cars():
+    ref, registered = car_scene(flat_cell=True)
+    # Without the guard the cars win the cell's consensus: dragged by ~8 px.
+    unguarded = LocalConfig(rival_ratio=0, neighbour_tolerance_px=None)
+    f0, s0 = local.estimate_field(registered, ref, unguarded)
+    assert s0.cell_status[1, 1] == OK
+    assert np.linalg.norm(f0.vectors[1, 1] - STATIC) > 5.0
+    # With it the cell is rejected and filled from its neighbours.
+    f, stats = local.estimate_field(registered, ref, LocalConfig())
+    assert stats.cell_status[1, 1] in (NEIGHBOUR_OUTLIER, RIVAL_MOTION)
+    assert not f.valid[1, 1]
+    assert np.linalg.norm(f.vectors[1, 1] - STATIC) < 0.5
+
+
+@pytest.mark.parametrize("model", ["translation", "affine"])
+def test_cell_models_agree_on_a_constant_shift(model):
+    ref = to_u8(128 + 40 * texture(W, H, 11))
+    registered = warp.remap(
+        ref, warp.pixel_grid(W, H) - np.float32([0.7, 1.9]), interpolation="cubic"
+    )
+    f, stats = local.estimate_field(registered, ref, LocalConfig(cell_model=model))
+    assert stats.n_valid == 12
+    assert np.abs(f.vectors - [0.7, 1.9]).max() < 0.15
+
+
+# --------------------------------------------------------------------------------------------
+# The "flow" method (the default preset): same consensus and guard, dense DIS samples
+
+
+FLOW = replace(LocalConfig(), **local.FLOW_OVERRIDES)
+
+
+def test_flow_method_recovers_a_known_smooth_field():
+    ref = to_u8(128 + 40 * texture(W, H, 7))
+    registered, d_true = warp_by(ref, smooth_field)
+    f, stats = local.estimate_field(registered, ref, FLOW)
+    assert f.spacing == 100 and stats.n_valid == f.valid.size, stats.counts()
+    err = np.linalg.norm(f.vectors.reshape(-1, 2) - d_true(f.node_xy.reshape(-1, 2)), axis=1)
+    assert err.max() < 0.3, err
+    grid = warp.pixel_grid(W, H).reshape(-1, 2).astype(np.float64)
+    after = np.linalg.norm(f.dense(W, H).reshape(-1, 2) - d_true(grid), axis=1)
+    assert np.nanmean(after) < 0.2
+
+
+@pytest.mark.parametrize("flat_cell", [False, True])
+def test_flow_method_is_not_dragged_by_cars(flat_cell):
+    ref, registered = car_scene(flat_cell)
+    cfg = replace(FLOW, spacing_px=200)  # the car scene's cell (1, 1) is laid out for 200 px
+    f, stats = local.estimate_field(registered, ref, cfg)
+    assert np.linalg.norm(f.vectors[1, 1] - STATIC) < 0.5
+    assert np.abs(f.vectors - STATIC).max() < 0.5
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"cell_px": 0}, "cell_px and spacing_px must be positive"),
+        ({"ratio": 1.5}, "ratio must be in"),
+        ({"method": "orb"}, "method must be 'sift' or 'flow', got 'orb'"),
+        ({"flow_preset": "slow"}, "flow_preset must be ultrafast, fast or medium, got 'slow'"),
+        ({"cell_model": "quadratic"}, "cell_model must be"),
+    ],
+)
+def test_bad_config_names_the_value(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        LocalConfig(**kwargs)
+
+
+def test_field_stats_summary_is_json_ready():
+    import json
+
+    ref = to_u8(128 + 40 * texture(W, H, 2))
+    registered, _ = warp_by(ref, smooth_field)
+    _, stats = local.estimate_field(registered, ref, FLOW)
+    d = json.loads(json.dumps(stats.to_dict()))
+    assert d["n_valid"] == stats.n_valid and d["cells"]["ok"] == stats.n_valid
+    assert d["time_total_s"] > 0 and d["matches_per_valid_cell"] > 100
