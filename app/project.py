@@ -163,3 +163,112 @@ def resolve_allowed(path_text: str, allowed: list[Path]) -> Path:
     if not check.exists():
         raise FileNotFoundError(f"no such file or folder: {text!r}")
     return result
+
+
+REFERENCE_FILE = "reference.npz"
+
+
+def reference_to_bytes(key: dict, coarse, fine) -> bytes:
+    """The Seed view's coarse and fine results (``global_registration.CoarseResult`` /
+    ``FineResult``, fine may be None) as npz bytes, with ``key`` (γ, seed, reference frame, preset)
+    recorded so a stale file is never restored for other settings."""
+    import io as _io
+
+    import numpy as np
+
+    def model_json(m) -> str:
+        return json.dumps(m.to_dict()) if m is not None else ""
+
+    arrays = {
+        "key": np.array(json.dumps(key, sort_keys=True)),
+        "c_meta": np.array(
+            json.dumps(
+                {
+                    "success": bool(coarse.success),
+                    "reason": coarse.reason,
+                    "n_keypoints_frame": int(coarse.n_keypoints_frame),
+                    "n_keypoints_base": int(coarse.n_keypoints_base),
+                    "gate_radius_base": coarse.gate_radius_base,
+                    "gate_center_base": None
+                    if coarse.gate_center_base is None
+                    else [float(v) for v in coarse.gate_center_base],
+                    "time_s": float(coarse.time_s),
+                    "model": model_json(coarse.base_from_corrected),
+                }
+            )
+        ),
+        "c_frame_xy": coarse.frame_xy,
+        "c_base_xy": coarse.base_xy,
+        "c_gated": coarse.gated,
+        "c_inliers": coarse.inliers,
+    }
+    if fine is not None:
+        arrays["f_meta"] = np.array(
+            json.dumps(
+                {
+                    "success": bool(fine.success),
+                    "reason": fine.reason,
+                    "iterations": int(fine.iterations),
+                    "time_s": float(fine.time_s),
+                    "model": model_json(fine.base_from_corrected),
+                }
+            )
+        )
+        arrays.update(f_src=fine.src, f_dst=fine.dst, f_kept=fine.kept, f_residuals=fine.residuals)
+        if fine.source is not None:
+            arrays["f_source"] = np.asarray(fine.source)
+    buf = _io.BytesIO()
+    np.savez_compressed(buf, **arrays)
+    return buf.getvalue()
+
+
+def reference_from_file(path: Path):
+    """``(key, coarse, fine)`` read back from :func:`reference_to_bytes`'s file, or None when the
+    file is missing or unreadable (it is a cache of recomputable results)."""
+    import numpy as np
+
+    from registration.global_registration import CoarseResult, FineResult
+    from registration.models import model_from_dict
+
+    def model(text: str):
+        return model_from_dict(json.loads(text)) if text else None
+
+    try:
+        with np.load(path) as z:
+            a = {k: z[k] for k in z.files}
+        key = json.loads(str(a["key"]))
+        cm = json.loads(str(a["c_meta"]))
+        coarse = CoarseResult(
+            success=cm["success"],
+            reason=cm["reason"],
+            base_from_corrected=model(cm["model"]),
+            frame_xy=a["c_frame_xy"],
+            base_xy=a["c_base_xy"],
+            gated=a["c_gated"].astype(bool),
+            inliers=a["c_inliers"].astype(bool),
+            n_keypoints_frame=cm["n_keypoints_frame"],
+            n_keypoints_base=cm["n_keypoints_base"],
+            gate_center_base=None
+            if cm["gate_center_base"] is None
+            else np.asarray(cm["gate_center_base"], float),
+            gate_radius_base=cm["gate_radius_base"],
+            time_s=cm["time_s"],
+        )
+        fine = None
+        if "f_meta" in a:
+            fm = json.loads(str(a["f_meta"]))
+            fine = FineResult(
+                success=fm["success"],
+                reason=fm["reason"],
+                base_from_corrected=model(fm["model"]),
+                src=a["f_src"],
+                dst=a["f_dst"],
+                kept=a["f_kept"].astype(bool),
+                residuals=a["f_residuals"],
+                iterations=fm["iterations"],
+                time_s=fm["time_s"],
+                source=a.get("f_source"),
+            )
+    except (OSError, ValueError, KeyError, TypeError, json.JSONDecodeError):
+        return None
+    return key, coarse, fine

@@ -57,7 +57,22 @@ class Inputs:
         self.frame_size = tuple(int(v) for v in self.frames.size)
         self.base_size = (int(self.base.shape[1]), int(self.base.shape[0]))
         self._cache: OrderedDict[int, np.ndarray] = OrderedDict()
+        self._previews: OrderedDict[tuple[int, int], np.ndarray] = OrderedDict()
         self._lock = threading.Lock()
+
+    def preview(self, k: int, max_side: int) -> np.ndarray:
+        """Raw frame ``k`` downscaled to at most ``max_side`` pixels (BGR), cached."""
+        key = (k, max_side)
+        with self._lock:
+            if key in self._previews:
+                self._previews.move_to_end(key)
+                return self._previews[key]
+        img = scene2d.preview(self.frame(k), max_side)
+        with self._lock:
+            self._previews[key] = img
+            while len(self._previews) > 8:
+                self._previews.popitem(last=False)
+        return img
 
     def frame(self, k: int) -> np.ndarray:
         """Raw frame ``k`` (BGR uint8), with a small LRU cache (videos decode slowly)."""
@@ -118,6 +133,7 @@ class App:
         self._cli_inputs = (frames, base)
         self.tabs: dict[str, Any] = {}
         self.errors: list[str] = []  # last error messages (tests read them)
+        self.notices: list[tuple[str, str, str]] = []  # last notifications (title, body, colour)
 
     # ------------------------------------------------------------------ setup
     def start(self) -> None:
@@ -212,17 +228,14 @@ class App:
 
             bar_holder: dict[str, ProgressBar] = {}
 
-            def progress(*args) -> None:
-                # Accept (done, total) or (fraction,) — show both in the GUI and on stderr.
-                if len(args) >= 2 and isinstance(args[1], int | float) and args[1]:
-                    done, total = float(args[0]), float(args[1])
-                else:
-                    done, total = float(args[0]) if args else 0.0, 1.0
-                self.set_progress(100.0 * done / total)
+            def progress(done: int, total: int) -> None:
+                # registration.synth's progress protocol: (steps done, total steps).
+                percent = 100.0 * done / max(total, 1)
+                self.set_progress(percent)
                 if "bar" not in bar_holder:
                     bar_holder["bar"] = ProgressBar(100, "demo").__enter__()
                 bar = bar_holder["bar"]
-                bar.update(int(round(100 * done / total)) - bar.done)
+                bar.update(int(round(percent)) - bar.done)
 
             folder = Path(builder(progress=progress))
             if "bar" in bar_holder:
@@ -401,6 +414,8 @@ class App:
 
     def notify(self, client, title: str, body: str, *, color: str = "blue") -> None:
         """A notification to one client, or to all when ``client`` is None (Python-side calls)."""
+        self.notices.append((title, body, color))
+        del self.notices[:-50]
         if color == "red":
             self._remember_error(f"{title}: {body}")
         clients = [client] if client is not None else list(self.server.get_clients().values())
@@ -466,6 +481,9 @@ def serve(
             raise FileNotFoundError(f"{name} not found: {p}")
     if (frames is None) != (base is None):
         raise ValueError("--frames and --base go together (or give neither for the built-in demo)")
+    for p in allow_dirs or []:
+        if not Path(p).is_dir():
+            raise FileNotFoundError(f"--allow-dir is not a folder: {p}")
     folder = Path(project_dir) if project_dir else default_project_dir(frames, base)
     project = Project(folder)
     allowed = [Path.cwd(), project.folder]
@@ -473,9 +491,6 @@ def serve(
         if p:
             allowed.append(Path(p).expanduser().resolve().parent)
     allowed += [Path(p) for p in allow_dirs or []]
-    for p in allow_dirs or []:
-        if not Path(p).is_dir():
-            raise FileNotFoundError(f"--allow-dir is not a folder: {p}")
     # viser prints its own banner on stdout; keep stdout for machine-readable output.
     with contextlib.redirect_stdout(sys.stderr):
         server = viser.ViserServer(host=host, port=port, verbose=False)
@@ -488,7 +503,11 @@ def serve(
         max_upload_mb=max_upload_mb,
         project_is_explicit=project_dir is not None,
     )
-    app.start()
+    try:
+        app.start()
+    except BaseException:
+        app.stop()
+        raise
     shown_host = "127.0.0.1" if host in ("0.0.0.0", "") else host
     sys.stderr.write(
         f"aerialreg app: serving http://{shown_host}:{server.get_port()}  (project {project.folder})\n"

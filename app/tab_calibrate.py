@@ -351,8 +351,7 @@ class CalibrateTab(View):
         """Corrected frame ``k`` (RGB) at full size or with its longer side ≤ ``max_side``."""
         from registration.distortion import HarrisModel, undistort_image
 
-        raw = self.app.inputs.frame(k)
-        img = raw if max_side is None else scene2d.preview(raw, max_side)
+        img = self.app.inputs.frame(k) if max_side is None else self.app.inputs.preview(k, max_side)
         h, w = img.shape[:2]
         corrected, _ = undistort_image(img, HarrisModel(gamma, w, h), canvas="same")
         return scene2d.to_rgb(corrected)
@@ -388,14 +387,17 @@ class CalibrateTab(View):
         plane = self.image_planes["frame"]
         inp = self.app.inputs
         w, h = inp.frame_size
-        if self.grid_box.value:
+        # The reference lines are straight on screen whatever γ is: draw them once.
+        if self.grid_box.value and not plane.has("grid"):
             a, b = [], []
             for x in np.linspace(0, w - 1, 9)[1:-1]:
-                a.append((x, 0)), b.append((x, h - 1))
+                a.append((x, 0))
+                b.append((x, h - 1))
             for y in np.linspace(0, h - 1, 7)[1:-1]:
-                a.append((0, y)), b.append((w - 1, y))
+                a.append((0, y))
+                b.append((w - 1, y))
             plane.segments("grid", a, b, GRID_COLOUR, width=1.0)
-        else:
+        elif not self.grid_box.value:
             plane.remove("grid")
         with self.state.lock:
             lines = [list(ln) for ln in self.state.lines]

@@ -144,7 +144,7 @@ class EvaluateTab(View):
                 str(k) + ("*" if (p, k) in self.proposed else "") for k in sorted(pts[p])
             )
             rows.append(f"| {'**' + p + '**' if p == cur else p} | {frames} |")
-        self.marks_md.content = "\n".join(rows) + "\n\n\\* proposed by NCC, not yet confirmed"
+        self.marks_md.content = "\n".join(rows) + "\n\n\\* proposed, not yet confirmed by a click"
 
     # ---------------------------------------------------------------- backend calls
     def points_rows(self) -> list[tuple[int, str, float, float]]:

@@ -43,6 +43,7 @@ class SeedTab(View):
         self.show_ungated = gui.add_checkbox("Show matches outside the gate", False)
         self.coarse_md = gui.add_markdown("")
         self.btn_fine = gui.add_button("Run fine step")
+        self.show_template_matches = gui.add_checkbox("Show template matches as lines", False)
         self.fine_md = gui.add_markdown("")
         self.vec_scale = gui.add_slider("Residual vector scale", 1.0, 100.0, 1.0, 10.0)
         self.mid_opacity = gui.add_slider("Mid base image opacity", 0.0, 1.0, 0.05, 0.0)
@@ -52,11 +53,14 @@ class SeedTab(View):
         self.btn_coarse.on_click(lambda ev: self.run_coarse(ev.client))
         self.btn_fine.on_click(lambda ev: self.run_fine(ev.client))
         self.show_ungated.on_update(lambda ev: self.request_overlays())
+        self.show_template_matches.on_update(lambda ev: self.request_overlays())
         self.vec_scale.on_update(lambda ev: self.request_overlays())
         self.mid_opacity.on_update(lambda ev: self.app.worker.submit("seed-mid", self.draw_mid))
         self._mid_cache: tuple | None = None  # (key, warped rgb, valid) of the mid base image
         self._base_rgb: np.ndarray | None = None
         self._matches = None  # the match-lines node
+        self._template_lines = None  # the fine step's template-match lines node
+        self.computed_key: dict | None = None  # reference_key() the coarse/fine results are for
 
     # ---------------------------------------------------------------- inputs and state
     def on_inputs(self) -> None:
@@ -78,9 +82,51 @@ class SeedTab(View):
         self.ref_slider.max = max(inp.n_frames - 1, 1)
         self.ref_slider.disabled = inp.n_frames <= 1
         self.ref_slider.value = ref
+        self.restore_reference()
         self.update_text()
 
+    # ---------------------------------------------------------------- persistence of the steps
+    def reference_key(self) -> dict:
+        """What the coarse and fine results depend on (besides the inputs)."""
+        with self.state.lock:
+            st = self.state
+            return {
+                "gamma": float(st.gamma),
+                "seed": None if st.seed is None else [float(v) for v in st.seed],
+                "reference_frame": int(st.reference_frame),
+                "preset": st.preset,
+            }
+
+    def save_reference(self) -> None:
+        from app.project import REFERENCE_FILE, reference_to_bytes
+
+        with self.state.lock:
+            coarse, fine = self.state.coarse, self.state.fine
+        if coarse is None:
+            return
+        self.app.project.write_file(
+            REFERENCE_FILE, reference_to_bytes(self.computed_key, coarse, fine)
+        )
+
+    def restore_reference(self) -> None:
+        """Bring back the coarse/fine results saved for exactly the current γ, seed, frame, preset."""
+        from app.project import REFERENCE_FILE, reference_from_file
+
+        path = self.app.project.folder / REFERENCE_FILE
+        loaded = reference_from_file(path) if path.exists() else None
+        if loaded is None or loaded[0] != self.reference_key():
+            return
+        self.computed_key, coarse, fine = loaded
+        with self.state.lock:
+            self.state.coarse, self.state.fine = coarse, fine
+        with self.state.lock:
+            no_seed = self.state.seed is None
+        self.show_coarse_text(coarse, no_seed)
+        if fine is not None:
+            self.show_fine_text(fine)
+
     def on_show(self) -> None:
+        self.update_text()
         self.app.worker.submit("seed-images", self.draw_images)
 
     def set_reference(self, k: int) -> None:
@@ -160,6 +206,7 @@ class SeedTab(View):
             return False
         with self.state.lock:
             seed, ref, gamma = self.state.seed, self.state.reference_frame, self.state.gamma
+        key = self.reference_key()
 
         def job(cancel) -> None:
             self.coarse_md.content = "Running the coarse step ..."
@@ -167,8 +214,10 @@ class SeedTab(View):
             with self.state.lock:
                 self.state.coarse, self.state.fine = coarse, None
                 self.state.revision += 1
+            self.computed_key = key
             self._mid_cache = None
             self.show_coarse_text(coarse, seed is None)
+            self.save_reference()
             if not coarse:
                 self.notify(client, "Coarse step failed", coarse.reason, "red")
             self.request_overlays()
@@ -192,12 +241,29 @@ class SeedTab(View):
             + ("" if c else f"\n\n**Failed:** {c.reason}")
         )
 
+    def show_fine_text(self, fine) -> None:
+        n, kept = len(fine.src), int(fine.kept.sum())
+        self.fine_md.content = (
+            f"{n} template control points, REQCON kept {kept}, removed {n - kept}; "
+            f"{fine.iterations} iterations; residual RMS {fine.residual_rms_px:.2f} px; "
+            f"{fine.time_s:.2f} s" + ("" if fine else f"\n\n**Failed:** {fine.reason}")
+        )
+
     def run_fine(self, client=None) -> bool:
         gr = backend("global_registration")
         inp = self.app.inputs
         with self.state.lock:
             coarse, ref, gamma = self.state.coarse, self.state.reference_frame, self.state.gamma
         if gr is None or inp is None:
+            return False
+        if coarse and self.computed_key != self.reference_key():
+            self.notify(
+                client,
+                "Settings changed",
+                "γ, the seed, the reference frame or the preset changed since the coarse step: "
+                "run the coarse step again",
+                "yellow",
+            )
             return False
         if not coarse:
             self.notify(
@@ -217,12 +283,8 @@ class SeedTab(View):
                 self.state.fine = fine
                 self.state.revision += 1
             self._mid_cache = None
-            n, kept = len(fine.src), int(fine.kept.sum())
-            self.fine_md.content = (
-                f"{n} template control points, REQCON kept {kept}, removed {n - kept}; "
-                f"{fine.iterations} iterations; residual RMS {fine.residual_rms_px:.2f} px; "
-                f"{fine.time_s:.2f} s" + ("" if fine else f"\n\n**Failed:** {fine.reason}")
-            )
+            self.show_fine_text(fine)
+            self.save_reference()
             if not fine:
                 self.notify(client, "Fine step failed", fine.reason, "red")
             self.request_overlays()
@@ -321,16 +383,29 @@ class SeedTab(View):
 
     def _draw_fine(self, fine) -> None:
         fp, bp = self.image_planes["frame"], self.image_planes["base"]
+        key = f"{self.root_name}/template_matches"
+        if self._template_lines is not None:
+            self._template_lines.remove()
+            self._template_lines = None
         if fine is None or len(fine.src) == 0:
-            for key in ("grid",):
-                fp.remove(key)
-            for key in ("cps", "residuals"):
-                bp.remove(key)
+            for name in ("grid",):
+                fp.remove(name)
+            for name in ("cps", "residuals"):
+                bp.remove(name)
             return
         inp = self.app.inputs
         cols = np.where(fine.kept[:, None], KEPT, REMOVED).astype(np.uint8)
         fp.points("grid", fine.src, cols, size_px=max(inp.frame_size) / 200)
         bp.points("cps", fine.dst, cols, size_px=max(inp.base_size) / 300)
+        if self.show_template_matches.value:
+            pts = scene2d.segments_between(fp.geom, fine.src, bp.geom, fine.dst)
+            self._template_lines = self.scene.add_line_segments(
+                key,
+                pts,
+                np.repeat(cols[:, None, :], 2, axis=1),
+                thickness=1.0,
+                thickness_units="screen",
+            )
         if fine.base_from_corrected is not None:
             pred = fine.base_from_corrected.apply(fine.src)
             ok = np.isfinite(pred).all(axis=1)

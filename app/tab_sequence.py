@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections import OrderedDict
 
 import numpy as np
 
@@ -27,6 +28,7 @@ OUTLINE = (0, 200, 255)
 PLOT_W, PLOT_H = 960, 200
 FLICKER_S = 0.5
 PLAY_S = 0.4
+WARP_CACHE_FRAMES = 12  # ~10 MB each at a 2048-px base preview
 
 
 def register_sequence_fn():
@@ -87,7 +89,8 @@ class SequenceTab(View):
             h.on_update(lambda ev: self._view_changed())
         self.btn_worst.on_click(lambda ev: self.jump_to_worst())
         self.result = None
-        self._warp_cache: tuple | None = None
+        # Recently registered frames at preview size (a played loop then costs no warping).
+        self._warp_cache: OrderedDict[tuple, tuple] = OrderedDict()
         self._base_rgb: np.ndarray | None = None
         self._plot_x: tuple[int, int] = (0, 1)
         self._field_handle = None  # the heat-map node
@@ -109,7 +112,7 @@ class SequenceTab(View):
         geom = scene2d.PlaneGeometry(bw, ph, position=(bw / 2 * s, (bh + GAP_PX + ph / 2) * s, 0.0))
         self.image_planes["plot"] = scene2d.ImagePlane(self.scene, f"{self.root_name}/plot", geom)
         self._base_rgb = None
-        self._warp_cache = None
+        self._warp_cache.clear()
         self.result = None
         with self.state.lock:
             k = self.state.seq_frame
@@ -146,7 +149,7 @@ class SequenceTab(View):
             self.result = None
             return
         self.result = result
-        self._warp_cache = None
+        self._warp_cache.clear()
 
     def set_frame(self, k: int) -> None:
         with self.state.lock:
@@ -229,7 +232,10 @@ class SequenceTab(View):
             out_dir = str(self.app.project.result_dir)
             st.result_dir = out_dir
         self.app.save()
-        reference = (coarse, fine) if (coarse and fine) else None
+        # The Seed view's steps are reused only if made for exactly these settings.
+        seed_tab = self.app.tabs["Seed"]
+        current = coarse and fine and seed_tab.computed_key == seed_tab.reference_key()
+        reference = (coarse, fine) if current else None
 
         def job(cancel) -> None:
             self.btn_cancel.disabled = False
@@ -337,8 +343,28 @@ class SequenceTab(View):
             )
         return self._base_rgb
 
+    def frame_border_in_base(self, k: int, stage: str) -> np.ndarray:
+        """The raw frame's border mapped into base pixels, ``(M, 2)`` (finite points only)."""
+        r = self.result
+        w, h = r.frame_size
+        t = np.linspace(0.0, 1.0, 33)
+        border = np.concatenate(
+            [
+                np.stack([t * (w - 1), np.zeros_like(t)], 1),
+                np.stack([np.full_like(t, w - 1), t * (h - 1)], 1),
+                np.stack([(1 - t) * (w - 1), np.full_like(t, h - 1)], 1),
+                np.stack([np.zeros_like(t), (1 - t) * (h - 1)], 1),
+            ]
+        )
+        b = r.frame_to_base(k, border, stage)
+        return b[np.isfinite(b).all(axis=1)]
+
     def registered(self, k: int, stage: str):
-        """Frame ``k`` warped into the base preview: ``(rgb, valid)`` or None if not registered."""
+        """Frame ``k`` warped into the base preview: ``(rgb, valid)`` or None if not registered.
+
+        Only the box around the frame's footprint is rendered (a frame covers a fraction of a
+        large base map), then placed into a base-sized canvas.
+        """
         from registration.coords import rescale
         from registration.render import render_registered
 
@@ -346,20 +372,38 @@ class SequenceTab(View):
         if r is None or not r.is_ok(k):
             return None
         key = (k, stage, id(r))
-        if self._warp_cache is not None and self._warp_cache[0] == key:
-            return self._warp_cache[1]
+        if key in self._warp_cache:
+            self._warp_cache.move_to_end(key)
+            return self._warp_cache[key]
         base_rgb = self.base_rgb()
         hp, wp = base_rgb.shape[:2]
         f = self.app.inputs.base_size[0] / wp
-        frame = scene2d.to_rgb(self.app.inputs.frame(k))
-        out = render_registered(
-            frame,
-            lambda xy: r.base_to_frame(k, rescale(xy, f), stage),
-            (wp, hp),
-            step=8,
-            return_mask=True,
-        )
-        self._warp_cache = (key, out)
+        warped = np.zeros_like(base_rgb)
+        valid = np.zeros((hp, wp), bool)
+        border = self.frame_border_in_base(k, stage)
+        if len(border):
+            lo = rescale(border.min(axis=0, keepdims=True), 1.0 / f)[0]
+            hi = rescale(border.max(axis=0, keepdims=True), 1.0 / f)[0]
+            pad = 4  # preview px: bilinear support and the local field's small shifts
+            x0, y0 = (int(max(0, np.floor(v) - pad)) for v in lo)
+            x1 = int(min(wp, np.ceil(hi[0]) + pad + 1))
+            y1 = int(min(hp, np.ceil(hi[1]) + pad + 1))
+            if x1 > x0 and y1 > y0:
+                frame = scene2d.to_rgb(self.app.inputs.frame(k))
+                crop, mask = render_registered(
+                    frame,
+                    lambda xy: r.base_to_frame(k, rescale(xy, f), stage),
+                    (x1 - x0, y1 - y0),
+                    origin=(x0, y0),
+                    step=8,
+                    return_mask=True,
+                )
+                warped[y0:y1, x0:x1] = crop
+                valid[y0:y1, x0:x1] = mask
+        out = (warped, valid)
+        self._warp_cache[key] = out
+        while len(self._warp_cache) > WARP_CACHE_FRAMES:
+            self._warp_cache.popitem(last=False)
         return out
 
     def render(self) -> None:
@@ -409,19 +453,8 @@ class SequenceTab(View):
         if r is None or not r.is_ok(k):
             bp.remove("outline")
             return
-        w, h = r.frame_size
-        t = np.linspace(0.0, 1.0, 33)
-        border = np.concatenate(
-            [
-                np.stack([t * (w - 1), np.zeros_like(t)], 1),
-                np.stack([np.full_like(t, w - 1), t * (h - 1)], 1),
-                np.stack([(1 - t) * (w - 1), np.full_like(t, h - 1)], 1),
-                np.stack([np.zeros_like(t), (1 - t) * (h - 1)], 1),
-            ]
-        )
-        b = r.frame_to_base(k, border, stage)
-        ok = np.isfinite(b).all(axis=1)
-        s, e = scene2d.polyline_segments(b[ok])
+        b = self.frame_border_in_base(k, stage)
+        s, e = scene2d.polyline_segments(b)
         bp.segments("outline", s, e, OUTLINE, width=2.0)
 
     def _draw_vectors(self, k: int, scale: float) -> None:

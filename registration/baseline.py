@@ -66,7 +66,7 @@ class BaselineResult:
         h = self.homographies[k]
         if h is None:
             return np.full_like(pts, np.nan)
-        out = _apply_h(h, self._harris().corrected_from_raw(pts))
+        out = applyhomography(h, self._harris().corrected_from_raw(pts))
         out[~self._inside(pts)] = np.nan
         return out
 
@@ -75,24 +75,28 @@ class BaselineResult:
         h = self.homographies[k]
         if h is None:
             return np.full_like(pts, np.nan)
-        raw = self._harris().raw_from_corrected(_apply_h(np.linalg.inv(h), pts))
+        raw = self._harris().raw_from_corrected(applyhomography(np.linalg.inv(h), pts))
         raw[~self._inside(raw)] = np.nan
         return raw
 
 
-def _apply_h(h: NDArray, xy: NDArray) -> NDArray:
+def applyhomography(h: NDArray, xy: NDArray) -> NDArray:
     p = np.c_[xy, np.ones(len(xy))] @ h.T
     with np.errstate(divide="ignore", invalid="ignore"):
         return p[:, :2] / p[:, 2:3]
 
 
-def _sift(grey: NDArray):
-    kps, desc = cv2.SIFT_create().detectAndCompute(grey, None)
+def sift_features(image: NDArray):
+    """Full-frame SIFT of a grey or BGR image: ``(xy (N, 2), descriptors (N, 128))``."""
+    from registration.features import to_grey
+
+    kps, desc = cv2.SIFT_create().detectAndCompute(to_grey(image), None)
     xy = np.array([k.pt for k in kps], np.float64).reshape(-1, 2)
     return xy, desc
 
 
-def _homography(a, b, config: BaselineConfig) -> NDArray | None:
+def homography(a, b, config: BaselineConfig) -> NDArray | None:
+    """``b_from_a`` from two :func:`sift_features` results, or None when it cannot be found."""
     xy_a, da = a
     xy_b, db = b
     if da is None or db is None or len(da) < 4 or len(db) < 4:
@@ -123,9 +127,9 @@ def register_baseline(
 
     w, h = frames.size
     t0 = time.perf_counter()
-    base_feats = _sift(to_grey(base))
-    ref_feats = _sift(corrected_grey(frames.get(reference_frame), gamma))
-    base_from_ref = _homography(ref_feats, base_feats, config)
+    base_feats = sift_features(to_grey(base))
+    ref_feats = sift_features(corrected_grey(frames.get(reference_frame), gamma))
+    base_from_ref = homography(ref_feats, base_feats, config)
     out = BaselineResult(gamma, (w, h), [None] * len(frames))
     setup = time.perf_counter() - t0
     for k, frame in frames.iter():
@@ -134,7 +138,9 @@ def register_baseline(
             if k == reference_frame:
                 out.homographies[k] = base_from_ref
             else:
-                ref_from_k = _homography(_sift(corrected_grey(frame, gamma)), ref_feats, config)
+                ref_from_k = homography(
+                    sift_features(corrected_grey(frame, gamma)), ref_feats, config
+                )
                 if ref_from_k is not None:
                     out.homographies[k] = base_from_ref @ ref_from_k
         out.times_s.append(time.perf_counter() - t1 + (setup if k == reference_frame else 0.0))

@@ -761,7 +761,7 @@ class AutoLineConfig:
     link_overlap_px: float = 4.0  # largest overlap of chained segment ends
     link_lateral_px: float = 1.5  # largest sideways offset of the next segment's end
     link_angle_deg: float = 12.0  # largest direction change between chained segments
-    min_edge_fraction: float = 0.12  # shortest kept edge, fraction of the working diagonal
+    min_edge_fraction: float = 0.08  # shortest kept edge, fraction of the working diagonal
     max_edges: int = 200  # longest edges kept
     sample_step_px: float = 3.0  # spacing of edge samples
     max_points_per_edge: int = 80  # longer edges are thinned evenly (fit cost ~ points)

@@ -25,7 +25,7 @@ never produces an image with silent holes.
 
 Image correction (:func:`undistort_image`) samples the raw image at ``raw_from_corrected`` of every
 canvas pixel through :mod:`registration.warp`; the source maps are computed once per
-(model, canvas, interpolation) and cached in fixed-point form.
+(model, canvas, interpolation) and cached (fixed point for bilinear, float for bicubic).
 """
 
 from __future__ import annotations
@@ -520,9 +520,9 @@ def undistort_image(
 ) -> tuple[NDArray, CanvasInfo]:
     """Correct a raw image's radial distortion (paper eq. 1: ``I_1(x) = I_0(D(x))``).
 
-    The source map for (model, canvas, interpolation) is computed once and cached (fixed point,
-    :func:`registration.warp.prepare_source_map`), so correcting every frame of a video costs one
-    ``cv2.remap`` each.
+    The source map for (model, canvas, interpolation) is computed once and cached, prepared by
+    :func:`registration.warp.prepare_source_map` (fixed point for bilinear, float for bicubic),
+    so correcting every frame of a video costs one ``cv2.remap`` each.
 
     Args:
         image: ``(H, W)`` or ``(H, W, C)`` raw image; ``(W, H)`` must equal the model's frame.

@@ -460,6 +460,7 @@ class JointBase:
         mid_sift: full-scale SIFT of the mid base image (gridded-SIFT control points), lazily.
         previous: the previously registered frame, or None.
         previous_index: that frame's index in the sequence.
+        local_keypoints: the mid base image's keypoints for the local stage (paper preset), once.
     """
 
     mid_grey: NDArray[np.uint8]
@@ -468,6 +469,7 @@ class JointBase:
     mid_sift: Keypoints | None = None
     previous: PreviousFrame | None = None
     previous_index: int | None = None
+    local_keypoints: object | None = None
 
 
 @dataclass

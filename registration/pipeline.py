@@ -372,7 +372,7 @@ def _register_one(frame, k, gamma, joint: JointBase, config: PipelineConfig):
     times["total"] = time.perf_counter() - t0
     stats = _stats(coarse, fine, times)
     if field_stats is not None:
-        stats["local"] = field_stats
+        stats["local"] = field_stats.to_dict()
     record = {
         "status": "ok",
         "reason": "",
@@ -380,12 +380,15 @@ def _register_one(frame, k, gamma, joint: JointBase, config: PipelineConfig):
         "stats": stats,
         "model": model.to_dict(),
     }
-    return record, _frame_arrays(fine, field), state
+    arrays = _frame_arrays(fine, field)
+    if field_stats is not None:
+        arrays.update({f"field_stats_{k}": v for k, v in field_stats.to_arrays().items()})
+    return record, arrays, state
 
 
 def _local_field(frame, gamma, model, joint: JointBase, config: PipelineConfig):
     """The frame's displacement field against the mid base image (paper section 5)."""
-    from registration.local import estimate_field
+    from registration.local import detect_keypoints, estimate_field
 
     hb, wb = joint.mid_grey.shape
     h, w = frame.shape[:2]
@@ -393,29 +396,27 @@ def _local_field(frame, gamma, model, joint: JointBase, config: PipelineConfig):
     box = footprint_bbox(lambda q: model.apply(harris.corrected_from_raw(q)), w, h, (wb, hb))
     x0, y0, x1, y1 = box
     if x1 - x0 < 2 or y1 - y0 < 2:
-        return None, {"reason": "frame does not overlap the base map"}
+        return None, None
     registered, valid = render_to_base(features.to_grey(frame), gamma, model, box)
     reference = joint.mid_grey[y0:y1, x0:x1]
     both = valid & joint.mid_valid[y0:y1, x0:x1]
+    reference_keypoints = None
+    if config.local.method == "sift":
+        # The mid base image is the reference of every frame: detect its keypoints once.
+        if joint.local_keypoints is None:
+            joint.local_keypoints = detect_keypoints(
+                joint.mid_grey, config.local, mask=joint.mid_valid
+            )
+        reference_keypoints = joint.local_keypoints
     field, stats = estimate_field(
-        registered, reference, config.local, valid_mask=both, origin=(x0, y0)
+        registered,
+        reference,
+        config.local,
+        valid_mask=both,
+        origin=(x0, y0),
+        reference_keypoints=reference_keypoints,
     )
-    return field, _jsonable(stats)
-
-
-def _jsonable(stats) -> dict:
-    import dataclasses
-
-    if dataclasses.is_dataclass(stats):
-        stats = dataclasses.asdict(stats)
-    out = {}
-    for key, value in dict(stats).items():
-        if isinstance(value, np.ndarray):
-            continue
-        if isinstance(value, np.generic):
-            value = value.item()
-        out[key] = value
-    return out
+    return field, stats
 
 
 def load_config(out_dir: str | Path) -> PipelineConfig:

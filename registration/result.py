@@ -148,8 +148,18 @@ class RegistrationResult:
         from registration.local import DisplacementField
 
         return DisplacementField.from_arrays(
-            {name[len("field_") :]: a[name] for name in a if name.startswith("field_")}
+            {
+                name[len("field_") :]: a[name]
+                for name in a
+                if name.startswith("field_") and not name.startswith("field_stats_")
+            }
         )
+
+    def field_stats(self, k: int) -> dict[str, NDArray] | None:
+        """Per-cell arrays of the local stage (status codes, matches, kept, residuals), or None."""
+        a = self._npz(k)
+        out = {n[len("field_stats_") :]: a[n] for n in a if n.startswith("field_stats_")}
+        return out or None
 
     # -- the fixed interface --------------------------------------------------------------
     def _inside_frame(self, xy: NDArray) -> NDArray[np.bool_]:

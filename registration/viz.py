@@ -98,7 +98,7 @@ def blend(a: NDArray, b: NDArray, alpha: float, mask: ArrayLike | None = None) -
     out = cv2.addWeighted(a, float(alpha), b, 1.0 - float(alpha), 0.0)
     if mask is not None:
         m = np.asarray(mask, dtype=bool)
-        out[~m] = b[~m]
+        np.copyto(out, b, where=~m[..., None])
     return out
 
 

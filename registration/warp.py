@@ -73,8 +73,15 @@ def remap(
 
 
 def _finite_map(source_map: NDArray) -> NDArray[np.float32]:
-    """float32 copy of ``source_map`` with NaN/inf replaced by a far-outside position."""
-    m = np.asarray(source_map).astype(np.float32, copy=True)
+    """``source_map`` as float32 with NaN/inf replaced by a far-outside position.
+
+    The common case (all finite, within OpenCV's fixed-point range) returns the map itself,
+    uncopied: the checks cost ~4 ms on a 2560x1920 map where the copy-and-patch path costs ~60.
+    """
+    m = np.ascontiguousarray(source_map, dtype=np.float32)
+    if np.isfinite(m).all() and m.min() > _OUTSIDE and m.max() < -_OUTSIDE:
+        return m
+    m = m.copy() if m is source_map else m
     bad = ~np.isfinite(m).all(axis=2)
     if bad.any():
         m[bad] = _OUTSIDE
@@ -84,21 +91,26 @@ def _finite_map(source_map: NDArray) -> NDArray[np.float32]:
 
 @dataclass(frozen=True, eq=False)
 class PreparedMap:
-    """A source map converted once to OpenCV's fixed-point form (``cv2.convertMaps``, CV_16SC2).
+    """A source map prepared once for fast repeated :func:`remap_prepared` calls.
 
-    Fixed point quantises source positions to 1/32 px (position error <= 1/64 px, i.e. a grey
-    value error of at most gradient/64 per pixel); in exchange every call skips the float map's
-    copy, NaN handling and conversion (about 25 % faster on a 2560x1920 colour frame). Use it for
-    maps applied to many images (cached distortion correction, one warp per video frame).
+    For nearest and bilinear sampling the map is converted to OpenCV's fixed-point form
+    (``cv2.convertMaps``, CV_16SC2): source positions quantised to 1/32 px (position error
+    <= 1/64 px, a grey-value error of at most gradient/64); measured on a 2560x1920 colour frame
+    (2 cores) it is ~25-30 % faster than ``cv2.remap`` with float maps. For bicubic sampling the
+    fixed-point path measured ~25 % *slower*, so the map stays float32 (already sanitised: no
+    per-call copy or NaN handling). Use it for maps applied to many images (cached distortion
+    correction, one warp per video frame).
 
     Attributes:
-        map1: ``(H_out, W_out, 2)`` int16 integer source positions.
-        map2: ``(H_out, W_out)`` uint16 interpolation-table indices (sub-pixel fraction).
+        map1: ``(H_out, W_out, 2)`` int16 integer source positions (fixed point) or float32
+            source positions (float).
+        map2: ``(H_out, W_out)`` uint16 interpolation-table indices (fixed point, linear or
+            cubic) or None (float, or nearest).
         interpolation: ``"nearest"``, ``"linear"`` or ``"cubic"``; fixed at preparation.
     """
 
-    map1: NDArray[np.int16]
-    map2: NDArray[np.uint16]
+    map1: NDArray
+    map2: NDArray[np.uint16] | None
     interpolation: str
 
     @property
@@ -106,9 +118,22 @@ class PreparedMap:
         """``(H_out, W_out)`` of the output image."""
         return int(self.map1.shape[0]), int(self.map1.shape[1])
 
+    @property
+    def fixed_point(self) -> bool:
+        return self.map1.dtype == np.int16
 
-def prepare_source_map(source_map: NDArray, *, interpolation: str = "linear") -> PreparedMap:
-    """Convert a ``(H_out, W_out, 2)`` source map (NaN = no source) for :func:`remap_prepared`."""
+
+def prepare_source_map(
+    source_map: NDArray, *, interpolation: str = "linear", fixed_point: bool | None = None
+) -> PreparedMap:
+    """Prepare a ``(H_out, W_out, 2)`` source map (NaN = no source) for :func:`remap_prepared`.
+
+    Args:
+        source_map: as for :func:`remap`.
+        interpolation: ``"nearest"``, ``"linear"`` or ``"cubic"``.
+        fixed_point: force (True) or avoid (False) the fixed-point form; None picks the faster
+            one measured here (fixed point for nearest/linear, float for cubic).
+    """
     if interpolation not in INTERPOLATIONS:
         raise ValueError(
             f"interpolation must be one of {sorted(INTERPOLATIONS)}, got {interpolation!r}"
@@ -117,6 +142,10 @@ def prepare_source_map(source_map: NDArray, *, interpolation: str = "linear") ->
     if source_map.ndim != 3 or source_map.shape[2] != 2:
         raise ValueError(f"source_map must have shape (H, W, 2), got {source_map.shape}")
     m = _finite_map(source_map)
+    if fixed_point is None:
+        fixed_point = interpolation != "cubic"
+    if not fixed_point:
+        return PreparedMap(m, None, interpolation)
     map1, map2 = cv2.convertMaps(m, None, cv2.CV_16SC2, nninterpolation=interpolation == "nearest")
     return PreparedMap(map1, map2, interpolation)
 

@@ -324,6 +324,9 @@ def test_coarse_fine_and_sequence_in_process(tmp_path, small_seq, make_app):
     app.worker.wait_idle()
     assert app.state.fine is not None and app.state.fine.success, app.errors
     assert seed.image_planes["base"].has("residuals")
+    seed.show_template_matches.value = True
+    app.worker.wait_idle()
+    assert seed._template_lines is not None
     seed.mid_opacity.value = 0.7
     app.worker.wait_idle()
     assert seed.image_planes["base"].has("mid")
@@ -374,6 +377,14 @@ def test_coarse_fine_and_sequence_in_process(tmp_path, small_seq, make_app):
     app2 = make_app(proj, small_seq)
     assert app2.tabs["Sequence"].result is not None
     assert app2.state.seed is not None and app2.state.gamma == pytest.approx(truth.gamma)
+    # ... and so do the coarse and fine results of the Seed view (saved for this γ and seed).
+    assert app2.state.coarse is not None and app2.state.coarse.n_inliers == coarse.n_inliers
+    assert app2.state.fine is not None and app2.state.fine.success
+    assert np.allclose(
+        app2.state.fine.base_from_corrected.apply(app2.state.fine.src[:5]),
+        app.state.fine.base_from_corrected.apply(app.state.fine.src[:5]),
+    )
+    assert "inliers" in app2.tabs["Seed"].coarse_md.content
 
 
 def test_evaluate_marks_points(tmp_path, small_seq, make_app):
@@ -400,6 +411,8 @@ def test_evaluate_marks_points(tmp_path, small_seq, make_app):
 
     marks = read_points_csv(proj / "POINTS.csv", 4, (640, 480), min_frames=1)
     assert marks.marks["NW"][2] == pytest.approx((52.5, 61.0), abs=1e-3)
+    assert ev.export_csv()  # saved, checked with the evaluation reader, sent to the browser
+    assert any(n[0] == "POINTS.csv" for n in app.notices)
     ev.delete_mark()
     assert "NE" not in app.state.points
     assert "NE" not in (proj / "POINTS.csv").read_text()
@@ -468,3 +481,55 @@ def test_estimate_gamma_from_clicked_lines_and_automatically(tmp_path, small_seq
         app.errors,
         cal.estimate_md.content,
     )
+
+
+def test_sequence_cancel_resume_play_and_flicker(tmp_path, small_seq, make_app):
+    from registration.synth import load_truth
+
+    truth = load_truth(small_seq)
+    app = make_app(tmp_path / "proj", small_seq)
+    app.tabs["Calibrate"].set_gamma(truth.gamma)
+    app.set_mode("Sequence")
+    seq = app.tabs["Sequence"]
+    records = app.project.result_dir / "frames"
+    assert seq.run()
+    # Cancel as soon as the first frame is written: the run stops after the frame in progress.
+    t0 = time.monotonic()
+    while not (records.is_dir() and any(records.glob("*.json"))) and time.monotonic() - t0 < 120:
+        time.sleep(0.01)
+    app.jobs.request_cancel()
+    app.jobs.join(120)
+    app.worker.wait_idle()
+    statuses = [r["status"] for r in seq.result.records]
+    assert "pending" in statuses and statuses.count("ok") >= 1, statuses
+    assert "Registration cancelled" in [n[0] for n in app.notices]
+    done = {p.name: p.stat().st_mtime_ns for p in records.glob("*.json")}
+    # Running again resumes: finished frames are not redone.
+    assert seq.run()
+    app.jobs.join(300)
+    app.worker.wait_idle()
+    assert all(r["status"] == "ok" for r in seq.result.records), app.errors
+    assert all((records / n).stat().st_mtime_ns == m for n, m in done.items())
+    # Play advances the scrubber; pausing stops it.
+    seq.set_frame(0)
+    seq.play.value = True
+    t0 = time.monotonic()
+    while app.state.seq_frame == 0 and time.monotonic() - t0 < 10:
+        time.sleep(0.05)
+    seq.play.value = False
+    assert app.state.seq_frame != 0
+    time.sleep(0.5)
+    app.worker.wait_idle()
+    k = app.state.seq_frame
+    time.sleep(1.0)
+    assert app.state.seq_frame == k
+    # Flicker toggles the registered overlay on and off.
+    seq.overlay.value = "flicker"
+    app.worker.wait_idle()
+    handle = seq.image_planes["base"]._overlays["registered"]
+    seen = set()
+    t0 = time.monotonic()
+    while len(seen) < 2 and time.monotonic() - t0 < 5:
+        seen.add(bool(handle.visible))
+        time.sleep(0.05)
+    assert seen == {True, False}

@@ -11,6 +11,7 @@ import pytest
 from registration.calibration import (
     estimate_gamma_auto,
     estimate_gamma_from_lines,
+    fit_division_from_lines,
     fit_polynomial_from_lines,
     lines_to_json,
     load_lines,
@@ -19,7 +20,7 @@ from registration.calibration import (
     straight_edge_chart,
     straightness,
 )
-from registration.distortion import HarrisModel, PolynomialModel, simulate_raw_frame
+from registration.distortion import DivisionModel, HarrisModel, PolynomialModel, simulate_raw_frame
 from tests.conftest import shared_data
 
 W, H = 800, 600
@@ -150,6 +151,12 @@ def test_polynomial_fit_recovers_polynomial_distortion():
     # The one-parameter Harris model cannot straighten these lines as well.
     harris = estimate_gamma_from_lines(lines, W, H, n_bootstrap=0)
     assert harris.residual > 10 * s.overall
+
+
+def test_division_fit_recovers_division_distortion():
+    lines = raw_lines(DivisionModel(-0.4, W, H))
+    model, s = fit_division_from_lines(lines, W, H)
+    assert model.lam == pytest.approx(-0.4, abs=1e-5) and s.overall < 1e-4
 
 
 # ------------------------------------------------------------------------------------------

@@ -266,8 +266,14 @@ def test_prepared_map_matches_float_remap(rng):
     src, _ = distortion.correction_source_map(m)
     for interp in ("nearest", "linear", "cubic"):
         ref = remap(smooth, src, interpolation=interp)
-        fast = remap_prepared(smooth, prepare_source_map(src, interpolation=interp))
+        prepared = prepare_source_map(src, interpolation=interp)
+        assert prepared.fixed_point == (interp != "cubic")  # the faster form measured for each
+        fast = remap_prepared(smooth, prepared)
         assert np.abs(ref.astype(int) - fast).max() <= 2
+        forced = remap_prepared(
+            smooth, prepare_source_map(src, interpolation=interp, fixed_point=True)
+        )
+        assert np.abs(ref.astype(int) - forced).max() <= 2
 
 
 def test_source_map_is_exact_to_hundredths(rng):

@@ -436,3 +436,22 @@ def test_propose_point_finds_the_shifted_point():
     assert p.score > 0.9
     assert np.allclose(p.xy, (137.3, 91.6), atol=0.2)
     assert np.isnan(evaluation.propose_point(a, (5, 5), b).xy).all()  # template leaves the image
+
+
+def test_points_mode_equals_truth_mode_for_exact_marks():
+    """Marks placed exactly where the truth puts the five ground points give the truth mode's
+    Table 2 (both measure motion relative to the reference frame)."""
+    truth = ShiftTruth(n_frames=5)
+    result = OffsetResult(truth, failed=())
+    config = EvaluationConfig(table_frames=5)
+    b = truth.frame_to_base(0, evaluation.table_points(truth.frame_size, config.table_inset))
+    marks = {
+        loc: {k: tuple(truth.base_to_frame(k, b[i : i + 1])[0]) for k in range(5)}
+        for i, loc in enumerate(evaluation.LOCATIONS)
+    }
+    pm = evaluation.PointMarks(marks, list(evaluation.LOCATIONS))
+    t_points = evaluation.evaluate_points(result, pm, config).table.to_dict()
+    t_truth = evaluation.evaluate_truth(result, truth, config).table.to_dict()
+    for s in evaluation.STAGES:
+        assert t_points["rows"][s]["mu"] == pytest.approx(t_truth["rows"][s]["mu"])
+        assert t_points["rows"][s]["sigma"] == pytest.approx(t_truth["rows"][s]["sigma"], abs=1e-12)

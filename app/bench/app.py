@@ -1,7 +1,7 @@
 """Browser app: γ preview latency at 2560x1920, start-up time, and 2000 match lines in the browser.
 
 * Server side (real figures): time from a γ change (the callback) to the corrected preview image
-  handed to viser (display resolution 1280x960, JPEG), against the full-resolution path measured
+  handed to viser (display resolution 1024x768, JPEG), against the full-resolution path measured
   in the same run (2560x1920 correction with new maps + JPEG) as the baseline; time from starting
   the app to the first image handed to viser.
 * Browser side (Debian chromium, software WebGL on this machine: an upper bound, a GPU browser
