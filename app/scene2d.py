@@ -269,9 +269,16 @@ class ImagePlane:
 
 
 def fit_camera(
-    geoms: list[PlaneGeometry], fov_rad: float = np.deg2rad(60), margin: float = 1.1
+    geoms: list[PlaneGeometry],
+    fov_rad: float = np.deg2rad(60),
+    margin: float = 1.1,
+    aspect: float = 1.0,
 ) -> dict:
-    """Top-down camera pose that shows all planes: position, look_at, up, fov (for viser)."""
+    """Top-down camera pose showing all planes: position, look_at, up, fov (for viser).
+
+    ``fov_rad`` is the vertical field of view and ``aspect`` the viewport's width / height; the
+    default 1.0 is safe for any landscape viewport.
+    """
     lo = np.array([np.inf, np.inf])
     hi = -lo
     for g in geoms:
@@ -280,10 +287,10 @@ def fit_camera(
         lo = np.minimum(lo, c - (w / 2, h / 2))
         hi = np.maximum(hi, c + (w / 2, h / 2))
     centre = (lo + hi) / 2
-    extent = max(hi[0] - lo[0], hi[1] - lo[1]) * margin
-    # Distance so that the larger extent fits the vertical field of view (a safe bound for a
-    # landscape viewport, where the horizontal field is wider).
-    dist = extent / (2 * np.tan(fov_rad / 2))
+    width, height = (hi - lo) * margin
+    # Distance at which both the width (through the horizontal field) and the height fit.
+    half_tan = np.tan(fov_rad / 2)
+    dist = max(height / (2 * half_tan), width / (2 * half_tan * max(aspect, 1e-3)))
     return {
         "position": (float(centre[0]), float(centre[1]), -float(dist)),
         "look_at": (float(centre[0]), float(centre[1]), 0.0),

@@ -355,8 +355,10 @@ class App:
         self.save()
 
     def fit_cameras(self, geoms: list[scene2d.PlaneGeometry]) -> None:
+        """Point every client's camera (and the initial camera) at ``geoms``."""
         if not geoms:
             return
+        self._fit_geoms = list(geoms)
         pose = scene2d.fit_camera(geoms)
         cam = self.server.initial_camera
         cam.position, cam.look_at, cam.up, cam.fov = (
@@ -366,7 +368,16 @@ class App:
             pose["fov"],
         )
         for client in self.server.get_clients().values():
-            self._apply_camera(client, pose)
+            self._apply_camera(client, self._pose_for(client, geoms))
+
+    @staticmethod
+    def _pose_for(client, geoms) -> dict:
+        # A portrait viewport's horizontal field is narrower than its vertical one: fit the width
+        # through it. A landscape viewport keeps the square fit, because viser's control panel
+        # covers part of the canvas's width and a tighter fit puts the image under it.
+        w, h = client.camera.image_width, client.camera.image_height
+        aspect = min(w / h, 1.0) if w and h else 1.0
+        return scene2d.fit_camera(geoms, aspect=aspect)
 
     @staticmethod
     def _apply_camera(client, pose: dict) -> None:
@@ -377,11 +388,26 @@ class App:
             client.camera.look_at = pose["look_at"]
 
     def _on_connect(self, client) -> None:
+        self._fit_client(client)
+        # The viewport's shape arrives with the client's camera messages: fit once more when it
+        # is first known (later updates are the analyst panning and zooming: left alone).
+        fitted: dict[str, bool] = {"done": False}
+
+        def on_camera(_cam) -> None:
+            if fitted["done"]:
+                return
+            if client.camera.image_width and client.camera.image_height:
+                fitted["done"] = True
+                self._fit_client(client)
+
+        client.camera.on_update(on_camera)
+
+    def _fit_client(self, client) -> None:
         tab = self.tabs.get(self.state.mode)
         if tab is not None and self.inputs is not None:
             geoms = tab.planes()
             if geoms:
-                self._apply_camera(client, scene2d.fit_camera(geoms))
+                self._apply_camera(client, self._pose_for(client, geoms))
 
     def _on_scene_click(self, event) -> None:
         self.handle_click(event.ray_origin, event.ray_direction, event.client)

@@ -14,7 +14,8 @@ import threading
 import numpy as np
 
 from app import scene2d
-from app.view import View, backend
+from app.view import View
+from registration import calibration, distortion
 
 LINE_COLOURS = np.array(
     [
@@ -37,6 +38,8 @@ class CalibrateTab(View):
     MODE = "Calibrate"
 
     def build(self) -> None:
+        import viser.uplot as up
+
         gui = self.gui
         self.frame_slider = gui.add_slider("Frame", 0, 1, 1, 0)
         self.gamma_slider = gui.add_slider("γ", -0.5, 1.0, 0.005, 0.0)
@@ -54,7 +57,17 @@ class CalibrateTab(View):
             self.btn_est_lines = gui.add_button("Estimate γ from lines")
             self.btn_est_auto = gui.add_button("Estimate γ automatically")
             self.estimate_md = gui.add_markdown("")
-            self.plot = None
+            self.plot = gui.add_uplot(
+                data=(np.array([0.0, 1.0]), np.array([0.0, 0.0])),
+                series=(
+                    up.Series(label="γ"),
+                    up.Series(label="residual (px)", stroke="blue", width=2),
+                ),
+                title="Straightness residual vs γ",
+                scales={"x": up.Scale(time=False, auto=True), "y": up.Scale(auto=True)},
+                aspect=1.6,
+                visible=False,
+            )
         self.frame_slider.on_update(lambda ev: self.set_frame(int(ev.target.value), ev.client))
         self._quiet = threading.local()  # set while this thread syncs the two γ widgets
         self.gamma_slider.on_update(lambda ev: self._gamma_widget(ev))
@@ -76,8 +89,7 @@ class CalibrateTab(View):
         inp = self.app.inputs
         w, h = inp.frame_size
         self.make_plane("frame", w, h)
-        distortion = backend("distortion")
-        limit = distortion.harris_gamma_limit(w, h) if distortion else 1.0
+        limit = distortion.harris_gamma_limit(w, h)
         self.gamma_max = float(np.floor((limit - 1e-3) * 1000) / 1000)
         with self.state.lock:
             k, g = self.state.calib_frame, self.state.gamma
@@ -109,7 +121,6 @@ class CalibrateTab(View):
         inp = self.app.inputs
         if inp is None:
             return False
-        distortion = backend("distortion")
         try:
             if not np.isfinite(gamma):
                 raise ValueError(f"γ must be a finite number, got {gamma}")
@@ -160,7 +171,6 @@ class CalibrateTab(View):
     def on_click(self, plane: str, xy, client) -> None:
         """Add a point (given in corrected pixels of the shown image) to the open polyline."""
         inp = self.app.inputs
-        distortion = backend("distortion")
         with self.state.lock:
             model = distortion.HarrisModel(self.state.gamma, *inp.frame_size)
             raw = model.raw_from_corrected(np.asarray(xy, float)[None])[0]
@@ -211,11 +221,10 @@ class CalibrateTab(View):
 
     def save_lines_file(self) -> None:
         """Write LINES.json (registration.calibration's format) for the finished lines."""
-        calibration = backend("calibration")
         inp = self.app.inputs
         with self.state.lock:
             lines = [np.asarray(ln, float) for ln in self.state.lines if len(ln) >= 3]
-        if calibration is None or inp is None:
+        if inp is None:
             return
         import json
 
@@ -227,14 +236,12 @@ class CalibrateTab(View):
 
     def scores(self) -> tuple[list[float], float] | None:
         """Straightness (px) of each finished line at the current γ, and overall; None if n/a."""
-        calibration = backend("calibration")
         inp = self.app.inputs
         with self.state.lock:
             lines = [np.asarray(ln, float) for ln in self.state.lines if len(ln) >= 3]
             g = self.state.gamma
-        if calibration is None or inp is None or not lines:
+        if inp is None or not lines:
             return None
-        distortion = backend("distortion")
         s = calibration.straightness(lines, distortion.HarrisModel(g, *inp.frame_size))
         return [float(v) for v in s.per_line], float(s.overall)
 
@@ -257,19 +264,13 @@ class CalibrateTab(View):
             text.append("| line | RMS off straight (px) |\n|---|---|")
             text[-1] += "".join(f"\n| {i + 1} | {v:.2f} |" for i, v in enumerate(per))
             text.append(f"Overall: **{overall:.2f} px**")
-        elif backend("calibration") is None:
-            text.append("_Straightness scores: registration.calibration not available yet._")
         text.append("Click on the image to add points; *Finish line* keeps lines with ≥ 3 points.")
         self.lines_md.content = "\n\n".join(text)
 
     # ---------------------------------------------------------------- estimation (job thread)
     def estimate(self, *, auto: bool, client=None) -> None:
-        calibration = backend("calibration")
         inp = self.app.inputs
-        if calibration is None or inp is None:
-            self.notify(
-                client, "Not available yet", "registration.calibration has not landed", "yellow"
-            )
+        if inp is None:
             return
         with self.state.lock:
             lines = [np.asarray(ln, float) for ln in self.state.lines if len(ln) >= 3]
@@ -291,8 +292,6 @@ class CalibrateTab(View):
             self.notify(client, "Busy", f"{self.app.jobs.name} is running", "yellow")
 
     def show_estimate(self, est, auto: bool) -> None:
-        import viser.uplot as up
-
         how = "automatically" if auto else "from lines"
         text = (
             f"γ = **{est.gamma:.4f}** ± {est.uncertainty:.4f} ({how}, {est.uncertainty_method}); "
@@ -307,20 +306,8 @@ class CalibrateTab(View):
             np.asarray(est.residual_curve, np.float64)[ok],
         )
         self.last_estimate = est
-        if self.plot is None:
-            with self.folder:
-                self.plot = self.gui.add_uplot(
-                    data=data,
-                    series=(
-                        up.Series(label="γ"),
-                        up.Series(label="residual (px)", stroke="blue", width=2),
-                    ),
-                    title="Straightness residual vs γ",
-                    scales={"x": up.Scale(time=False, auto=True), "y": up.Scale(auto=True)},
-                    aspect=1.6,
-                )
-        else:
-            self.plot.data = data
+        self.plot.data = data
+        self.plot.visible = True
 
     def shutdown(self) -> None:
         with self._timer_lock:
@@ -349,11 +336,11 @@ class CalibrateTab(View):
 
     def corrected_image(self, k: int, gamma: float, max_side: int | None) -> np.ndarray:
         """Corrected frame ``k`` (RGB) at full size or with its longer side ≤ ``max_side``."""
-        from registration.distortion import HarrisModel, undistort_image
-
         img = self.app.inputs.frame(k) if max_side is None else self.app.inputs.preview(k, max_side)
         h, w = img.shape[:2]
-        corrected, _ = undistort_image(img, HarrisModel(gamma, w, h), canvas="same")
+        corrected, _ = distortion.undistort_image(
+            img, distortion.HarrisModel(gamma, w, h), canvas="same"
+        )
         return scene2d.to_rgb(corrected)
 
     def render(self, *, full: bool, rev: int | None = None) -> None:
@@ -382,8 +369,6 @@ class CalibrateTab(View):
         self._update_lines_md()
 
     def _draw_overlays(self, gamma: float) -> None:
-        from registration.distortion import HarrisModel
-
         plane = self.image_planes["frame"]
         inp = self.app.inputs
         w, h = inp.frame_size
@@ -402,7 +387,7 @@ class CalibrateTab(View):
         with self.state.lock:
             lines = [list(ln) for ln in self.state.lines]
             open_last = self.state.line_open
-        model = HarrisModel(gamma, w, h)
+        model = distortion.HarrisModel(gamma, w, h)
         a, b, cols, pts, pcols = [], [], [], [], []
         for i, ln in enumerate(lines):
             if not ln:

@@ -1,10 +1,10 @@
 """Evaluate view: mark the same ground points in several frames, then the paper's Table 2 (section 6).
 
 Points are marked on the raw frames (raw pixels, as POINTS.csv stores them). A click sets the
-current point in the shown frame (a new click moves it). "Propose in next frame" maps the point
-into the next frame through the registration result (or, once the evaluation module offers it,
-by normalised cross-correlation) and shows the proposal (orange) for the analyst to accept as is
-or move with a click. Table 2 comes from ``registration.evaluation``; the export is POINTS.csv in
+current point in the shown frame (a new click moves it). "Propose in next frame" finds the point
+in the next frame by normalised cross-correlation (or, where that finds nothing, through the
+registration result) and shows the proposal (orange) for the analyst to accept as is or move
+with a click. Table 2 comes from ``registration.evaluation``; the export is POINTS.csv in
 the format ``registration.evaluation.read_points_csv`` reads (and is checked with it).
 """
 
@@ -16,7 +16,8 @@ import io
 import numpy as np
 
 from app import scene2d
-from app.view import View, backend
+from app.view import View
+from registration import evaluation
 
 # The paper's Table 2 locations first, so the table reads like the paper's.
 POINT_NAMES = ("NW", "NE", "Center", "SW", "SE")
@@ -146,7 +147,7 @@ class EvaluateTab(View):
             rows.append(f"| {'**' + p + '**' if p == cur else p} | {frames} |")
         self.marks_md.content = "\n".join(rows) + "\n\n\\* proposed, not yet confirmed by a click"
 
-    # ---------------------------------------------------------------- backend calls
+    # ---------------------------------------------------------------- registration calls
     def points_rows(self) -> list[tuple[int, str, float, float]]:
         """Marked points as ``(frame, point, x, y)`` rows sorted by point then frame."""
         with self.state.lock:
@@ -175,9 +176,8 @@ class EvaluateTab(View):
     def export_csv(self, client=None) -> bool:
         """Save POINTS.csv, check it with the evaluation module's reader, and send it."""
         text = self.write_points_csv()
-        evaluation = backend("evaluation")
         inp = self.app.inputs
-        if evaluation is not None and inp is not None:
+        if inp is not None:
             try:
                 evaluation.read_points_csv(
                     self.app.project.points_path, inp.n_frames, inp.frame_size
@@ -194,23 +194,16 @@ class EvaluateTab(View):
     def propose_next(self, client=None) -> bool:
         """Propose the current point in the next frame.
 
-        With ``registration.evaluation.propose_point`` (NCC) when it exists; otherwise from the
-        registration result (frame k -> base -> frame k+1, stage "local") when there is one.
+        By normalised cross-correlation (``registration.evaluation.propose_point``); where that
+        finds nothing, from the registration result (frame k -> base -> frame k+1, stage "local")
+        when there is one.
         """
-        evaluation = backend("evaluation")
-        ncc = getattr(evaluation, "propose_point", None) if evaluation is not None else None
         result = self.app.tabs["Sequence"].result
         inp = self.app.inputs
         with self.state.lock:
             name, k = self.state.point_name, self.state.eval_frame
             xy = self.state.points.get(name, {}).get(k)
-        if inp is None or (ncc is None and result is None):
-            self.notify(
-                client,
-                "No proposal available",
-                "Register the sequence first (NCC proposals: not available yet)",
-                "yellow",
-            )
+        if inp is None:
             return False
         if xy is None:
             self.notify(
@@ -222,13 +215,14 @@ class EvaluateTab(View):
             return False
 
         def work() -> None:
-            if ncc is not None:
-                proposal = ncc(inp.frame(k), xy, inp.frame(k + 1))
-                p = np.asarray(getattr(proposal, "xy", proposal), float).reshape(-1)
-            else:
+            p = evaluation.propose_point(inp.frame(k), xy, inp.frame(k + 1)).xy
+            if not np.all(np.isfinite(p)) and result is not None:
+                # NCC finds nothing where its template leaves the frame (points near the border)
+                # or on bland ground; the registration still maps such points wherever both
+                # frames are registered.
                 b = result.frame_to_base(k, np.asarray([xy], float), "local")
                 p = result.base_to_frame(k + 1, b, "local")[0]
-            if p.size != 2 or not np.all(np.isfinite(p)):
+            if not np.all(np.isfinite(p)):
                 self.notify(
                     client, "No proposal", f"{name} could not be found in frame {k + 1}", "yellow"
                 )
@@ -244,13 +238,7 @@ class EvaluateTab(View):
 
     def compute_table(self, client=None) -> bool:
         """Table 2 (paper section 6) from the marks and the registration result."""
-        evaluation = backend("evaluation")
         seq = self.app.tabs["Sequence"]
-        if evaluation is None:
-            self.notify(
-                client, "Not available yet", "registration.evaluation has not landed", "yellow"
-            )
-            return False
         if seq.result is None:
             self.notify(
                 client, "No result", "Register the sequence first (Sequence view)", "yellow"

@@ -16,7 +16,8 @@ from __future__ import annotations
 import numpy as np
 
 from app import scene2d
-from app.view import GAP_PX, View, backend
+from app.view import GAP_PX, View
+from registration import config, distortion, global_registration
 
 INLIER = (40, 230, 60)
 OUTLIER = (240, 50, 50)
@@ -71,10 +72,7 @@ class SeedTab(View):
         self.make_plane("base", bw, bh, x_offset=w + GAP_PX)
         self._base_rgb = None
         self._mid_cache = None
-        config = backend("config")
-        if config is not None:
-            names = tuple(config.PRESETS)
-            self.preset.options = names
+        self.preset.options = tuple(config.PRESETS)
         with self.state.lock:
             ref, preset = self.state.reference_frame, self.state.preset
         if preset in self.preset.options:
@@ -157,7 +155,6 @@ class SeedTab(View):
 
     def on_click(self, plane: str, xy, client) -> None:
         """Frame click: corrected pixel -> raw pixel (the seed is in raw pixels); map click: base."""
-        distortion = backend("distortion")
         xy = np.asarray(xy, float)
         with self.state.lock:
             if plane == "frame":
@@ -186,22 +183,12 @@ class SeedTab(View):
 
     # ---------------------------------------------------------------- jobs
     def _config(self):
-        config = backend("config")
         with self.state.lock:
             name = self.state.preset
         return config.get_preset(name)
 
     def run_coarse(self, client=None) -> bool:
-        gr = backend("global_registration")
         inp = self.app.inputs
-        if gr is None or backend("config") is None:
-            self.notify(
-                client,
-                "Not available yet",
-                "registration.global_registration has not landed",
-                "yellow",
-            )
-            return False
         if inp is None:
             return False
         with self.state.lock:
@@ -210,7 +197,9 @@ class SeedTab(View):
 
         def job(cancel) -> None:
             self.coarse_md.content = "Running the coarse step ..."
-            coarse = gr.coarse_register(inp.frame(ref), inp.base, gamma, seed, self._config())
+            coarse = global_registration.coarse_register(
+                inp.frame(ref), inp.base, gamma, seed, self._config()
+            )
             with self.state.lock:
                 self.state.coarse, self.state.fine = coarse, None
                 self.state.revision += 1
@@ -250,11 +239,10 @@ class SeedTab(View):
         )
 
     def run_fine(self, client=None) -> bool:
-        gr = backend("global_registration")
         inp = self.app.inputs
         with self.state.lock:
             coarse, ref, gamma = self.state.coarse, self.state.reference_frame, self.state.gamma
-        if gr is None or inp is None:
+        if inp is None:
             return False
         if coarse and self.computed_key != self.reference_key():
             self.notify(
@@ -276,7 +264,7 @@ class SeedTab(View):
 
         def job(cancel) -> None:
             self.fine_md.content = "Running the fine step ..."
-            fine = gr.fine_register_reference(
+            fine = global_registration.fine_register_reference(
                 inp.frame(ref), inp.base, gamma, coarse, self._config()
             )
             with self.state.lock:
@@ -330,7 +318,6 @@ class SeedTab(View):
             return
         fp, bp = self.image_planes["frame"], self.image_planes["base"]
         inp = self.app.inputs
-        distortion = backend("distortion")
         with self.state.lock:
             sf, sb, g = self.state.seed_frame, self.state.seed_base, self.state.gamma
             coarse, fine = self.state.coarse, self.state.fine
@@ -419,7 +406,6 @@ class SeedTab(View):
     def draw_mid(self) -> None:
         """The reference frame warped into the map by the fine model, blended over the map."""
         from registration import viz
-        from registration.distortion import HarrisModel
         from registration.warp import warp_image
 
         if "base" not in self.image_planes:
@@ -438,7 +424,7 @@ class SeedTab(View):
             hp, wp = base_rgb.shape[:2]
             fx = inp.base_size[0] / wp
             model = fine.base_from_corrected
-            harris = HarrisModel(g, *inp.frame_size)
+            harris = distortion.HarrisModel(g, *inp.frame_size)
 
             def raw_from_preview(xy):
                 # preview base px -> full base px -> corrected frame px -> raw frame px

@@ -20,7 +20,8 @@ import numpy as np
 
 from app import scene2d
 from app.state import OVERLAYS
-from app.view import GAP_PX, View, backend
+from app.view import GAP_PX, View
+from registration import config, evaluation, pipeline
 
 RESIDUAL_OK = (255, 220, 0)
 RESIDUAL_REMOVED = (240, 50, 50)
@@ -31,21 +32,10 @@ PLAY_S = 0.4
 WARP_CACHE_FRAMES = 12  # ~10 MB each at a 2048-px base preview
 
 
-def register_sequence_fn():
-    """``register_sequence`` wherever the backend defines it, or None."""
-    for name in ("global_registration", "pipeline"):
-        mod = backend(name)
-        fn = getattr(mod, "register_sequence", None) if mod is not None else None
-        if fn is not None:
-            return fn
-    return None
-
-
 def excursion_flags(values: np.ndarray) -> np.ndarray:
     """Frames ``registration.evaluation.find_excursions`` flags as sudden excursions (bool (N,))."""
     flags = np.zeros(len(values), bool)
-    evaluation = backend("evaluation")
-    if evaluation is None or len(values) < 3:
+    if len(values) < 3:
         return flags
     for e in evaluation.find_excursions(np.arange(len(values)), values):
         flags[int(e["frame"])] = True
@@ -199,13 +189,6 @@ class SequenceTab(View):
 
     # ---------------------------------------------------------------- running
     def update_run_text(self) -> None:
-        fn = register_sequence_fn()
-        if fn is None:
-            self.run_md.content = (
-                "_Sequence registration: the backend (register_sequence) is not available yet._"
-            )
-            self.btn_run.disabled = True
-            return
         self.btn_run.disabled = False
         with self.state.lock:
             seed = self.state.seed
@@ -219,12 +202,9 @@ class SequenceTab(View):
         self.run_md.content = f"Result: {done}; {seed_txt}."
 
     def run(self, client=None) -> bool:
-        fn = register_sequence_fn()
         inp = self.app.inputs
-        if fn is None or inp is None:
-            self.notify(client, "Not available yet", "register_sequence has not landed", "yellow")
+        if inp is None:
             return False
-        config = backend("config")
         with self.state.lock:
             st = self.state
             seed, ref, gamma, preset = st.seed, st.reference_frame, st.gamma, st.preset
@@ -267,7 +247,7 @@ class SequenceTab(View):
                 if reference is not None:
                     kwargs["reference"] = reference
                 try:
-                    fn(inp.frames, inp.base, gamma, out_dir, **kwargs)
+                    pipeline.register_sequence(inp.frames, inp.base, gamma, out_dir, **kwargs)
                 except ValueError as exc:
                     if "cannot resume" not in str(exc):
                         raise
@@ -281,7 +261,7 @@ class SequenceTab(View):
                         "yellow",
                     )
                     self.result = None
-                    fn(inp.frames, inp.base, gamma, out_dir, **kwargs)
+                    pipeline.register_sequence(inp.frames, inp.base, gamma, out_dir, **kwargs)
             finally:
                 self.btn_cancel.disabled = True
                 self.bar.visible = False

@@ -2,8 +2,7 @@
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from app import scene2d
 
@@ -12,14 +11,6 @@ if TYPE_CHECKING:
 
 GAP_PX = 80
 """Gap in pixels between side-by-side images (frame | base)."""
-
-
-def backend(module: str) -> Any | None:
-    """Import ``registration.<module>`` or return None if that stage has not landed / is broken."""
-    try:
-        return importlib.import_module(f"registration.{module}")
-    except ImportError:
-        return None
 
 
 class View:

@@ -47,6 +47,7 @@ class BaselineResult:
     frame_size: tuple[int, int]
     homographies: list[NDArray | None]
     times_s: list[float] = field(default_factory=list)
+    reference_frame: int = 0
 
     @property
     def n_frames(self) -> int:
@@ -66,7 +67,7 @@ class BaselineResult:
         h = self.homographies[k]
         if h is None:
             return np.full_like(pts, np.nan)
-        out = applyhomography(h, self._harris().corrected_from_raw(pts))
+        out = apply_homography(h, self._harris().corrected_from_raw(pts))
         out[~self._inside(pts)] = np.nan
         return out
 
@@ -75,12 +76,12 @@ class BaselineResult:
         h = self.homographies[k]
         if h is None:
             return np.full_like(pts, np.nan)
-        raw = self._harris().raw_from_corrected(applyhomography(np.linalg.inv(h), pts))
+        raw = self._harris().raw_from_corrected(apply_homography(np.linalg.inv(h), pts))
         raw[~self._inside(raw)] = np.nan
         return raw
 
 
-def applyhomography(h: NDArray, xy: NDArray) -> NDArray:
+def apply_homography(h: NDArray, xy: NDArray) -> NDArray:
     p = np.c_[xy, np.ones(len(xy))] @ h.T
     with np.errstate(divide="ignore", invalid="ignore"):
         return p[:, :2] / p[:, 2:3]
@@ -130,7 +131,7 @@ def register_baseline(
     base_feats = sift_features(to_grey(base))
     ref_feats = sift_features(corrected_grey(frames.get(reference_frame), gamma))
     base_from_ref = homography(ref_feats, base_feats, config)
-    out = BaselineResult(gamma, (w, h), [None] * len(frames))
+    out = BaselineResult(gamma, (w, h), [None] * len(frames), reference_frame=reference_frame)
     setup = time.perf_counter() - t0
     for k, frame in frames.iter():
         t1 = time.perf_counter()

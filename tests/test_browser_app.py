@@ -214,6 +214,22 @@ def zoom_to(app: App, geom, xy, span_px: float = 200.0) -> None:
     time.sleep(1.5)  # camera message, then a software-WebGL render
 
 
+def background_points(page, node, geom, gap=0.04):
+    """Two screen points just outside the image (left, above or below it) inside the viewport,
+    or None while the image fills the viewport."""
+    w, h = geom.width, geom.height
+    candidates = [
+        [(-gap * w, 0.45 * h), (-gap * w, 0.55 * h)],
+        [(0.45 * w, -gap * h), (0.55 * w, -gap * h)],
+        [(0.45 * w, (1 + gap) * h), (0.55 * w, (1 + gap) * h)],
+    ]
+    for pair in candidates:
+        pts = [page.screen_of(node, geom, p) for p in pair]
+        if all(5 < x < VIEWPORT["width"] - 5 and 5 < y < VIEWPORT["height"] - 5 for x, y in pts):
+            return pts
+    return None
+
+
 def grid_points(geom, n=5, margin=0.15):
     xs = np.linspace(geom.width * margin, geom.width * (1 - margin), n)
     ys = np.linspace(geom.height * margin, geom.height * (1 - margin), n)
@@ -248,8 +264,14 @@ def test_loads_offline_shows_frame_and_gamma_changes_it(browser, live_app, small
         what="the frame on the canvas",
     )
     page.shot("calibrate")
-    # Background away from the image is the empty scene (uniform).
-    bg = page.pixels([(30, 780), (60, 770)])
+    # Background just outside the image is the empty scene (uniform). The camera fits the image
+    # to the viewport's shape, so take points beside it on whichever side has room on screen.
+    # It re-fits once the browser reports the viewport's size, so wait for that to settle.
+    pts = wait_until(
+        lambda: background_points(page, "/calibrate/frame", geom),
+        what="background visible beside the image",
+    )
+    bg = page.pixels(pts)
     assert np.ptp(bg[:, :3]) < 10, bg
     before = page.pixels(
         [page.screen_of("/calibrate/frame", geom, p) for p in grid_points(geom, 7)]
