@@ -126,7 +126,9 @@ def test_interrupted_run_resumes_without_redoing_frames(sim, result, tmp_path):
     q = np.c_[gx.ravel(), gy.ravel()]
     for k in range(N_FRAMES):
         diff = np.linalg.norm(resumed.frame_to_base(k, q) - result.frame_to_base(k, q), axis=1)
-        assert diff.max() < 0.1, f"frame {k}: resumed and uninterrupted differ by {diff.max():.3f} px"
+        assert diff.max() < 0.1, (
+            f"frame {k}: resumed and uninterrupted differ by {diff.max():.3f} px"
+        )
 
 
 def test_failed_frame_is_marked_and_the_run_goes_on(sim, tmp_path):
