@@ -42,6 +42,17 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def parse_size(text: str) -> tuple[int, int]:
+    """``"1280x960"`` -> ``(1280, 960)``; UsageError for anything else or non-positive sizes."""
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise UsageError(f"--size must look like 1280x960, got {text!r}") from None
+    if w <= 0 or h <= 0:
+        raise UsageError(f"--size must be positive, got {text!r}")
+    return w, h
+
+
 def emit_json(obj: object) -> None:
     """Print exactly one JSON object on standard output."""
     sys.stdout.write(json.dumps(obj, default=_json_default) + "\n")

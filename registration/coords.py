@@ -31,3 +31,18 @@ def rescale(xy: ArrayLike, scale: float) -> NDArray[np.float64]:
 def image_size(image: NDArray) -> tuple[int, int]:
     """``(width, height)`` of an ``(H, W)`` or ``(H, W, C)`` image."""
     return int(image.shape[1]), int(image.shape[0])
+
+
+def frame_outline(width: int, height: int, per_edge: int = 32) -> NDArray[np.float64]:
+    """``(4 * per_edge, 2)`` pixel centres along the border of a ``width`` x ``height`` image,
+    clockwise from the top-left corner (each corner once)."""
+    t = np.linspace(0.0, 1.0, per_edge, endpoint=False)
+    w1, h1 = width - 1.0, height - 1.0
+    return np.concatenate(
+        [
+            np.c_[t * w1, np.zeros_like(t)],
+            np.c_[np.full_like(t, w1), t * h1],
+            np.c_[w1 - t * w1, np.full_like(t, h1)],
+            np.c_[np.zeros_like(t), h1 - t * h1],
+        ]
+    )

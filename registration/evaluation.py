@@ -53,7 +53,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from registration.coords import as_points
+from registration.coords import as_points, frame_outline
 from registration.distortion import HarrisModel
 
 STAGES = ("unregistered", "global", "local")
@@ -464,20 +464,6 @@ def check_compatible(result: Any, truth: Any) -> None:
             f"the truth does not match the result: base size {tb[0]}x{tb[1]} in the truth, "
             f"{rb[0]}x{rb[1]} in the result"
         )
-
-
-def frame_outline(width: int, height: int, per_edge: int = 32) -> NDArray[np.float64]:
-    """``(4 * per_edge, 2)`` raw px along the border of a ``width`` x ``height`` frame."""
-    t = np.linspace(0.0, 1.0, per_edge, endpoint=False)
-    w1, h1 = width - 1.0, height - 1.0
-    return np.concatenate(
-        [
-            np.c_[t * w1, np.zeros_like(t)],
-            np.c_[np.full_like(t, w1), t * h1],
-            np.c_[w1 - t * w1, np.full_like(t, h1)],
-            np.c_[np.zeros_like(t), h1 - t * h1],
-        ]
-    )
 
 
 def ground_grid(truth: Any, k: int, step: float) -> NDArray[np.float64]:
@@ -947,7 +933,6 @@ __all__ = [
     "evaluate_points",
     "evaluate_truth",
     "find_excursions",
-    "frame_outline",
     "ground_grid",
     "point_positions",
     "read_points_csv",

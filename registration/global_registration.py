@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from registration import features
-from registration.coords import image_size, rescale
+from registration.coords import frame_outline, image_size, rescale
 from registration.distortion import HarrisModel, undistort_image
 from registration.features import (
     ControlPoints,
@@ -599,7 +599,7 @@ def _fill_from_previous(joint: JointBase, prev: PreviousFrame) -> NDArray[np.uin
     hb, wb = joint.mid_grey.shape
     h, w = prev.view.grey.shape
     model = prev.base_from_corrected
-    outline = prev.view.to_corrected(_outline(w, h))
+    outline = prev.view.to_corrected(frame_outline(w, h))
     x0, y0, x1, y1 = bbox_of(model.apply(outline), (wb, hb))
     if x1 <= x0 or y1 <= y0:
         return joint.mid_grey
@@ -615,19 +615,6 @@ def _fill_from_previous(joint: JointBase, prev: PreviousFrame) -> NDArray[np.uin
     fill = valid & ~joint.mid_valid[y0:y1, x0:x1]
     region[fill] = warped[fill]
     return out
-
-
-def _outline(width: int, height: int, per_edge: int = 17) -> NDArray[np.float64]:
-    """Points along the border of a ``width`` x ``height`` image (pixel centres)."""
-    t = np.linspace(0.0, 1.0, per_edge)
-    return np.concatenate(
-        [
-            np.c_[t * (width - 1), np.zeros_like(t)],
-            np.c_[t * (width - 1), np.full_like(t, height - 1)],
-            np.c_[np.zeros_like(t), t * (height - 1)],
-            np.c_[np.full_like(t, width - 1), t * (height - 1)],
-        ]
-    )
 
 
 def bbox_of(pts: NDArray, base_size: tuple[int, int], margin: int = 2) -> tuple[int, int, int, int]:
@@ -648,7 +635,7 @@ def footprint_bbox(
 ) -> tuple[int, int, int, int]:
     """Integer ``(x0, y0, x1, y1)`` box of base pixels covered by a ``width`` x ``height`` frame
     under ``frame_to_base`` (a callable on ``(N, 2)`` frame px), clipped to the base."""
-    return bbox_of(frame_to_base(_outline(width, height)), base_size, margin)
+    return bbox_of(frame_to_base(frame_outline(width, height)), base_size, margin)
 
 
 def _failed_fine(reason: str) -> FineResult:

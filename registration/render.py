@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from registration import warp
-from registration.coords import image_size
+from registration.coords import frame_outline, image_size
 from registration.io import read_image, write_image_atomic
 from registration.local import DisplacementField
 
@@ -81,19 +81,6 @@ def render_registered(
     return image, mask
 
 
-def _outline(width: int, height: int, per_edge: int = 32) -> NDArray[np.float64]:
-    t = np.linspace(0.0, 1.0, per_edge, endpoint=False)
-    w1, h1 = width - 1.0, height - 1.0
-    return np.concatenate(
-        [
-            np.c_[t * w1, np.zeros_like(t)],
-            np.c_[np.full_like(t, w1), t * h1],
-            np.c_[w1 - t * w1, np.full_like(t, h1)],
-            np.c_[np.zeros_like(t), h1 - t * h1],
-        ]
-    )
-
-
 def footprint(
     frame_to_base_fns: Iterable[Callable[[NDArray], NDArray]],
     frame_size: tuple[int, int],
@@ -113,7 +100,7 @@ def footprint(
     Returns:
         ``(x0, y0, width, height)`` integers; ``(0, 0, 0, 0)`` when no frame maps anywhere.
     """
-    outline = _outline(*frame_size)
+    outline = frame_outline(*frame_size)
     lo = np.array([np.inf, np.inf])
     hi = -lo
     for fn in frame_to_base_fns:

@@ -6,7 +6,7 @@ import argparse
 import importlib
 import sys
 
-from app.cli import UsageError, emit_json
+from app.cli import UsageError, emit_json, parse_size
 
 NAME = "bench"
 HELP = "Measure speed and accuracy against in-run baselines and print the figures (markdown or --json)."
@@ -32,16 +32,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--base", help="base map of the same area as --scene")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of markdown")
-
-
-def parse_size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise UsageError(f"--size must look like 1280x960, got {text!r}") from None
-    if w <= 0 or h <= 0:
-        raise UsageError(f"--size must be positive, got {text!r}")
-    return w, h
 
 
 def run(args: argparse.Namespace) -> int:

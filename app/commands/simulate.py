@@ -7,7 +7,7 @@ import sys
 import time
 from pathlib import Path
 
-from app.cli import UsageError, emit_json
+from app.cli import UsageError, emit_json, parse_size
 from app.progress import ProgressBar
 
 NAME = "simulate"
@@ -27,16 +27,6 @@ examples:
   aerialreg simulate out/songdo --scene ../shared/data/songdo-vision-drone/images/00003.jpg
   aerialreg simulate --demo          # build (once) and print the cached demo sequence
 """
-
-
-def parse_size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise UsageError(f"--size must look like 1280x960, got {text!r}") from None
-    if w <= 0 or h <= 0:
-        raise UsageError(f"--size must be positive, got {text!r}")
-    return w, h
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
