@@ -245,9 +245,6 @@ def register_sequence(
         progress(n_done, n)
 
     joint = _reference_step(frames, base, gamma, seed, reference_frame, config, writer, reference)
-    if progress and not writer.done(reference_frame):
-        n_done += 1
-        progress(n_done, n)
     n_done = sum(writer.done(k) for k in order)
     if progress:
         progress(n_done, n)

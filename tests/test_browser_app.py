@@ -20,7 +20,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-CHROMIUM = Path("/usr/bin/chromium")
+from app.bench.app import CHROMIUM, LAUNCH_ARGS  # one set of browser flags for tests and bench
+
 pytestmark = [
     pytest.mark.browser,
     pytest.mark.skipif(
@@ -36,15 +37,6 @@ from app.server import App  # noqa: E402
 from registration.distortion import HarrisModel  # noqa: E402
 from tests.test_app import small_seq  # noqa: E402,F401  (session fixture: 4 frames 640x480)
 
-LAUNCH_ARGS = [
-    "--headless=new",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-    "--no-first-run",
-]
 VIEWPORT = {"width": 1280, "height": 800}
 SHOTS = (
     Path(os.environ.get("AERIALREG_TEST_SHOTS", ""))
