@@ -128,14 +128,15 @@ class CalibrateTab(View):
         except ValueError as exc:
             self.notify(client, "Invalid γ", str(exc), color="red")
             with self.state.lock:
-                g = self.state.gamma
-            self._sync_gamma_widgets(g)
+                self._sync_gamma_widgets(self.state.gamma)
             return False
         with self.state.lock:
             changed = gamma != self.state.gamma
             self.state.gamma = float(gamma)
             self.state.revision += 1
-        self._sync_gamma_widgets(gamma)
+            # Under the lock: callbacks from two tabs run concurrently, and the widgets must end
+            # showing the γ of whichever set the state last, not of whichever synced last.
+            self._sync_gamma_widgets(gamma)
         if changed:
             self.app.save()
         self.request_render()

@@ -41,6 +41,11 @@ class PipelineConfig:
             the canvas, and avoids resampling the frame before matching).
         run_local: compute the local field (stage ``"local"``); without it stage ``"local"``
             equals ``"global"``.
+        reference_local: beyond the paper: settings of the reference frame's own displacement
+            field against the base map, from its template control points
+            (:func:`registration.pipeline.reference_field`); the mid base image is rendered
+            with it, so every frame's local stage inherits it. None = the paper (the reference
+            frame's local stage is its global model).
         random_seed: seed of every random choice (RANSAC samples); frame ``k`` uses
             ``random_seed + k``.
     """
@@ -51,6 +56,7 @@ class PipelineConfig:
     local: LocalConfig = field(default_factory=LocalConfig)
     match_in: str = "corrected"
     run_local: bool = True
+    reference_local: LocalConfig | None = None
     random_seed: int = 0
 
 
@@ -69,17 +75,60 @@ REQCON_TARGET_PX = 0.5
 # when the inlier share is high, as it is for a seeded helicopter frame. On the 200 real SRIF
 # pairs it doubled the coarse step's success rate (README, Benchmarks).
 RANSAC_MAX_ITERATIONS = 10000
-# DIS optical-flow preset of the default local stage: "fast" costs ~1/4 of "medium" (0.12 vs
-# 0.48 s on a 1280x960 frame's footprint) for ~0.13 instead of ~0.05 px field error, far below
-# the ~1 px that the reference frame's inter-sensor registration leaves (README, Presets).
-LOCAL_FLOW_PRESET = "fast"
+# The default local stage measures the flow in the frame's geometry at half scale, but never on
+# an image narrower than 1280 px (local.estimate_field_in_frame), with DIS "medium", sampled
+# every 16 px (156 samples per 200 px neighbourhood). Measured on simulated 2560x1920 frames against the exact truth (motion
+# relative to the reference frame): full scale "fast", every 8 px: 0.09-0.11 px, 0.41-0.43 s;
+# half scale "medium", every 16 px: 0.12-0.13 px, 0.22-0.24 s; the global stage leaves
+# 0.27-0.58 px and the reference frame's own inter-sensor error is ~1 px, so the difference does
+# not show in the absolute error (README, Presets).
+LOCAL_FLOW = {
+    "flow_preset": "medium",
+    "flow_scale": 0.5,
+    "flow_min_width_px": 1280,
+    "flow_step_px": 16,
+}
+# The reference frame's field from its ~1900 template matches (about 16 per 200 px cell): the
+# affine cell model on centres 100 px apart, REQCON to 0.5 px with no match beyond 1.5 px, at
+# least 6 matches. A polyprojective cannot follow a rolling shutter seen through the lens
+# distortion: on a simulated 2560x1920 reference frame even the best degree-2 fit to the exact
+# truth leaves 1.05 px mean; the field took the registered frame from 1.25 to 0.78 px (mean over
+# the frame's pixels; README, Presets).
+REFERENCE_LOCAL = LocalConfig(
+    cell_model="affine",
+    spacing_px=100,
+    min_matches=6,
+    reqcon_target_px=0.5,
+    reqcon_max_residual_px=1.5,
+)
+# Template spacing of the reference frame (a one-off): every 25 px instead of the paper's 50, so
+# that the field above has matches in the frame's stretched corners (~7200 templates, 3.7 s at
+# 2560x1920). Measured on a simulated 2560x1920 reference frame, mean error over a 16 px grid of
+# ground points: global 1.78 px; with the field from templates every 50 px 1.15 px (p95 4.7),
+# every 25 px 0.54 px (p95 1.2).
+REFERENCE_TEMPLATE_SPACING_PX = 25
+# Coarse SIFT keypoints per intra-sensor frame in the default preset (IntraConfig).
+INTRA_COARSE_NFEATURES = 2000
+# Intra-sensor templates of the default preset: every 100 px without the dithered
+# re-correlation. The global model of a frame is limited by what a polyprojective can represent
+# (rolling shutter under lens distortion), not by the control points' precision, and the local
+# stage removes the rest: on simulated 2560x1920 frames, motion after global 0.474 px with 1912
+# dithered templates every 50 px (0.89 s), 0.472 px with 511 undithered every 100 px (0.30 s);
+# after local 0.102 and 0.099 px. Smaller frames get a denser grid (at least 200 templates:
+# 640x480 frames would otherwise have 24, too few for REQCON on 17 coefficients).
+INTRA_TEMPLATE = {"spacing_px": 100, "dither_iterations": 0, "min_templates": 200}
 
 
 def _default() -> PipelineConfig:
     paper = PipelineConfig()
     lm_ransac = replace(paper.coarse.ransac, refine="lm", max_iterations=RANSAC_MAX_ITERATIONS)
     lm_reqcon = replace(paper.fine.reqcon, optimizer="lm", target_mean_error_px=REQCON_TARGET_PX)
-    warped = replace(paper.fine.template, warp_reference=True, edge_template_px=EDGE_TEMPLATE_PX)
+    warped = replace(
+        paper.fine.template,
+        warp_reference=True,
+        edge_template_px=EDGE_TEMPLATE_PX,
+        spacing_px=REFERENCE_TEMPLATE_SPACING_PX,
+    )
     return replace(
         paper,
         match_in="raw",
@@ -87,13 +136,18 @@ def _default() -> PipelineConfig:
         fine=replace(paper.fine, template=warped, reqcon=lm_reqcon),
         intra=replace(
             paper.intra,
+            coarse_nfeatures=INTRA_COARSE_NFEATURES,
             control_points="template",
             template=replace(
-                paper.intra.template, warp_reference=True, edge_template_px=EDGE_TEMPLATE_PX
+                paper.intra.template,
+                warp_reference=True,
+                edge_template_px=EDGE_TEMPLATE_PX,
+                **INTRA_TEMPLATE,
             ),
             reqcon=lm_reqcon,
         ),
-        local=replace(paper.local, **{**FLOW_OVERRIDES, "flow_preset": LOCAL_FLOW_PRESET}),
+        local=replace(paper.local, **{**FLOW_OVERRIDES, **LOCAL_FLOW}),
+        reference_local=REFERENCE_LOCAL,
     )
 
 

@@ -647,6 +647,9 @@ class TemplateConfig:
         max_roundtrip_px: with ``frame_from_ref`` given, templates whose centre does not come
             back within this distance through ``frame_from_ref(ref_from_frame(c))`` are skipped
             (the model is not invertible there). Frame px.
+        min_templates: beyond the paper: when the grid at ``spacing_px`` holds fewer templates
+            than this (small frames), the spacing shrinks until it holds this many (or reaches
+            1 px); the edge ring uses the same spacing. 0 = always ``spacing_px``.
         edge_template_px: beyond the paper: when > 0, a ring of extra templates of this size
             along the frame border (corners included, ``spacing_px`` apart, each as close to the
             edge as it fits). The main grid stops ``template_px / 2`` from the border; after a
@@ -669,6 +672,7 @@ class TemplateConfig:
     reject_border_peaks: bool = True
     map_step_px: int = 8
     max_roundtrip_px: float = 1.0
+    min_templates: int = 0
     edge_template_px: int = 0
 
     def __post_init__(self) -> None:
@@ -722,14 +726,15 @@ def template_grid(
     templates stay inside. Empty when the frame is smaller than one template.
     """
     h = config.half_template
+    spacing = grid_spacing(width, height, config)
     axes = []
     for n_px in (width, height):
         span = n_px - 1 - 2 * h
         if span < 0:
             return np.zeros((0, 2), np.int64)
-        count = span // config.spacing_px + 1
-        first = h + (span - (count - 1) * config.spacing_px) // 2
-        axes.append(first + config.spacing_px * np.arange(count))
+        count = span // spacing + 1
+        first = h + (span - (count - 1) * spacing) // 2
+        axes.append(first + spacing * np.arange(count))
     gx, gy = np.meshgrid(axes[0], axes[1], indexing="xy")
     centres = np.stack([gx.ravel(), gy.ravel()], axis=1).astype(np.int64)
     if config.jitter_px > 0:
@@ -739,6 +744,19 @@ def template_grid(
         centres[:, 0] = np.clip(centres[:, 0], h, width - 1 - h)
         centres[:, 1] = np.clip(centres[:, 1], h, height - 1 - h)
     return centres
+
+
+def grid_spacing(width: int, height: int, config: TemplateConfig) -> int:
+    """The template spacing for a ``width`` x ``height`` frame: ``spacing_px``, or less when
+    that leaves fewer than ``min_templates`` templates (see :class:`TemplateConfig`)."""
+    spacing = config.spacing_px
+    span_x = width - 1 - 2 * config.half_template
+    span_y = height - 1 - 2 * config.half_template
+    if span_x < 0 or span_y < 0:
+        return spacing
+    while spacing > 1 and (span_x // spacing + 1) * (span_y // spacing + 1) < config.min_templates:
+        spacing -= 1
+    return spacing
 
 
 def edge_ring(width: int, height: int, template_px: int, spacing_px: int) -> NDArray[np.int64]:
@@ -905,6 +923,9 @@ def template_control_points(
     config: TemplateConfig = TemplateConfig(),
     *,
     centres: NDArray[np.int64] | None = None,
+    ref_valid: NDArray | None = None,
+    fallback: GriddedReference | None = None,
+    _searches: dict | None = None,
 ) -> ControlPoints:
     """Template grid control points (paper 4.3.2 steps 1, 3, 4).
 
@@ -936,22 +957,31 @@ def template_control_points(
         config: grid and search settings.
         centres: template centres to use instead of the grid (integer frame px, each template
             fully inside the frame); the edge ring is then not added.
+        ref_valid: ``(Hr, Wr)`` bool, where the reference has content (e.g. the mid base
+            image); a template whose search window touches anything else is not searched there.
+        fallback: a second reference (image and its ``ref_from_frame``), searched by the
+            templates the first cannot take (paper 4.4: the previous frame completes the mid
+            base image). Only with ``warp_reference``; warped only when some template needs it.
 
     Returns:
         :class:`ControlPoints`: ``src`` frame px (template centres or their structure centroids,
-        ``config.anchor``), ``dst`` reference px, ``score`` = NCC peak value; empty when nothing
-        matched.
+        ``config.anchor``), ``dst`` reference px (of the fallback where ``source == 1``),
+        ``score`` = NCC peak value; empty when nothing matched.
     """
+    if fallback is not None and not config.warp_reference:
+        raise ValueError("template_control_points: a fallback reference needs warp_reference=True")
     frame = to_grey(frame_grey)
     ref = to_grey(ref_grey)
     fw, fh = coords.image_size(frame)
     rw, rh = coords.image_size(ref)
     half, rad = config.half_template, config.search_radius
     if centres is None and config.edge_template_px > 0:
-        ring = edge_ring(fw, fh, config.edge_template_px, config.spacing_px)
+        ring = edge_ring(fw, fh, config.edge_template_px, grid_spacing(fw, fh, config))
         edge_cfg = dataclasses.replace(
             config, template_px=config.edge_template_px, edge_template_px=0
         )
+        # Both sets search the same warped references: warp them once (``_searches``).
+        searches: dict = {}
         return ControlPoints.concatenate(
             [
                 template_control_points(
@@ -961,9 +991,20 @@ def template_control_points(
                     frame_from_ref,
                     config,
                     centres=template_grid(fw, fh, config),
+                    ref_valid=ref_valid,
+                    fallback=fallback,
+                    _searches=searches,
                 ),
                 template_control_points(
-                    frame, ref, ref_from_frame, frame_from_ref, edge_cfg, centres=ring
+                    frame,
+                    ref,
+                    ref_from_frame,
+                    frame_from_ref,
+                    edge_cfg,
+                    centres=ring,
+                    ref_valid=ref_valid,
+                    fallback=fallback,
+                    _searches=searches,
                 ),
             ]
         )
@@ -983,18 +1024,25 @@ def template_control_points(
     centres, pred = centres[keep], pred[keep]
 
     win = half + rad  # half-size of the searched window
+    use_fallback = np.zeros(len(centres), bool)
+    fb_search = None
     if config.warp_reference:
         # Warp the reference into frame geometry once, on a canvas padded by the search radius
         # so that windows of border templates fit; canvas pixel (i, j) = frame pixel (i-rad, j-rad).
-        smap = warp.source_map_from_function(
-            ref_from_frame, fw + 2 * rad, fh + 2 * rad, step=config.map_step_px, origin=(-rad, -rad)
-        )
-        search = warp.remap(ref, smap, interpolation="linear")
-        # NaN fails every comparison, so this also marks pixels without a source.
-        sx, sy = smap[..., 0], smap[..., 1]
-        invalid = ~((sx >= 0) & (sx <= rw - 1) & (sy >= 0) & (sy <= rh - 1))
+        searches = {} if _searches is None else _searches
+        if "ref" not in searches:
+            searches["ref"] = _search_image(ref, ref_from_frame, ref_valid, fw, fh, rad, config)
+        search, invalid = searches["ref"]
         win_centres = centres + rad
         ok = ~_box_any(invalid, win_centres, win)
+        if fallback is not None and not ok.all():
+            if "fallback" not in searches:
+                searches["fallback"] = _search_image(
+                    to_grey(fallback.image), fallback.ref_from_frame, None, fw, fh, rad, config
+                )
+            fb_search, fb_invalid = searches["fallback"]
+            use_fallback = ~ok & ~_box_any(fb_invalid, win_centres, win)
+            ok |= use_fallback
     else:
         search = ref
         win_centres = np.round(pred).astype(np.int64)
@@ -1004,6 +1052,8 @@ def template_control_points(
             & (win_centres[:, 1] - win >= 0)
             & (win_centres[:, 1] + win <= rh - 1)
         )
+        if ref_valid is not None and ok.any():
+            ok[ok] = ~_box_any(~np.asarray(ref_valid, bool), win_centres[ok], win)
     idx = np.flatnonzero(ok)
     if len(idx) == 0:
         return ControlPoints.empty()
@@ -1024,7 +1074,8 @@ def template_control_points(
             cx, cy = centres[idx[k]]
             wx, wy = win_centres[idx[k]]
             tpl = frame[cy - half : cy + half + 1, cx - half : cx + half + 1]
-            window = search[wy - win : wy + win + 1, wx - win : wx + win + 1]
+            image = fb_search if use_fallback[idx[k]] else search
+            window = image[wy - win : wy + win + 1, wx - win : wx + win + 1]
             # Texture check on both sides: a flat template or window has no reliable peak.
             if cv2.meanStdDev(tpl)[1][0, 0] < min_std or cv2.meanStdDev(window)[1][0, 0] < min_std:
                 continue
@@ -1071,15 +1122,37 @@ def template_control_points(
         return ControlPoints.empty()
     idx, scores, offset, anchor = idx[good], scores[good], offsets[good], anchors[good]
     src = centres[idx].astype(np.float64) + anchor
+    source = use_fallback[idx].astype(np.int64)
     if config.warp_reference:
-        dst = _call_points(ref_from_frame, src + offset, "ref_from_frame")
+        dst = np.full_like(src, np.nan)
+        for k, fn in enumerate((ref_from_frame, fallback and fallback.ref_from_frame)):
+            sel = source == k
+            if sel.any():
+                dst[sel] = _call_points(fn, src[sel] + offset[sel], "ref_from_frame")
     else:
         dst = win_centres[idx] + offset
     fin = np.isfinite(dst).all(axis=1)
     logger.debug(
         "template control points: %d of %d templates matched", int(fin.sum()), len(centres)
     )
-    return ControlPoints(src[fin], dst[fin], scores[fin])
+    return ControlPoints(src[fin], dst[fin], scores[fin], source[fin])
+
+
+def _search_image(ref, ref_from_frame, ref_valid, fw, fh, rad, config):
+    """``ref`` warped into frame geometry on a canvas padded by ``rad`` (canvas pixel (i, j) =
+    frame pixel (i - rad, j - rad)), and where that canvas has no reference content."""
+    smap = warp.source_map_from_function(
+        ref_from_frame, fw + 2 * rad, fh + 2 * rad, step=config.map_step_px, origin=(-rad, -rad)
+    )
+    search = warp.remap(ref, smap, interpolation="linear")
+    rh, rw = ref.shape[:2]
+    # NaN fails every comparison, so this also marks pixels without a source.
+    sx, sy = smap[..., 0], smap[..., 1]
+    invalid = ~((sx >= 0) & (sx <= rw - 1) & (sy >= 0) & (sy <= rh - 1))
+    if ref_valid is not None:
+        content = np.asarray(ref_valid, np.uint8)
+        invalid |= warp.remap(content, smap, interpolation="nearest") == 0
+    return search, invalid
 
 
 # --------------------------------------------------------------------------------------------

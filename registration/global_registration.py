@@ -85,9 +85,16 @@ class IntraConfig:
 
     Attributes:
         prediction_gate_px: a coarse match is kept only if it lies within this distance (full-scale
-            base px) of where the previous frame's model puts the keypoint; it replaces the seed
-            point, which exists only for the reference frame. Larger tolerates more motion
-            between frames.
+            base px) of where the previous frame's model puts the keypoint, after that prediction
+            is moved by the frame-to-frame shift (the median offset of the matches with the
+            previous frame, which are same-sensor and mostly right); it replaces the seed point,
+            which exists only for the reference frame. It bounds the rotation and scale change
+            between frames, not the shift (at 2560x1920 the helicopter's jitter moves the view
+            by up to ~200 px between frames).
+        coarse_nfeatures: at most this many strongest coarse SIFT keypoints per frame (0 = all,
+            the paper). Beyond the paper: a helicopter frame at 1/4 scale yields ~6600, and
+            matching cost grows with the product of the two counts; 2000 leave over a thousand
+            matches with the previous frame for RANSAC.
         control_points: ``"gridded_sift"`` (paper 4.4: SIFT in 50x50 windows every 100 px,
             matched within corresponding windows) or ``"template"`` (normalised
             cross-correlation of the template grid against the joint base, as in 4.3.2).
@@ -100,11 +107,24 @@ class IntraConfig:
     """
 
     prediction_gate_px: float = 150.0
+    coarse_nfeatures: int = 0
     control_points: Literal["gridded_sift", "template"] = "gridded_sift"
     gridded: GriddedSiftConfig = field(default_factory=GriddedSiftConfig)
     template: TemplateConfig = field(default_factory=TemplateConfig)
     reqcon: ReqconConfig = field(default_factory=ReqconConfig)
     use_previous_frame: bool = True
+
+    def __post_init__(self) -> None:
+        if self.control_points not in ("gridded_sift", "template"):
+            raise ValueError(
+                f"IntraConfig.control_points must be 'gridded_sift' or 'template', "
+                f"got {self.control_points!r}"
+            )
+        if self.control_points == "template" and not self.template.warp_reference:
+            raise ValueError(
+                "IntraConfig: template control points need template.warp_reference=True "
+                "(the previous frame is searched in the frame's geometry)"
+            )
 
 
 @dataclass
@@ -242,17 +262,21 @@ def _fit_coarse(
     gate: NDArray[np.bool_] | None | callable,
     rng: np.random.Generator,
     n_keypoints_base: int,
+    known: list[features.Matches | None] | None = None,
 ) -> CoarseResult:
     """Match the frame against each reference separately, gate, RANSAC at the coarse scale.
 
     ``refs`` holds (features, to_base) pairs: ``to_base`` maps the reference's full-scale pixels
     to base pixels (None = already base pixels). Matching each reference on its own keeps the
-    ratio test from rejecting a point because it appears in two references.
+    ratio test from rejecting a point because it appears in two references. ``known`` gives
+    matches already computed, per reference (None = match here).
     """
     s = config.scale
     frame_xy, base_xy = [], []
-    for feats, to_base in refs:
-        m = features.match_ratio(frame_feats.keypoints, feats.keypoints, config.ratio)
+    for i, (feats, to_base) in enumerate(refs):
+        m = known[i] if known is not None else None
+        if m is None:
+            m = features.match_ratio(frame_feats.keypoints, feats.keypoints, config.ratio)
         if len(m.idx_a) == 0:
             continue
         f_full = rescale(frame_feats.keypoints.xy[m.idx_a], 1.0 / s)
@@ -429,8 +453,11 @@ def frame_domain(frame_raw: NDArray, gamma: float, n: int = 9) -> NDArray[np.flo
     return HarrisModel(gamma, w, h).corrected_from_raw(np.c_[gx.ravel(), gy.ravel()])
 
 
-def _template_points(view: FrameView, reference, base_from_corrected, template_cfg):
-    """Template control points of the view against a base-pixel reference; ``src`` corrected."""
+def _template_points(
+    view: FrameView, reference, base_from_corrected, template_cfg, *, ref_valid=None, fallback=None
+):
+    """Template control points of the view against a base-pixel reference (and a fallback
+    reference, see :func:`features.template_control_points`); ``src`` corrected px."""
     model = base_from_corrected
     cps = features.template_control_points(
         view.grey,
@@ -438,6 +465,8 @@ def _template_points(view: FrameView, reference, base_from_corrected, template_c
         lambda xy: model.apply(view.to_corrected(xy)),
         lambda b: view.from_corrected(model.inverse(b)),
         template_cfg,
+        ref_valid=ref_valid,
+        fallback=fallback,
     )
     return _points_to_corrected(cps, view)
 
@@ -461,6 +490,7 @@ class JointBase:
         previous: the previously registered frame, or None.
         previous_index: that frame's index in the sequence.
         local_keypoints: the mid base image's keypoints for the local stage (paper preset), once.
+        flow_reference: the mid base image prepared for the flow local stage, once.
     """
 
     mid_grey: NDArray[np.uint8]
@@ -470,6 +500,7 @@ class JointBase:
     previous: PreviousFrame | None = None
     previous_index: int | None = None
     local_keypoints: object | None = None
+    flow_reference: object | None = None
 
 
 @dataclass
@@ -488,7 +519,18 @@ def previous_frame_state(frame_raw: NDArray, gamma: float, model, config) -> Pre
     sift = None
     if config.intra.control_points == "gridded_sift":
         sift = features.detect_sift(view.grey, config.intra.gridded.sift)
-    return PreviousFrame(view, model, coarse_features(view.grey, config.coarse, view=view), sift)
+    coarse = coarse_features(view.grey, _intra_coarse_config(config), view=view)
+    return PreviousFrame(view, model, coarse, sift)
+
+
+def _intra_coarse_config(config) -> CoarseConfig:
+    """The coarse step's settings for intra-sensor frames (``IntraConfig.coarse_nfeatures``)."""
+    n = config.intra.coarse_nfeatures
+    if not n:
+        return config.coarse
+    return dataclasses.replace(
+        config.coarse, sift=dataclasses.replace(config.coarse.sift, nfeatures=n)
+    )
 
 
 def make_joint_base(mid_base: NDArray, mid_valid: NDArray[np.bool_], config) -> JointBase:
@@ -514,24 +556,34 @@ def register_intra(
     t0 = time.perf_counter()
     rng = np.random.default_rng(rng)
     cfg: IntraConfig = config.intra
-    ccfg: CoarseConfig = config.coarse
     view = frame_view(frame_raw, gamma, config.match_in)
+    ccfg = _intra_coarse_config(config)
     frame_coarse = coarse_features(view.grey, ccfg, view=view)
     prev = joint.previous if cfg.use_previous_frame else None
-
-    refs: list[tuple[CoarseFeatures, object]] = [(joint.mid_coarse, None)]
+    refs: list[tuple[CoarseFeatures, object]] = []
+    known: list[features.Matches | None] = []
     if prev is not None:
         refs.append((prev.coarse, prev.base_from_corrected.apply))
+        known.append(
+            features.match_ratio(frame_coarse.keypoints, prev.coarse.keypoints, ccfg.ratio)
+        )
     gate = None
+    mid = joint.mid_coarse
     if joint.previous is not None:
         predict = joint.previous.base_from_corrected.apply
+        shift = np.zeros(2)
+        if prev is not None:
+            shift = _median_shift(frame_coarse, prev.coarse, known[0], refs[0][1], predict)
+        mid = _coarse_near(mid, predict, shift, view, frame_raw.shape, cfg.prediction_gate_px)
         limit = cfg.prediction_gate_px
 
         def gate(fxy, bxy):
-            return np.linalg.norm(predict(fxy) - bxy, axis=1) < limit
+            return np.linalg.norm(predict(fxy) + shift - bxy, axis=1) < limit
 
+    refs.insert(0, (mid, None))
+    known.insert(0, None)
     n_base = sum(len(r[0].keypoints.xy) for r in refs)
-    coarse = _fit_coarse(frame_coarse, refs, ccfg, gate, rng, n_base)
+    coarse = _fit_coarse(frame_coarse, refs, ccfg, gate, rng, n_base, known)
     coarse.time_s = time.perf_counter() - t0
     if not coarse:
         return coarse, _failed_fine(coarse.reason), None
@@ -576,10 +628,20 @@ def register_intra(
             )
             cps = ControlPoints(cps.src, dst, cps.score, cps.source)
     else:
-        reference = joint.mid_grey
+        fallback = None
         if prev is not None:
-            reference = _fill_from_previous(joint, prev)
-        cps = _template_points(view, reference, model, cfg.template)
+            p, pv = prev.base_from_corrected, prev.view
+            fallback = features.Reference(
+                pv.grey, lambda xy: pv.from_corrected(p.inverse(model.apply(view.to_corrected(xy))))
+            )
+        cps = _template_points(
+            view, joint.mid_grey, model, cfg.template, ref_valid=joint.mid_valid, fallback=fallback
+        )
+        if prev is not None and len(cps.src):
+            from_prev = cps.source == 1
+            dst = cps.dst.copy()
+            dst[from_prev] = prev.base_from_corrected.apply(prev.view.to_corrected(dst[from_prev]))
+            cps = ControlPoints(cps.src, dst, cps.score, cps.source)
     keep = np.isfinite(cps.dst).all(axis=1) & np.isfinite(cps.src).all(axis=1)
     if not keep.all():
         cps = ControlPoints(cps.src[keep], cps.dst[keep], cps.score[keep], cps.source[keep])
@@ -588,33 +650,6 @@ def register_intra(
         return coarse, fine, None
     state = PreviousFrame(view, fine.base_from_corrected, frame_coarse, frame_sift)
     return coarse, fine, state
-
-
-def _fill_from_previous(joint: JointBase, prev: PreviousFrame) -> NDArray[np.uint8]:
-    """The mid base image with the previous frame, warped into base pixels, where it is empty."""
-    from registration.warp import warp_image
-
-    if joint.mid_valid.all():
-        return joint.mid_grey
-    hb, wb = joint.mid_grey.shape
-    h, w = prev.view.grey.shape
-    model = prev.base_from_corrected
-    outline = prev.view.to_corrected(frame_outline(w, h))
-    x0, y0, x1, y1 = bbox_of(model.apply(outline), (wb, hb))
-    if x1 <= x0 or y1 <= y0:
-        return joint.mid_grey
-    warped, valid = warp_image(
-        prev.view.grey,
-        lambda b: prev.view.from_corrected(model.inverse(b)),
-        x1 - x0,
-        y1 - y0,
-        origin=(x0, y0),
-    )
-    out = joint.mid_grey.copy()
-    region = out[y0:y1, x0:x1]
-    fill = valid & ~joint.mid_valid[y0:y1, x0:x1]
-    region[fill] = warped[fill]
-    return out
 
 
 def bbox_of(pts: NDArray, base_size: tuple[int, int], margin: int = 2) -> tuple[int, int, int, int]:
@@ -641,3 +676,31 @@ def footprint_bbox(
 def _failed_fine(reason: str) -> FineResult:
     z = np.zeros((0, 2))
     return FineResult(False, reason, None, z, z, np.zeros(0, bool), np.zeros(0), 0)
+
+
+def _median_shift(frame_coarse, prev_coarse, matches, prev_to_base, predict) -> NDArray:
+    """Median offset (base px) between where the previous frame's model puts the frame's matched
+    coarse keypoints and where their matches in the previous frame lie (zero without matches).
+    Same-sensor neighbours match mostly right, so the median is the frame-to-frame shift."""
+    if len(matches.idx_a) < Projective.min_samples:
+        return np.zeros(2)
+    f = rescale(frame_coarse.keypoints.xy[matches.idx_a], 1.0 / frame_coarse.scale)
+    b = prev_to_base(rescale(prev_coarse.keypoints.xy[matches.idx_b], 1.0 / prev_coarse.scale))
+    off = b - predict(f)
+    off = off[np.isfinite(off).all(axis=1)]
+    return np.median(off, axis=0) if len(off) else np.zeros(2)
+
+
+def _coarse_near(mid, predict, shift, view, shape, margin) -> CoarseFeatures:
+    """The mid base image's coarse keypoints within ``margin`` base px of the frame's predicted
+    footprint (matching cost grows with the number of candidates)."""
+    h, w = shape[:2]
+    outline = predict(view.to_corrected(frame_outline(w, h))) + shift
+    outline = outline[np.isfinite(outline).all(axis=1)]
+    if not len(outline):
+        return mid
+    lo = rescale(outline.min(axis=0) - margin, mid.scale)[0]
+    hi = rescale(outline.max(axis=0) + margin, mid.scale)[0]
+    xy = mid.keypoints.xy
+    near = (xy >= lo).all(axis=1) & (xy <= hi).all(axis=1)
+    return CoarseFeatures(mid.keypoints.subset(near), mid.scale)

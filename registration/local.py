@@ -40,7 +40,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from registration import warp
-from registration.coords import as_points
+from registration.coords import as_points, frame_outline
 
 log = logging.getLogger(__name__)
 
@@ -118,6 +118,13 @@ class LocalConfig:
         flow_step_px: flow samples are taken every this many px (8 -> 625 votes per cell).
         flow_margin_px: samples closer than this to missing data are skipped (flow is
             unreliable at the footprint's edge).
+        flow_scale: image scale the flow is computed at by :func:`estimate_field_in_frame`
+            (both images resampled with area averaging; displacements are mapped back to full
+            base px exactly through the global mapping). 0.5 costs ~1/4 of full scale.
+        flow_min_width_px: the flow image is never made narrower than this (the scale is raised
+            to ``min(1, flow_min_width_px / W)``): on small frames the detail lost by
+            downscaling costs accuracy (640x480 frames at 0.5: 0.28-0.31 px motion after local,
+            at full scale 0.13-0.22). 0 = no limit.
     """
 
     method: str = "sift"
@@ -143,6 +150,8 @@ class LocalConfig:
     flow_preset: str = "medium"
     flow_step_px: int = 8
     flow_margin_px: int = 8
+    flow_scale: float = 1.0
+    flow_min_width_px: int = 0
 
     def __post_init__(self) -> None:
         if self.cell_px <= 0 or self.spacing_px <= 0:
@@ -165,6 +174,8 @@ class LocalConfig:
             raise ValueError(
                 f"flow_preset must be ultrafast, fast or medium, got {self.flow_preset!r}"
             )
+        if not 0 < self.flow_scale <= 1:
+            raise ValueError(f"flow_scale must be in (0, 1], got {self.flow_scale}")
         if self.flow_step_px < 1:
             raise ValueError(f"flow_step_px must be >= 1, got {self.flow_step_px}")
         if self.min_matches < 1:
@@ -558,17 +569,125 @@ class CellConsensus:
     status: int
 
 
-def _fit(pos: NDArray, disp: NDArray, centre: NDArray, model: str, cell_px: float):
-    """Least-squares displacement model; returns (vector at centre, predicted disp per match)."""
-    if model == "affine" and len(pos) >= 6:
-        rel = pos - centre
-        spread = np.sqrt(np.linalg.eigvalsh(np.cov(rel.T))) if len(rel) > 2 else np.zeros(2)
-        if spread.min() >= cell_px / 8.0:
-            a = np.column_stack([np.ones(len(rel)), rel])
-            coef, *_ = np.linalg.lstsq(a, disp, rcond=None)
-            return coef[0], a @ coef
-    v = disp.mean(axis=0)
-    return v, np.broadcast_to(v, disp.shape)
+def _fit_cells(rel: NDArray, disp: NDArray, kept: NDArray, model: str, cell_px: float):
+    """Least-squares displacement model per cell over its kept matches.
+
+    Args:
+        rel: ``(C, M, 2)`` match positions relative to the cell centres (padding anywhere).
+        disp: ``(C, M, 2)`` displacements.
+        kept: ``(C, M)`` bool, the matches to fit.
+
+    Returns:
+        ``(vector (C, 2) at the centre, predicted displacement (C, M, 2))``. Cells with fewer
+        than 6 kept matches, or whose kept matches spread (standard deviation along either
+        principal axis) less than ``cell_px / 8``, get a translation (their mean).
+    """
+    w = kept.astype(np.float64)[..., None]  # (C, M, 1)
+    n = w[..., 0].sum(axis=1)
+    safe_n = np.maximum(n, 1.0)[:, None]
+    vec = (w * disp).sum(axis=1) / safe_n
+    pred = np.broadcast_to(vec[:, None, :], disp.shape)
+    if model != "affine":
+        return vec, pred
+    mu = (w * rel).sum(axis=1) / safe_n
+    c = (rel - mu[:, None, :]) * np.sqrt(w)
+    cov = np.matmul(c.transpose(0, 2, 1), c) / np.maximum(n - 1, 1.0)[:, None, None]
+    a, b, d = cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]
+    eig_min = (a + d) / 2 - np.sqrt(((a - d) / 2) ** 2 + b**2)
+    affine = (n >= 6) & (np.sqrt(np.maximum(eig_min, 0.0)) >= cell_px / 8.0)
+    if not affine.any():
+        return vec, pred
+    design = np.concatenate([np.ones(rel.shape[:2] + (1,)), rel], axis=2)[affine]  # (A, M, 3)
+    weighted_t = (design * w[affine]).transpose(0, 2, 1)  # (A, 3, M)
+    coef = np.linalg.solve(weighted_t @ design, weighted_t @ disp[affine])  # (A, 3, 2)
+    vec = vec.copy()
+    vec[affine] = coef[:, 0, :]
+    pred = np.array(pred)
+    pred[affine] = design @ coef
+    return vec, pred
+
+
+def consensus_cells(
+    pos: NDArray, disp: NDArray, centres: NDArray, members: NDArray, config: LocalConfig
+) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+    """REQCON consensus of many neighbourhoods at once (see :func:`cell_consensus`).
+
+    Args:
+        pos, disp: ``(N, 2)`` base px of all matches and their displacements.
+        centres: ``(C, 2)`` cell centres.
+        members: ``(C, M)`` int, each cell's match indices padded with -1.
+
+    Returns:
+        ``(vectors (C, 2), kept (C, M) bool, residual_px (C,), status (C,) int8)``; vectors are
+        NaN where the status is not OK.
+    """
+    n_cells, width = members.shape
+    slot = members >= 0
+    idx = np.where(slot, members, 0)
+    rel = pos[idx] - centres[:, None, :]
+    d_all = disp[idx]
+    kept = slot.copy()
+    n = slot.sum(axis=1)
+    status = np.full(n_cells, OK, np.int8)
+    status[n < config.min_matches] = FEW_MATCHES
+    kept[n < config.min_matches] = False
+    vectors = np.full((n_cells, 2), np.nan)
+    resid = np.full(n_cells, np.nan)
+    max_res = config.reqcon_max_residual_px
+    active = np.flatnonzero(n >= config.min_matches)
+    # The active cells' arrays shrink with them (most cells settle in a few rounds).
+    rel_a, d_a, k = rel[active], d_all[active], kept[active]
+    while len(active):
+        v, pred = _fit_cells(rel_a, d_a, k, config.cell_model, config.cell_px)
+        diff = d_a - pred
+        r = np.sqrt(diff[..., 0] ** 2 + diff[..., 1] ** 2)
+        nk = k.sum(axis=1)
+        mean_r = np.where(k, r, 0.0).sum(axis=1) / nk
+        done = mean_r < config.reqcon_target_px
+        if max_res is not None:
+            done &= np.where(k, r, -np.inf).max(axis=1) <= max_res
+        resid[active] = mean_r
+        vectors[active[done]] = v[done]
+        n_drop = np.maximum(1, np.ceil(config.reqcon_drop_fraction * nk).astype(int))
+        fail = ~done & (nk - n_drop < config.min_matches)
+        status[active[fail]] = NO_CONSENSUS
+        kept[active] = k
+        go = ~done & ~fail
+        if go.any():
+            # Drop each cell's n_drop worst kept matches.
+            order = np.argsort(np.where(k[go], -r[go], np.inf), axis=1, kind="stable")
+            rank = np.empty_like(order)
+            np.put_along_axis(rank, order, np.arange(width)[None, :], axis=1)
+            k = k[go] & (rank >= n_drop[go, None])
+            rel_a, d_a = rel_a[go], d_a[go]
+        active = active[go]
+    # Rival motion: a second coherent group among the rejected matches, of similar support.
+    if config.rival_ratio > 0:
+        n_kept = kept.sum(axis=1)
+        n_rej = n - n_kept
+        suspect = (status == OK) & (
+            n_rej >= np.maximum(config.min_matches, config.rival_ratio * n_kept)
+        )
+        for c in np.flatnonzero(suspect):
+            rej = d_all[c][slot[c] & ~kept[c]]
+            if _rival_motion(rej, d_all[c][kept[c]].mean(axis=0), int(n_kept[c]), config):
+                status[c] = RIVAL_MOTION
+    vectors[status != OK] = np.nan
+    return vectors, kept, resid, status
+
+
+def _rival_motion(rejected: NDArray, consensus: NDArray, n_kept: int, config: LocalConfig) -> bool:
+    """Whether the rejected displacements hold a coherent group of similar support to the kept
+    set, away from the consensus. Group centres are tried at (at most 64, evenly chosen)
+    rejected matches: a coherent group is dense, so any of its members finds (nearly) all of it."""
+    cand = rejected[:: max(1, len(rejected) // 64)]
+    dd = np.sqrt(((cand[:, None, :] - rejected[None, :, :]) ** 2).sum(axis=2))
+    counts = (dd <= config.rival_radius_px).sum(axis=1)
+    best = int(np.argmax(counts))
+    if counts[best] < max(config.min_matches, config.rival_ratio * n_kept):
+        return False
+    c2 = np.median(rejected[dd[best] <= config.rival_radius_px], axis=0)
+    return bool(np.linalg.norm(c2 - consensus) > 2 * config.rival_radius_px)
 
 
 def cell_consensus(
@@ -578,8 +697,9 @@ def cell_consensus(
 
     REQCON (paper 4.3.2, 5): fit the model to all matches, drop the worst ``reqcon_drop_fraction``
     (at least one), refit, until the mean residual of the kept matches is below
-    ``reqcon_target_px``. For a translation the least-squares fit is the mean of the kept
-    displacement vectors, so no numerical optimiser is needed.
+    ``reqcon_target_px`` (and, with ``reqcon_max_residual_px``, none is further than that). For
+    a translation the least-squares fit is the mean of the kept displacement vectors, so no
+    numerical optimiser is needed. :func:`consensus_cells` does the same for many cells at once.
 
     Args:
         pos: ``(M, 2)`` base px of the matches (reference keypoints).
@@ -588,46 +708,12 @@ def cell_consensus(
     """
     pos = as_points(pos, "pos") if len(np.asarray(pos)) else np.zeros((0, 2))
     disp = as_points(disp, "disp") if len(np.asarray(disp)) else np.zeros((0, 2))
-    centre = np.asarray(centre, np.float64)
-    m = len(disp)
-    nan2 = np.full(2, np.nan)
-    if m < config.min_matches:
-        return CellConsensus(nan2, np.zeros(m, bool), float("nan"), FEW_MATCHES)
-    idx = np.arange(m)
-    max_res = config.reqcon_max_residual_px
-    while True:
-        d = disp[idx]
-        v, pred = _fit(pos[idx], d, centre, config.cell_model, config.cell_px)
-        diff = d - pred
-        res = np.sqrt(diff[:, 0] ** 2 + diff[:, 1] ** 2)
-        mean_res = float(res.mean())
-        if mean_res < config.reqcon_target_px and (max_res is None or res.max() <= max_res):
-            break
-        n_drop = max(1, int(np.ceil(config.reqcon_drop_fraction * len(idx))))
-        n_keep = len(idx) - n_drop
-        if n_keep < config.min_matches:
-            kept = np.zeros(m, bool)
-            kept[idx] = True
-            return CellConsensus(nan2, kept, mean_res, NO_CONSENSUS)
-        idx = idx[np.sort(np.argpartition(res, n_keep - 1)[:n_keep])]
-    kept = np.zeros(m, bool)
-    kept[idx] = True
-    # Rival motion: a second coherent group among the rejected matches, of similar support.
-    # Group centres are tried at (at most 64, evenly chosen) rejected matches: a coherent group is
-    # dense, so any of its members finds (nearly) all of it.
-    n_kept = len(idx)
-    if config.rival_ratio > 0 and n_kept < m:
-        rej = disp[~kept]
-        cand = rej[:: max(1, len(rej) // 64)]
-        dd = np.sqrt(((cand[:, None, :] - rej[None, :, :]) ** 2).sum(axis=2))
-        counts = (dd <= config.rival_radius_px).sum(axis=1)
-        best = int(np.argmax(counts))
-        n2 = int(counts[best])
-        if n2 >= max(config.min_matches, config.rival_ratio * n_kept):
-            c2 = np.median(rej[dd[best] <= config.rival_radius_px], axis=0)
-            if np.linalg.norm(c2 - disp[idx].mean(axis=0)) > 2 * config.rival_radius_px:
-                return CellConsensus(nan2, kept, mean_res, RIVAL_MOTION)
-    return CellConsensus(np.asarray(v, np.float64), kept, mean_res, OK)
+    if len(pos) != len(disp):
+        raise ValueError(f"pos and disp must have the same length, got {len(pos)} and {len(disp)}")
+    centre = np.asarray(centre, np.float64).reshape(1, 2)
+    members = np.arange(len(pos))[None, :]
+    vectors, kept, resid, status = consensus_cells(pos, disp, centre, members, config)
+    return CellConsensus(vectors[0], kept[0], float(resid[0]), int(status[0]))
 
 
 def neighbour_check(
@@ -642,18 +728,20 @@ def neighbour_check(
         ``(Gy, Gx)`` bool, True = reject.
     """
     gy, gx = valid.shape
+    # The 8 neighbours of every cell side by side: (Gy, Gx, 8, 2), NaN where not measured.
+    padded = np.pad(
+        np.where(valid[..., None], vectors, np.nan),
+        ((1, 1), (1, 1), (0, 0)),
+        constant_values=np.nan,
+    )
+    shifts = [(di, dj) for di in (-1, 0, 1) for dj in (-1, 0, 1) if (di, dj) != (0, 0)]
+    nb = np.stack([padded[1 + di : 1 + di + gy, 1 + dj : 1 + dj + gx] for di, dj in shifts], 2)
+    count = np.isfinite(nb[..., 0]).sum(axis=2)
+    judged = valid & (count >= min_count)
     reject = np.zeros_like(valid, dtype=bool)
-    for i in range(gy):
-        for j in range(gx):
-            if not valid[i, j]:
-                continue
-            sl = (slice(max(i - 1, 0), i + 2), slice(max(j - 1, 0), j + 2))
-            nb_valid = valid[sl].copy()
-            nb_valid[i - sl[0].start, j - sl[1].start] = False
-            if nb_valid.sum() < min_count:
-                continue
-            med = np.median(vectors[sl][nb_valid], axis=0)
-            reject[i, j] = np.linalg.norm(vectors[i, j] - med) > tolerance_px
+    if judged.any():
+        med = np.nanmedian(nb[judged], axis=1)
+        reject[judged] = np.linalg.norm(vectors[judged] - med, axis=1) > tolerance_px
     return reject
 
 
@@ -779,6 +867,9 @@ def estimate_field_from_matches(
     # x-slice of that (cells select c - half < p < c + half on both axes).
     order_y = np.argsort(all_pos[:, 1], kind="stable")
     ys_sorted = all_pos[order_y, 1]
+    # Cells are collected first and their consensus computed together (consensus_cells).
+    cells: list[tuple[int, int, float, float]] = []
+    members: list[NDArray] = []
     for i in range(gy):
         cy = y0 + i * config.spacing_px
         lo = np.searchsorted(ys_sorted, cy - half, side="right")
@@ -801,13 +892,22 @@ def estimate_field_from_matches(
                     xs_row, cx + half, side="left"
                 )
             ]
-            n_match[i, j] = len(sel)
-            cons = cell_consensus(all_pos[sel], all_disp[sel], (cx, cy), config)
-            status[i, j] = cons.status
-            n_kept[i, j] = int(cons.kept.sum())
-            resid[i, j] = cons.residual_px
-            if cons.status == OK:
-                vec[i, j] = cons.vector
+            cells.append((i, j, cx, cy))
+            members.append(sel)
+    if cells:
+        ii, jj, cxs, cys = (np.array(v) for v in zip(*cells, strict=True))
+        padded = np.full((len(cells), max(len(m) for m in members)), -1, np.int64)
+        for c, m in enumerate(members):
+            padded[c, : len(m)] = m
+        vectors_c, kept_c, resid_c, status_c = consensus_cells(
+            all_pos, all_disp, np.c_[cxs, cys].astype(np.float64), padded, config
+        )
+        status[ii, jj] = status_c
+        n_match[ii, jj] = (padded >= 0).sum(axis=1)
+        n_kept[ii, jj] = kept_c.sum(axis=1)
+        resid[ii, jj] = resid_c
+        ok = status_c == OK
+        vec[ii[ok], jj[ok]] = vectors_c[ok]
     valid = status == OK
     if config.neighbour_tolerance_px is not None:
         bad = neighbour_check(vec, valid, config.neighbour_tolerance_px, config.neighbour_min_count)
@@ -928,6 +1028,161 @@ def estimate_field(
     t1 = time.perf_counter()
     field_, stats = estimate_field_from_keypoints(
         kp_reg, kp_ref, w, h, config, origin=origin, valid_mask=valid_mask
+    )
+    stats.time_detect_s = t1 - t0
+    stats.time_total_s = time.perf_counter() - t0
+    return field_, stats
+
+
+@dataclass(frozen=True)
+class FlowReference:
+    """The mid base image prepared once per sequence for :func:`estimate_field_in_frame`.
+
+    Attributes:
+        valid: ``(Hb, Wb)`` bool, where the mid base image has content (base px).
+        small: the grey mid base image resampled with area averaging to
+            ``(round(Hb * scale), round(Wb * scale))``.
+        small_valid: ``small``'s pixels whose every source pixel is valid.
+        scale_xy: ``small`` px = ``(base px + 0.5) * scale_xy - 0.5`` (per axis: exact also when
+            ``Wb * scale`` is not an integer).
+    """
+
+    valid: NDArray[np.bool_]
+    small: NDArray[np.uint8]
+    small_valid: NDArray[np.bool_]
+    scale_xy: NDArray[np.float64]
+
+
+def prepare_flow_reference(
+    grey: NDArray[np.uint8], valid: NDArray[np.bool_], scale: float
+) -> FlowReference:
+    """See :class:`FlowReference`; ``grey`` and ``valid`` are ``(Hb, Wb)`` in base px."""
+    small, scale_xy = _area_resize(grey, scale)
+    small_valid, _ = _area_resize(valid.astype(np.uint8) * 255, scale)
+    return FlowReference(np.asarray(valid, bool), small, small_valid == 255, scale_xy)
+
+
+def _area_resize(image: NDArray, scale: float) -> tuple[NDArray, NDArray[np.float64]]:
+    """``image`` resampled by about ``scale`` (area averaging) and the exact per-axis scale."""
+    h, w = image.shape[:2]
+    if scale == 1:
+        return image, np.ones(2)
+    size = (max(1, round(w * scale)), max(1, round(h * scale)))
+    out = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+    return out, np.array([size[0] / w, size[1] / h])
+
+
+def _rescale(xy: NDArray, scale: float | NDArray) -> NDArray:
+    # coords.rescale without the (N, 2) check and with per-axis scales.
+    return (xy + 0.5) * scale - 0.5
+
+
+def flow_scale(width: int, config: LocalConfig) -> float:
+    """The scale the flow of a ``width`` px wide frame is computed at (``flow_scale``, raised
+    so the flow image is at least ``flow_min_width_px`` wide)."""
+    if config.flow_min_width_px <= 0:
+        return config.flow_scale
+    return max(config.flow_scale, min(1.0, config.flow_min_width_px / width))
+
+
+def frame_flow_matches(
+    frame_grey: NDArray[np.uint8],
+    base_from_frame: Callable[[NDArray], NDArray],
+    reference: FlowReference,
+    config: LocalConfig = LocalConfig(),
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Displacement samples against the mid base image, measured in the frame's own geometry.
+
+    The mid base image is warped into the frame (at ``config.flow_scale``) through the global
+    mapping ``base_from_frame``, and DIS optical flow runs from it to the frame: where the warped
+    reference shows base point ``B = g(p)`` at frame point ``p``, the frame shows that content at
+    ``p + f(p)``. So ``d(B) = g(p + f(p)) - g(p)`` is the field of the module docstring at
+    ``B``, exact through ``g`` (no small-displacement approximation). Compared with comparing
+    the two in base pixels (:func:`flow_matches`), the frame is never resampled, the costly
+    inverse of the global model is never evaluated, and the flow image is the frame's size
+    rather than its footprint's bounding box.
+
+    Args:
+        frame_grey: ``(H, W)`` uint8 raw frame.
+        base_from_frame: the global mapping, ``(N, 2)`` raw frame px -> base px (NaN = none).
+        reference: the mid base image (:func:`prepare_flow_reference`).
+
+    Returns:
+        ``(pos, disp)``: ``(M, 2)`` base px ``B`` and displacements ``d(B)``, base px.
+    """
+    h, w = frame_grey.shape
+    s = flow_scale(w, config)
+    small, s = _area_resize(frame_grey, s)
+    hs, ws = small.shape
+    rs = reference.scale_xy
+
+    def base_from_small(p: NDArray) -> NDArray:
+        return base_from_frame(_rescale(p, 1.0 / s))
+
+    smap = warp.source_map_from_function(lambda p: _rescale(base_from_small(p), rs), ws, hs, step=8)
+    warped = warp.remap(reference.small, smap, interpolation="linear")
+    both = warp.remap(reference.small_valid.astype(np.uint8), smap, interpolation="nearest") > 0
+    both &= np.isfinite(smap).all(axis=2)
+    dis = cv2.DISOpticalFlow_create(DIS_PRESETS[config.flow_preset])
+    flow = dis.calc(warped, np.ascontiguousarray(small), None)
+    step = max(1, round(config.flow_step_px * s[0]))
+    margin = round(config.flow_margin_px * s[0])
+    inner = cv2.erode(both.astype(np.uint8), np.ones((2 * margin + 1,) * 2, np.uint8))
+    ys, xs = np.mgrid[step // 2 : hs : step, step // 2 : ws : step]
+    ok = inner[ys, xs] > 0
+    ys, xs = ys[ok], xs[ok]
+    p = np.c_[xs, ys].astype(np.float64)
+    pos = base_from_small(p)
+    disp = base_from_small(p + flow[ys, xs]) - pos
+    keep = np.isfinite(pos).all(axis=1) & np.isfinite(disp).all(axis=1)
+    keep[keep] = np.einsum("ij,ij->i", disp[keep], disp[keep]) <= config.max_displacement_px**2
+    return pos[keep], disp[keep]
+
+
+def estimate_field_in_frame(
+    frame_grey: NDArray[np.uint8],
+    base_from_frame: Callable[[NDArray], NDArray],
+    reference: FlowReference,
+    config: LocalConfig = LocalConfig(),
+) -> tuple[DisplacementField, FieldStats] | tuple[None, None]:
+    """Displacement field of a frame against the mid base image from :func:`frame_flow_matches`
+    (``method="flow"``), over the base-pixel box the frame covers; the per-cell consensus and the
+    moving-car guard are those of :func:`estimate_field_from_matches`.
+
+    Args:
+        frame_grey: ``(H, W)`` uint8 raw frame.
+        base_from_frame: the global mapping, ``(N, 2)`` raw frame px -> base px.
+        reference: the mid base image (:func:`prepare_flow_reference`).
+
+    Returns:
+        ``(field, stats)``, or ``(None, None)`` when the frame covers no base pixels.
+    """
+    if config.method != "flow":
+        raise ValueError(f"estimate_field_in_frame needs method='flow', got {config.method!r}")
+    frame_grey = np.asarray(frame_grey)
+    if frame_grey.ndim != 2 or frame_grey.dtype != np.uint8:
+        raise ValueError(
+            f"frame_grey must be a (H, W) uint8 image, got {frame_grey.shape} {frame_grey.dtype}"
+        )
+    t0 = time.perf_counter()
+    h, w = frame_grey.shape
+    hb, wb = reference.valid.shape
+    outline = base_from_frame(frame_outline(w, h))
+    outline = outline[np.isfinite(outline).all(axis=1)]
+    if len(outline) < 3:
+        return None, None
+    x0, y0 = np.maximum(np.floor(outline.min(axis=0)).astype(int) - 2, 0)
+    x1, y1 = np.minimum(np.ceil(outline.max(axis=0)).astype(int) + 3, (wb, hb))
+    if x1 - x0 < 2 or y1 - y0 < 2:
+        return None, None
+    pos, disp = frame_flow_matches(frame_grey, base_from_frame, reference, config)
+    t1 = time.perf_counter()
+    # Where both have data, for the per-cell "outside" test: the footprint and the mid base.
+    mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
+    cv2.fillPoly(mask, [np.round(outline - (x0, y0)).astype(np.int32)], 1)
+    mask &= reference.valid[y0:y1, x0:x1]
+    field_, stats = estimate_field_from_matches(
+        pos, disp, x1 - x0, y1 - y0, config, origin=(x0, y0), valid_mask=mask
     )
     stats.time_detect_s = t1 - t0
     stats.time_total_s = time.perf_counter() - t0

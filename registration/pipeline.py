@@ -106,11 +106,16 @@ def validate_inputs(frames: FrameSource, base: NDArray, gamma, seed, reference_f
 
 
 def render_to_base(
-    frame_raw: NDArray, gamma: float, base_from_corrected, box: tuple[int, int, int, int]
+    frame_raw: NDArray,
+    gamma: float,
+    base_from_corrected,
+    box: tuple[int, int, int, int],
+    field=None,
 ) -> tuple[NDArray, NDArray[np.bool_]]:
     """The raw frame resampled once into the base-pixel box ``(x0, y0, x1, y1)``.
 
-    Returns the image and its validity mask; base pixels map to raw pixels through the model's
+    Returns the image and its validity mask; base pixels map to raw pixels through the
+    displacement field (when given: ``x + d(x)``, :mod:`registration.local`), the model's
     inverse and the Harris model, so the frame is interpolated only once.
     """
     w, h = image_size(frame_raw)
@@ -118,6 +123,8 @@ def render_to_base(
     x0, y0, x1, y1 = box
 
     def raw_from_base(b):
+        if field is not None:
+            b = b + field.sample(b, outside="clamp")
         return harris.raw_from_corrected(base_from_corrected.inverse(b))
 
     return warp_image(frame_raw, raw_from_base, x1 - x0, y1 - y0, origin=(x0, y0))
@@ -307,7 +314,12 @@ def _reference_step(frames, base, gamma, seed, ref, config, writer, reference) -
         )
     model = fine.base_from_corrected
     wb, hb = image_size(base)
-    mid, valid = render_to_base(frame, gamma, model, (0, 0, wb, hb))
+    field, field_stats = None, None
+    if config.run_local and config.reference_local is not None:
+        field, field_stats = reference_field(fine, (wb, hb), config.reference_local)
+    # The mid base image is the reference frame registered with its own field: every other
+    # frame's local stage aligns to it, so its accuracy is theirs.
+    mid, valid = render_to_base(frame, gamma, model, (0, 0, wb, hb), field)
     write_image_atomic(out_dir / "mid_base.png", mid)
     write_image_atomic(out_dir / "mid_base_valid.png", valid.astype(np.uint8) * 255)
     record = {
@@ -317,12 +329,38 @@ def _reference_step(frames, base, gamma, seed, ref, config, writer, reference) -
         "stats": _stats(coarse, fine, times),
         "model": model.to_dict(),
     }
-    # The reference frame is the mid base image itself, so its local field is zero.
-    writer.write(ref, record, _frame_arrays(fine, None))
+    if field_stats is not None:
+        record["stats"]["local"] = field_stats.to_dict()
+    arrays = _frame_arrays(fine, field)
+    if field_stats is not None:
+        arrays.update({f"field_stats_{k}": v for k, v in field_stats.to_arrays().items()})
+    writer.write(ref, record, arrays)
     joint = make_joint_base(mid, valid, config)
     joint.previous = previous_frame_state(frame, gamma, model, config)
     joint.previous_index = ref
     return joint
+
+
+def reference_field(fine: FineResult, base_size: tuple[int, int], config):
+    """The reference frame's inter-sensor displacement field (beyond the paper) from its template
+    control points: each match says where the base map shows what the global model puts at
+    ``model(src)``, i.e. a sample ``d(dst) = model(src) - dst`` of the field of
+    :mod:`registration.local`. The per-cell REQCON and the moving-car guard of the local stage
+    turn them into a field; mismatches are outvoted by their neighbourhood.
+
+    Returns ``(field, stats)``, or ``(None, None)`` without control points.
+    """
+    from registration.local import estimate_field_from_matches
+
+    ok = np.isfinite(fine.src).all(axis=1) & np.isfinite(fine.dst).all(axis=1)
+    if not ok.any():
+        return None, None
+    dst = fine.dst[ok]
+    disp = fine.base_from_corrected.apply(fine.src[ok]) - dst
+    wb, hb = base_size
+    x0, y0 = np.clip(np.floor(dst.min(axis=0)).astype(int), 0, (wb - 1, hb - 1))
+    x1, y1 = np.clip(np.ceil(dst.max(axis=0)).astype(int) + 1, (x0 + 1, y0 + 1), (wb, hb))
+    return estimate_field_from_matches(dst, disp, x1 - x0, y1 - y0, config, origin=(x0, y0))
 
 
 def _empty_points():
@@ -385,35 +423,47 @@ def _register_one(frame, k, gamma, joint: JointBase, config: PipelineConfig):
 
 def _local_field(frame, gamma, model, joint: JointBase, config: PipelineConfig):
     """The frame's displacement field against the mid base image (paper section 5)."""
-    from registration.local import detect_keypoints, estimate_field
+    from registration.local import (
+        detect_keypoints,
+        estimate_field,
+        estimate_field_in_frame,
+        flow_scale,
+        prepare_flow_reference,
+    )
 
     hb, wb = joint.mid_grey.shape
     h, w = frame.shape[:2]
     harris = HarrisModel(gamma, w, h)
-    box = footprint_bbox(lambda q: model.apply(harris.corrected_from_raw(q)), w, h, (wb, hb))
+
+    def base_from_raw(q):
+        return model.apply(harris.corrected_from_raw(q))
+
+    grey = features.to_grey(frame)
+    if config.local.method == "flow":
+        # Measured in the frame's geometry: no rendering of the frame into base pixels.
+        if joint.flow_reference is None:
+            joint.flow_reference = prepare_flow_reference(
+                joint.mid_grey, joint.mid_valid, flow_scale(w, config.local)
+            )
+        return estimate_field_in_frame(grey, base_from_raw, joint.flow_reference, config.local)
+    box = footprint_bbox(base_from_raw, w, h, (wb, hb))
     x0, y0, x1, y1 = box
     if x1 - x0 < 2 or y1 - y0 < 2:
         return None, None
-    registered, valid = render_to_base(features.to_grey(frame), gamma, model, box)
+    registered, valid = render_to_base(grey, gamma, model, box)
     reference = joint.mid_grey[y0:y1, x0:x1]
     both = valid & joint.mid_valid[y0:y1, x0:x1]
-    reference_keypoints = None
-    if config.local.method == "sift":
-        # The mid base image is the reference of every frame: detect its keypoints once.
-        if joint.local_keypoints is None:
-            joint.local_keypoints = detect_keypoints(
-                joint.mid_grey, config.local, mask=joint.mid_valid
-            )
-        reference_keypoints = joint.local_keypoints
-    field, stats = estimate_field(
+    # The mid base image is the reference of every frame: detect its keypoints once.
+    if joint.local_keypoints is None:
+        joint.local_keypoints = detect_keypoints(joint.mid_grey, config.local, mask=joint.mid_valid)
+    return estimate_field(
         registered,
         reference,
         config.local,
         valid_mask=both,
         origin=(x0, y0),
-        reference_keypoints=reference_keypoints,
+        reference_keypoints=joint.local_keypoints,
     )
-    return field, stats
 
 
 def load_config(out_dir: str | Path) -> PipelineConfig:

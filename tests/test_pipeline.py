@@ -183,7 +183,12 @@ def test_match_in_raw_covers_the_corners(sim, tmp_path):
     corners = np.array([[8.0, 8.0], [w - 9.0, 8.0], [8.0, h - 9.0], [w - 9.0, h - 9.0]])
     errors = {}
     for match_in in ("raw", "corrected"):
-        cfg = replace(get_preset("default"), match_in=match_in, run_local=False)
+        cfg = get_preset("default")
+        # The paper's 50 px template grid: this compares where points are matched, not density.
+        paper_grid = replace(cfg.fine.template, spacing_px=50)
+        cfg = replace(
+            cfg, match_in=match_in, run_local=False, fine=replace(cfg.fine, template=paper_grid)
+        )
         frames = tmp_path / match_in
         frames.mkdir()
         shutil.copy(sim / "frames" / "000000.png", frames)
