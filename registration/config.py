@@ -88,15 +88,18 @@ LOCAL_FLOW = {
     "flow_min_width_px": 1280,
     "flow_step_px": 16,
 }
-# The reference frame's field from its ~1900 template matches (about 16 per 200 px cell): the
-# affine cell model on centres 100 px apart, REQCON to 0.5 px with no match beyond 1.5 px, at
-# least 6 matches. A polyprojective cannot follow a rolling shutter seen through the lens
-# distortion: on a simulated 2560x1920 reference frame even the best degree-2 fit to the exact
-# truth leaves 1.05 px mean; the field took the registered frame from 1.25 to 0.78 px (mean over
-# the frame's pixels; README, Presets).
+# The reference frame's field from its template matches: the affine cell model on 300 px
+# neighbourhoods 150 px apart (larger than the local stage's: the inter-sensor matches carry
+# shadow biases of up to ~1 px that smaller cells would follow), REQCON to 0.5 px with no match
+# beyond 1.5 px, at least 6 matches. A polyprojective cannot follow a rolling shutter seen
+# through the lens distortion: on a simulated 2560x1920 reference frame even the best degree-2
+# fit to the exact truth leaves 1.05 px mean. Mean error of the reference frame over a 16 px
+# grid of ground points, global -> with this field (200 px cells 100 px apart in brackets):
+# 640x480 0.49 -> 0.41 (0.61), 1280x960 1.41 -> 0.76 (0.67), 2560x1920 1.81 -> 0.50 (0.54).
 REFERENCE_LOCAL = LocalConfig(
     cell_model="affine",
-    spacing_px=100,
+    cell_px=300,
+    spacing_px=150,
     min_matches=6,
     reqcon_target_px=0.5,
     reqcon_max_residual_px=1.5,

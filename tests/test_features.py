@@ -663,3 +663,60 @@ def test_gridded_sift_empty_and_flat_inputs():
         gridded_sift_control_points(ref, [ref])
     with pytest.raises(ValueError, match="decimate"):
         GriddedSiftConfig(decimate=0)
+
+
+def test_templates_fall_back_to_a_second_reference_where_the_first_has_no_content():
+    """Templates whose search window touches the first reference's empty part are searched in the
+    fallback; each point names its reference and its dst is in that reference's pixels."""
+    frame = texture(480, 360, seed=21)
+    t_ref, t_fb = np.array([30.4, -12.7]), np.array([-8.2, 5.6])
+    ref = warp_into(frame, lambda xy: xy - t_ref, 560, 420)  # ref(x) = frame(x - t_ref)
+    fb = warp_into(frame, lambda xy: xy - t_fb, 500, 380)
+    ref_valid = np.ones(ref.shape, bool)
+    ref_valid[:, 300:] = False  # no content right of x = 300 (frame x ~ 270)
+    ref[~ref_valid] = 0
+    cfg = TemplateConfig(spacing_px=40, template_px=41, search_px=10, dither_iterations=1)
+    cps = template_control_points(
+        frame,
+        ref,
+        lambda xy: xy + t_ref + 1.5,  # the model is 1.5 px off; the search corrects it
+        None,
+        cfg,
+        ref_valid=ref_valid,
+        fallback=Reference(fb, lambda xy: xy + t_fb - 1.0),
+    )
+    from_ref, from_fb = cps.source == 0, cps.source == 1
+    assert from_ref.sum() >= 20 and from_fb.sum() >= 20
+    # Where the first reference has content it is used; the fallback only beyond it.
+    assert (cps.src[from_ref, 0] + t_ref[0] + cfg.half_template + cfg.search_radius < 300 + 2).all()
+    assert (cps.src[from_fb, 0] + t_ref[0] + cfg.half_template + cfg.search_radius > 300 - 2).all()
+    np.testing.assert_allclose(
+        cps.dst[from_ref] - cps.src[from_ref], np.tile(t_ref, (from_ref.sum(), 1)), atol=0.15
+    )
+    np.testing.assert_allclose(
+        cps.dst[from_fb] - cps.src[from_fb], np.tile(t_fb, (from_fb.sum(), 1)), atol=0.15
+    )
+    # Without a fallback those templates are simply not matched.
+    alone = template_control_points(
+        frame, ref, lambda xy: xy + t_ref + 1.5, None, cfg, ref_valid=ref_valid
+    )
+    assert (alone.source == 0).all() and len(alone) == from_ref.sum()
+    with pytest.raises(ValueError, match="fallback reference needs warp_reference=True"):
+        template_control_points(
+            frame,
+            ref,
+            lambda xy: xy + t_ref,
+            None,
+            TemplateConfig(warp_reference=False),
+            fallback=Reference(fb, lambda xy: xy + t_fb),
+        )
+
+
+def test_min_templates_shrinks_the_spacing_for_small_frames():
+    cfg = TemplateConfig(spacing_px=100, template_px=75, min_templates=200)
+    big = template_grid(2560, 1920, cfg)
+    assert len(big) == 25 * 19  # the spacing holds enough templates: unchanged
+    small = template_grid(640, 480, cfg)
+    assert len(small) >= 200 and len(template_grid(640, 480, TemplateConfig(spacing_px=100))) < 40
+    step = np.diff(np.unique(small[:, 0]))
+    assert (step == step[0]).all() and step[0] < 100

@@ -409,3 +409,138 @@ def test_field_stats_summary_is_json_ready():
     d = json.loads(json.dumps(stats.to_dict()))
     assert d["n_valid"] == stats.n_valid and d["cells"]["ok"] == stats.n_valid
     assert d["time_total_s"] > 0 and d["matches_per_valid_cell"] > 100
+
+
+def frame_of_base(base, base_from_frame, d, width, height):
+    """A frame whose pixel q shows the base at B(q), where B + d(B) = base_from_frame(q) (the
+    field convention of registration.local), found by fixed-point iteration."""
+    q = warp.pixel_grid(width, height).reshape(-1, 2).astype(np.float64)
+    g = base_from_frame(q)
+    b = g.copy()
+    for _ in range(30):
+        b = g - d(b)
+    smap = b.reshape(height, width, 2).astype(np.float32)
+    return warp.remap(base, smap, interpolation="cubic")
+
+
+def similarity(angle_deg, scale, offset):
+    c, s = np.cos(np.radians(angle_deg)) * scale, np.sin(np.radians(angle_deg)) * scale
+
+    def apply(q):
+        return np.c_[c * q[:, 0] - s * q[:, 1], s * q[:, 0] + c * q[:, 1]] + offset
+
+    return apply
+
+
+@pytest.mark.parametrize("scale", [1.0, 0.5])
+def test_field_measured_in_frame_geometry_recovers_a_known_field(scale):
+    """The flow between the frame and the mid base image warped into it gives the field in base
+    px exactly through the global mapping, at full and at half scale."""
+    base = to_u8(128 + 40 * texture(1000, 900, 11))
+    valid = np.ones(base.shape, bool)
+    valid[:, 900:] = False  # the mid base image ends inside the frame's footprint
+    g = similarity(6.0, 1.1, np.array([120.0, 60.0]))
+    frame = frame_of_base(base, g, smooth_field, W, H)
+    cfg = replace(FLOW, flow_scale=scale, flow_preset="medium")
+    reference = local.prepare_flow_reference(
+        np.where(valid, base, 0).astype(np.uint8), valid, scale
+    )
+    f, stats = local.estimate_field_in_frame(frame, g, reference, cfg)
+    nodes = f.node_xy.reshape(-1, 2)
+    measured = f.valid.ravel()
+    assert measured.sum() >= 20, stats.counts()
+    # No node is measured where the mid base image has no content.
+    assert (nodes[measured, 0] < 900 + cfg.cell_px / 2).all()
+    err = np.linalg.norm(f.vectors.reshape(-1, 2)[measured] - smooth_field(nodes[measured]), axis=1)
+    assert np.median(err) < (0.1 if scale == 1 else 0.15), err
+    assert err.max() < 0.5, err
+    # Frame points through the global mapping and the field land on their true base points.
+    q = np.array([[100.0, 100.0], [320.0, 240.0], [500.0, 380.0]])
+    b_true = g(q)
+    for _ in range(30):
+        b_true = g(q) - smooth_field(b_true)
+    b = local.local_frame_to_base(g, f, q)
+    assert np.linalg.norm(b - b_true, axis=1).max() < 0.3
+
+
+def test_field_in_frame_needs_the_flow_method_and_a_grey_frame():
+    reference = local.prepare_flow_reference(
+        np.zeros((50, 50), np.uint8), np.ones((50, 50), bool), 1
+    )
+    with pytest.raises(ValueError, match="needs method='flow', got 'sift'"):
+        local.estimate_field_in_frame(np.zeros((40, 40), np.uint8), lambda q: q, reference)
+    with pytest.raises(ValueError, match=r"frame_grey must be a \(H, W\) uint8 image"):
+        local.estimate_field_in_frame(np.zeros((40, 40, 3), np.uint8), lambda q: q, reference, FLOW)
+
+
+def sequential_reqcon(pos, disp, centre, cfg):
+    """The documented REQCON of one cell written plainly (lstsq, one cell at a time), without the
+    rival-motion guard: (vector or None, kept)."""
+    idx = np.arange(len(disp))
+    if len(idx) < cfg.min_matches:
+        return None, np.zeros(len(disp), bool)
+    while True:
+        rel, d = pos[idx] - centre, disp[idx]
+        spread = np.sqrt(np.linalg.eigvalsh(np.cov(rel.T))).min() if len(idx) > 2 else 0.0
+        if cfg.cell_model == "affine" and len(idx) >= 6 and spread >= cfg.cell_px / 8:
+            a = np.c_[np.ones(len(idx)), rel]
+            coef = np.linalg.lstsq(a, d, rcond=None)[0]
+            v, pred = coef[0], a @ coef
+        else:
+            v, pred = d.mean(axis=0), d.mean(axis=0)
+        r = np.linalg.norm(d - pred, axis=1)
+        if r.mean() < cfg.reqcon_target_px and r.max() <= cfg.reqcon_max_residual_px:
+            kept = np.zeros(len(disp), bool)
+            kept[idx] = True
+            return v, kept
+        n_keep = len(idx) - max(1, int(np.ceil(cfg.reqcon_drop_fraction * len(idx))))
+        if n_keep < cfg.min_matches:
+            kept = np.zeros(len(disp), bool)
+            kept[idx] = True
+            return None, kept
+        idx = idx[np.sort(np.argsort(r, kind="stable")[:n_keep])]
+
+
+def test_batched_consensus_equals_one_cell_at_a_time(rng):
+    """consensus_cells decides every cell as a plain one-cell-at-a-time REQCON does, and as
+    cell_consensus does on that cell alone (with the rival-motion guard)."""
+    cells, members, pos, disp = [], [], [], []
+    n = 0
+    for _ in range(40):
+        m = int(rng.integers(3, 120))
+        centre = rng.uniform(0, 1000, 2)
+        p = centre + rng.uniform(-100, 100, (m, 2))
+        d = rng.normal(0, 0.2, (m, 2)) + rng.uniform(-3, 3, 2) + 0.004 * (p - centre)
+        bad = rng.random(m) < rng.uniform(0, 0.6)  # outliers and, in some cells, a rival motion
+        d[bad] += rng.choice([rng.uniform(-8, 8, 2), [0.0, 6.0]], axis=0) + rng.normal(
+            0, 0.1, (bad.sum(), 2)
+        )
+        cells.append(centre)
+        members.append(np.arange(n, n + m))
+        pos.append(p)
+        disp.append(d)
+        n += m
+    pos, disp = np.concatenate(pos), np.concatenate(disp)
+    padded = np.full((len(cells), max(len(m) for m in members)), -1)
+    for c, m in enumerate(members):
+        padded[c, : len(m)] = m
+    statuses = set()
+    for model in ("translation", "affine"):
+        cfg = replace(FLOW, cell_model=model, reqcon_target_px=0.3, reqcon_max_residual_px=1.0)
+        vec, kept, resid, status = local.consensus_cells(pos, disp, np.array(cells), padded, cfg)
+        for c, m in enumerate(members):
+            one = local.cell_consensus(pos[m], disp[m], cells[c], cfg)
+            assert one.status == status[c]
+            statuses.add(int(one.status))
+            assert (one.kept == kept[c, : len(m)]).all()
+            np.testing.assert_allclose(one.vector, vec[c], atol=1e-9)
+        unguarded = replace(cfg, rival_ratio=0)
+        vec, kept, _, status = local.consensus_cells(pos, disp, np.array(cells), padded, unguarded)
+        for c, m in enumerate(members):
+            v, k = sequential_reqcon(pos[m], disp[m], cells[c], unguarded)
+            assert (status[c] == OK) == (v is not None)
+            assert (k == kept[c, : len(m)]).all()
+            if v is not None:
+                np.testing.assert_allclose(vec[c], v, atol=1e-9)
+    # The random cells exercise success and every failure the consensus itself can report.
+    assert {OK, NO_CONSENSUS, RIVAL_MOTION, local.FEW_MATCHES} <= statuses
