@@ -620,13 +620,6 @@ def register_intra(
             view.grey, refs_fine, cfg.gridded, frame_keypoints=frame_sift
         )
         cps = _points_to_corrected(cps, view)
-        if prev is not None and len(cps.src):
-            from_prev = cps.source == 1
-            dst = cps.dst.copy()
-            dst[from_prev] = prev.base_from_corrected.apply(
-                prev.view.to_corrected(cps.dst[from_prev])
-            )
-            cps = ControlPoints(cps.src, dst, cps.score, cps.source)
     else:
         fallback = None
         if prev is not None:
@@ -637,11 +630,12 @@ def register_intra(
         cps = _template_points(
             view, joint.mid_grey, model, cfg.template, ref_valid=joint.mid_valid, fallback=fallback
         )
-        if prev is not None and len(cps.src):
-            from_prev = cps.source == 1
-            dst = cps.dst.copy()
-            dst[from_prev] = prev.base_from_corrected.apply(prev.view.to_corrected(dst[from_prev]))
-            cps = ControlPoints(cps.src, dst, cps.score, cps.source)
+    if prev is not None and len(cps.src):
+        # Points found in the previous frame (source 1) are in its raw pixels: to base pixels.
+        from_prev = cps.source == 1
+        dst = cps.dst.copy()
+        dst[from_prev] = prev.base_from_corrected.apply(prev.view.to_corrected(dst[from_prev]))
+        cps = ControlPoints(cps.src, dst, cps.score, cps.source)
     keep = np.isfinite(cps.dst).all(axis=1) & np.isfinite(cps.src).all(axis=1)
     if not keep.all():
         cps = ControlPoints(cps.src[keep], cps.dst[keep], cps.score[keep], cps.source[keep])
