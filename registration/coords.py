@@ -20,10 +20,11 @@ def as_points(xy: ArrayLike, name: str = "points") -> NDArray[np.float64]:
     return arr
 
 
-def rescale(xy: ArrayLike, scale: float) -> NDArray[np.float64]:
+def rescale(xy: ArrayLike, scale: float | ArrayLike) -> NDArray[np.float64]:
     """Map pixel coordinates to an image rescaled by ``scale`` (pixel centres at integers).
 
     ``x_s = (x + 0.5) * scale - 0.5``; e.g. ``scale=0.25`` goes from full to quarter resolution.
+    ``scale`` may also be per axis, ``(sx, sy)`` (an image resized to a rounded size).
     """
     return (as_points(xy) + 0.5) * scale - 0.5
 
@@ -46,3 +47,16 @@ def frame_outline(width: int, height: int, per_edge: int = 32) -> NDArray[np.flo
             np.c_[np.zeros_like(t), h1 - t * h1],
         ]
     )
+
+
+def bbox_of(pts: NDArray, base_size: tuple[int, int], margin: int = 2) -> tuple[int, int, int, int]:
+    """Integer ``(x0, y0, x1, y1)`` box around ``pts`` (base px), clipped to the base."""
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    if not len(pts):
+        return 0, 0, 0, 0
+    wb, hb = base_size
+    x0 = int(max(0, np.floor(pts[:, 0].min()) - margin))
+    y0 = int(max(0, np.floor(pts[:, 1].min()) - margin))
+    x1 = int(min(wb, np.ceil(pts[:, 0].max()) + margin + 1))
+    y1 = int(min(hb, np.ceil(pts[:, 1].max()) + margin + 1))
+    return x0, y0, x1, y1

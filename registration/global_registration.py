@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from registration import features
-from registration.coords import frame_outline, image_size, rescale
+from registration.coords import bbox_of, frame_outline, image_size, rescale
 from registration.distortion import HarrisModel, undistort_image
 from registration.features import (
     ControlPoints,
@@ -644,19 +644,6 @@ def register_intra(
         return coarse, fine, None
     state = PreviousFrame(view, fine.base_from_corrected, frame_coarse, frame_sift)
     return coarse, fine, state
-
-
-def bbox_of(pts: NDArray, base_size: tuple[int, int], margin: int = 2) -> tuple[int, int, int, int]:
-    """Integer ``(x0, y0, x1, y1)`` box around ``pts`` (base px), clipped to the base."""
-    pts = pts[np.isfinite(pts).all(axis=1)]
-    if not len(pts):
-        return 0, 0, 0, 0
-    wb, hb = base_size
-    x0 = int(max(0, np.floor(pts[:, 0].min()) - margin))
-    y0 = int(max(0, np.floor(pts[:, 1].min()) - margin))
-    x1 = int(min(wb, np.ceil(pts[:, 0].max()) + margin + 1))
-    y1 = int(min(hb, np.ceil(pts[:, 1].max()) + margin + 1))
-    return x0, y0, x1, y1
 
 
 def footprint_bbox(

@@ -39,8 +39,8 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from registration import warp
-from registration.coords import as_points, frame_outline
+from registration import features, warp
+from registration.coords import as_points, bbox_of, frame_outline, rescale
 
 log = logging.getLogger(__name__)
 
@@ -1063,18 +1063,12 @@ def prepare_flow_reference(
 
 
 def _area_resize(image: NDArray, scale: float) -> tuple[NDArray, NDArray[np.float64]]:
-    """``image`` resampled by about ``scale`` (area averaging) and the exact per-axis scale."""
-    h, w = image.shape[:2]
+    """``image`` resampled by about ``scale`` (:func:`features.downscale`) and the exact
+    per-axis scale of the result."""
     if scale == 1:
         return image, np.ones(2)
-    size = (max(1, round(w * scale)), max(1, round(h * scale)))
-    out = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
-    return out, np.array([size[0] / w, size[1] / h])
-
-
-def _rescale(xy: NDArray, scale: float | NDArray) -> NDArray:
-    # coords.rescale without the (N, 2) check and with per-axis scales.
-    return (xy + 0.5) * scale - 0.5
+    out = features.downscale(image, scale)
+    return out, np.array([out.shape[1] / image.shape[1], out.shape[0] / image.shape[0]])
 
 
 def flow_scale(width: int, config: LocalConfig) -> float:
@@ -1093,7 +1087,7 @@ def frame_flow_matches(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Displacement samples against the mid base image, measured in the frame's own geometry.
 
-    The mid base image is warped into the frame (at ``config.flow_scale``) through the global
+    The mid base image is warped into the frame (at :func:`flow_scale`) through the global
     mapping ``base_from_frame``, and DIS optical flow runs from it to the frame: where the warped
     reference shows base point ``B = g(p)`` at frame point ``p``, the frame shows that content at
     ``p + f(p)``. So ``d(B) = g(p + f(p)) - g(p)`` is the field of the module docstring at
@@ -1117,9 +1111,9 @@ def frame_flow_matches(
     rs = reference.scale_xy
 
     def base_from_small(p: NDArray) -> NDArray:
-        return base_from_frame(_rescale(p, 1.0 / s))
+        return base_from_frame(rescale(p, 1.0 / s))
 
-    smap = warp.source_map_from_function(lambda p: _rescale(base_from_small(p), rs), ws, hs, step=8)
+    smap = warp.source_map_from_function(lambda p: rescale(base_from_small(p), rs), ws, hs, step=8)
     warped = warp.remap(reference.small, smap, interpolation="linear")
     both = warp.remap(reference.small_valid.astype(np.uint8), smap, interpolation="nearest") > 0
     both &= np.isfinite(smap).all(axis=2)
@@ -1171,8 +1165,7 @@ def estimate_field_in_frame(
     outline = outline[np.isfinite(outline).all(axis=1)]
     if len(outline) < 3:
         return None, None
-    x0, y0 = np.maximum(np.floor(outline.min(axis=0)).astype(int) - 2, 0)
-    x1, y1 = np.minimum(np.ceil(outline.max(axis=0)).astype(int) + 3, (wb, hb))
+    x0, y0, x1, y1 = bbox_of(outline, (wb, hb))
     if x1 - x0 < 2 or y1 - y0 < 2:
         return None, None
     pos, disp = frame_flow_matches(frame_grey, base_from_frame, reference, config)

@@ -130,7 +130,7 @@ def render_to_base(
     return warp_image(frame_raw, raw_from_base, x1 - x0, y1 - y0, origin=(x0, y0))
 
 
-def _frame_arrays(fine: FineResult, field) -> dict[str, NDArray]:
+def _frame_arrays(fine: FineResult, field, field_stats=None) -> dict[str, NDArray]:
     arrays = {
         "src": fine.src.astype(np.float64),
         "dst": fine.dst.astype(np.float64),
@@ -141,12 +141,16 @@ def _frame_arrays(fine: FineResult, field) -> dict[str, NDArray]:
         arrays["source"] = np.asarray(fine.source, np.int16)
     if field is not None:
         arrays.update({f"field_{k}": np.asarray(v) for k, v in field.to_arrays().items()})
+    if field_stats is not None:
+        arrays.update({f"field_stats_{k}": v for k, v in field_stats.to_arrays().items()})
     return arrays
 
 
-def _stats(coarse: CoarseResult, fine: FineResult, times: dict[str, float]) -> dict:
+def _stats(
+    coarse: CoarseResult, fine: FineResult, times: dict[str, float], field_stats=None
+) -> dict:
     kept = fine.residuals[fine.kept] if len(fine.residuals) else np.zeros(0)
-    return {
+    stats = {
         "n_keypoints_frame": coarse.n_keypoints_frame,
         "n_keypoints_base": coarse.n_keypoints_base,
         "n_matches": coarse.n_matches,
@@ -159,6 +163,9 @@ def _stats(coarse: CoarseResult, fine: FineResult, times: dict[str, float]) -> d
         "residual_mean_px": float(np.mean(kept)) if len(kept) else None,
         "time_s": {name: round(v, 4) for name, v in times.items()},
     }
+    if field_stats is not None:
+        stats["local"] = field_stats.to_dict()
+    return stats
 
 
 class _Writer:
@@ -326,15 +333,10 @@ def _reference_step(frames, base, gamma, seed, ref, config, writer, reference) -
         "status": "ok",
         "reason": "",
         "stage": "inter-sensor",
-        "stats": _stats(coarse, fine, times),
+        "stats": _stats(coarse, fine, times, field_stats),
         "model": model.to_dict(),
     }
-    if field_stats is not None:
-        record["stats"]["local"] = field_stats.to_dict()
-    arrays = _frame_arrays(fine, field)
-    if field_stats is not None:
-        arrays.update({f"field_stats_{k}": v for k, v in field_stats.to_arrays().items()})
-    writer.write(ref, record, arrays)
+    writer.write(ref, record, _frame_arrays(fine, field, field_stats))
     joint = make_joint_base(mid, valid, config)
     joint.previous = previous_frame_state(frame, gamma, model, config)
     joint.previous_index = ref
@@ -405,20 +407,14 @@ def _register_one(frame, k, gamma, joint: JointBase, config: PipelineConfig):
         field, field_stats = _local_field(frame, gamma, model, joint, config)
         times["local"] = time.perf_counter() - t1
     times["total"] = time.perf_counter() - t0
-    stats = _stats(coarse, fine, times)
-    if field_stats is not None:
-        stats["local"] = field_stats.to_dict()
     record = {
         "status": "ok",
         "reason": "",
         "stage": "intra-sensor",
-        "stats": stats,
+        "stats": _stats(coarse, fine, times, field_stats),
         "model": model.to_dict(),
     }
-    arrays = _frame_arrays(fine, field)
-    if field_stats is not None:
-        arrays.update({f"field_stats_{k}": v for k, v in field_stats.to_arrays().items()})
-    return record, arrays, state
+    return record, _frame_arrays(fine, field, field_stats), state
 
 
 def _local_field(frame, gamma, model, joint: JointBase, config: PipelineConfig):
