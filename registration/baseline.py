@@ -18,7 +18,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from registration.coords import as_points
 from registration.distortion import HarrisModel
-from registration.global_registration import corrected_grey
+from registration.coarse import corrected_grey
 
 
 @dataclass(frozen=True)

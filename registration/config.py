@@ -22,7 +22,8 @@ import types
 import typing
 from dataclasses import dataclass, field, replace
 
-from registration.global_registration import CoarseConfig, FineConfig, IntraConfig
+from registration.coarse import CoarseConfig
+from registration.global_registration import FineConfig, IntraConfig
 from registration.local import FLOW_OVERRIDES, LocalConfig
 
 
@@ -70,6 +71,11 @@ EDGE_TEMPLATE_PX = 31
 # in the first round on template control points (their mean error is about 0.5 px), keeping
 # every mismatch; 0.5 px removes them and roughly halves the corner errors (README, Presets).
 REQCON_TARGET_PX = 0.5
+# The default preset's REQCON drops only outliers (residuals beyond ~5 robust standard
+# deviations) and stops when none is left: a lens beyond Harris or a rolling shutter leaves the
+# polyprojective a systematic error that an absolute target never reaches, and the paper's rule
+# then drops good points until it fails the frame (robust.ReqconConfig.stop).
+REQCON_STOP = "outliers"
 # The default preset's RANSAC cap. The paper's 1000 fails at high outlier shares (performance
 # notes: 90 % outliers); the adaptive stop (confidence 0.999) makes the higher cap cost nothing
 # when the inlier share is high, as it is for a seeded helicopter frame. On the 200 real SRIF
@@ -122,10 +128,27 @@ INTRA_COARSE_NFEATURES = 2000
 INTRA_TEMPLATE = {"spacing_px": 100, "dither_iterations": 0, "min_templates": 200}
 
 
+# The default preset's coarse step (registration.coarse): never smaller than 640 px (1/4 of the
+# paper's 2560 px), guided matching and two refinement rounds around the heading estimate, the
+# base detected at the frame's ground resolution, and similarity/affine/projective chosen by BIC.
+COARSE_BEYOND_PAPER = {
+    "min_side_px": 640,
+    "guided": True,
+    "refine_rounds": 2,
+    "match_base_scale": True,
+    "models": ("similarity", "affine", "projective"),
+}
+
+
 def _default() -> PipelineConfig:
     paper = PipelineConfig()
     lm_ransac = replace(paper.coarse.ransac, refine="lm", max_iterations=RANSAC_MAX_ITERATIONS)
-    lm_reqcon = replace(paper.fine.reqcon, optimizer="lm", target_mean_error_px=REQCON_TARGET_PX)
+    lm_reqcon = replace(
+        paper.fine.reqcon,
+        optimizer="lm",
+        target_mean_error_px=REQCON_TARGET_PX,
+        stop=REQCON_STOP,
+    )
     warped = replace(
         paper.fine.template,
         warp_reference=True,
@@ -135,8 +158,8 @@ def _default() -> PipelineConfig:
     return replace(
         paper,
         match_in="raw",
-        coarse=replace(paper.coarse, ransac=lm_ransac),
-        fine=replace(paper.fine, template=warped, reqcon=lm_reqcon),
+        coarse=replace(paper.coarse, ransac=lm_ransac, **COARSE_BEYOND_PAPER),
+        fine=replace(paper.fine, template=warped, reqcon=lm_reqcon, check_support=True),
         intra=replace(
             paper.intra,
             coarse_nfeatures=INTRA_COARSE_NFEATURES,

@@ -39,7 +39,6 @@ PointFunction = Callable[[NDArray[np.float64]], NDArray[np.float64]]
 
 __all__ = [
     "ControlPoints",
-    "GatingConfig",
     "GriddedReference",
     "GriddedSiftConfig",
     "Keypoints",
@@ -49,8 +48,6 @@ __all__ = [
     "TemplateConfig",
     "detect_sift",
     "downscale",
-    "gate_by_seed",
-    "gate_radius",
     "gridded_sift_control_points",
     "match_ratio",
     "subpixel_peak",
@@ -382,132 +379,6 @@ def match_ratio(
     keep = arr[:, 2] < ratio * arr[:, 3]
     arr = arr[keep]
     return Matches(arr[:, 0].astype(np.int64), arr[:, 1].astype(np.int64), arr[:, 2], arr[:, 3])
-
-
-# --------------------------------------------------------------------------------------------
-# Location gating around the seed correspondence (paper 4.3.1 step 3)
-# --------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class GatingConfig:
-    """Location gating around the single manually identified correspondence (paper 4.3.1: "the
-    single manually identified corresponding point allowed location based filtering of the SIFT
-    features"). The paper gives no formula; ours keeps a match ``(p, q)`` when the vector
-    ``b = q - seed_dst`` is what a similarity with scale in
-    ``expected_scale * [1 - max_scale_error, 1 + max_scale_error]`` and rotation within
-    ``expected_rotation_deg +- max_rotation_deg`` makes of ``a = p - seed_src``, up to
-    ``slack_px`` (see :func:`gate_by_seed`). Units are pixels of the images the points live in
-    (at 1/4 scale in the coarse step).
-
-    Attributes:
-        expected_scale: expected ``|q - seed_dst| / |p - seed_src|`` (dst px per src px). 1.0
-            by default; the paper's pair differs by ~20 % (paper 4.3.2), covered by the error.
-        max_scale_error: relative scale tolerance (0.25: covers the paper's ~20 %).
-        expected_rotation_deg: expected rotation from src to dst, degrees, counter-clockwise in
-            the (x right, y down) image = clockwise on screen (0).
-        max_rotation_deg: rotation tolerance in degrees (15: covers the paper's ~10°).
-        slack_px: absolute tolerance in dst pixels, for points near the seed (where angle and
-            scale are meaningless), the seed's own error and non-similarity distortion (8).
-        max_distance_px: optional radius around ``seed_src`` beyond which matches are dropped
-            (None = no limit).
-    """
-
-    expected_scale: float = 1.0
-    max_scale_error: float = 0.25
-    expected_rotation_deg: float = 0.0
-    max_rotation_deg: float = 15.0
-    slack_px: float = 8.0
-    max_distance_px: float | None = None
-
-    def __post_init__(self) -> None:
-        if not self.expected_scale > 0:
-            raise ValueError(f"GatingConfig.expected_scale must be > 0, got {self.expected_scale}")
-        if not 0 <= self.max_scale_error < 1:
-            raise ValueError(
-                f"GatingConfig.max_scale_error must be in [0, 1), got {self.max_scale_error}"
-            )
-        if not 0 <= self.max_rotation_deg <= 180:
-            raise ValueError(
-                f"GatingConfig.max_rotation_deg must be in [0, 180], got {self.max_rotation_deg}"
-            )
-        if self.slack_px < 0:
-            raise ValueError(f"GatingConfig.slack_px must be >= 0, got {self.slack_px}")
-        if self.max_distance_px is not None and self.max_distance_px <= 0:
-            raise ValueError(
-                f"GatingConfig.max_distance_px must be > 0 or None, got {self.max_distance_px}"
-            )
-
-
-def gate_by_seed(
-    src_xy: ArrayLike,
-    dst_xy: ArrayLike,
-    seed_src: ArrayLike,
-    seed_dst: ArrayLike,
-    config: GatingConfig = GatingConfig(),
-) -> NDArray[np.bool_]:
-    """Location gating of candidate matches around one seed correspondence (paper 4.3.1).
-
-    With ``a = p - seed_src`` and ``b = q - seed_dst``, the allowed region for ``b`` is the
-    annular sector of radii ``[s_min |a|, s_max |a|]`` (``s = expected_scale * (1 -+
-    max_scale_error)``) and directions within ``max_rotation_deg`` of ``a`` rotated by
-    ``expected_rotation_deg``: every place a similarity within the bounds can send ``p``. A match
-    is kept when ``b`` lies within ``slack_px`` of that sector (Euclidean distance to it). Near
-    the seed the sector shrinks towards the point ``seed_dst``, so there the test becomes
-    ``|b| <~ slack_px`` whatever the direction: angle and scale carry no information for short
-    vectors, and the slack absorbs the seed's own error.
-
-    Args:
-        src_xy: ``(N, 2)`` match positions in the source image.
-        dst_xy: ``(N, 2)`` their partners in the destination image.
-        seed_src, seed_dst: the seed correspondence, ``(2,)`` each.
-        config: tolerances.
-
-    Returns:
-        ``(N,)`` bool mask of matches to keep.
-    """
-    p = coords.as_points(src_xy, "src_xy")
-    q = coords.as_points(dst_xy, "dst_xy")
-    if len(p) != len(q):
-        raise ValueError(f"src_xy and dst_xy must have the same length, got {len(p)} and {len(q)}")
-    s0 = coords.as_points(seed_src, "seed_src")
-    d0 = coords.as_points(seed_dst, "seed_dst")
-    if len(s0) != 1 or len(d0) != 1 or not (np.isfinite(s0).all() and np.isfinite(d0).all()):
-        raise ValueError(f"seed_src and seed_dst must be one finite point each, got {s0} and {d0}")
-    a = p - s0
-    b = q - d0
-    ra = np.hypot(a[:, 0], a[:, 1])
-    rb = np.hypot(b[:, 0], b[:, 1])
-    rot = math.radians(config.expected_rotation_deg)
-    # Angle between b and the expected direction (a rotated by the expected rotation), in [0, pi].
-    dphi = np.arctan2(b[:, 1], b[:, 0]) - np.arctan2(a[:, 1], a[:, 0]) - rot
-    dphi = np.abs((dphi + np.pi) % (2 * np.pi) - np.pi)
-    delta = np.maximum(0.0, dphi - math.radians(config.max_rotation_deg))
-    r_min = config.expected_scale * (1 - config.max_scale_error) * ra
-    r_max = config.expected_scale * (1 + config.max_scale_error) * ra
-    # Nearest sector point to b: on the ray at the nearest allowed angle (angular offset delta),
-    # at radius rb cos(delta) clamped into [r_min, r_max]. delta = 0 gives the radial distance.
-    cos_d = np.cos(delta)
-    t = np.clip(rb * cos_d, r_min, r_max)
-    dist = np.sqrt(np.maximum(rb**2 + t**2 - 2 * rb * t * cos_d, 0.0))
-    keep = dist <= config.slack_px
-    if config.max_distance_px is not None:
-        keep &= ra <= config.max_distance_px
-    return keep & np.isfinite(p).all(axis=1) & np.isfinite(q).all(axis=1)
-
-
-def gate_radius(config: GatingConfig, frame_size: tuple[float, float] | None = None) -> float:
-    """Radius around ``seed_dst`` (destination px) beyond which :func:`gate_by_seed` keeps
-    nothing: ``s_max * r + slack_px`` with ``s_max = expected_scale * (1 + max_scale_error)`` and
-    ``r`` = ``max_distance_px``, or else the diagonal of ``frame_size`` (``(w, h)`` in source
-    px: no source point is farther from the seed). ``inf`` when neither bounds it. For display
-    (a circle around the seed); the gate itself is the sector test of :func:`gate_by_seed`."""
-    r = config.max_distance_px
-    if r is None:
-        if frame_size is None:
-            return math.inf
-        r = math.hypot(float(frame_size[0]), float(frame_size[1]))
-    return config.expected_scale * (1 + config.max_scale_error) * r + config.slack_px
 
 
 # --------------------------------------------------------------------------------------------

@@ -1,8 +1,8 @@
 """Global registration to the base map (paper section 4).
 
 Inter-sensor (4.3), for the reference frame against the base map:
-  coarse: grey, 1/4 scale, SIFT, ratio matching, location gating around the one seed point,
-  RANSAC projective with Nelder-Mead refinement (:func:`coarse_register`);
+  coarse: :mod:`registration.coarse` (SIFT at 1/4 scale, heading and scale estimated from the
+  seed or without one, location gating, RANSAC projective);
   fine: the coarse model rescaled to a full-scale polyprojective start, a grid of templates matched
   by normalised cross-correlation, REQCON (:func:`fine_register_reference`).
   The reference frame warped into base coordinates is the "mid base image".
@@ -26,40 +26,43 @@ import numpy as np
 from numpy.typing import NDArray
 
 from registration import features
-from registration.coords import bbox_of, frame_outline, image_size, rescale
-from registration.distortion import HarrisModel, undistort_image
-from registration.features import (
-    ControlPoints,
-    GatingConfig,
-    GriddedSiftConfig,
-    Keypoints,
-    SiftConfig,
-    TemplateConfig,
+from registration.coarse import (
+    CoarseBase,
+    CoarseConfig,
+    CoarseFeatures,
+    CoarseResult,
+    FrameView,
+    Seed,
+    coarse_features,
+    coarse_register,
+    fit_coarse,
+    frame_view,
 )
+from registration.coords import bbox_of, frame_outline, image_size, rescale
+from registration.distortion import HarrisModel
+from registration.features import ControlPoints, GriddedSiftConfig, Keypoints, TemplateConfig
 from registration.models import PolyProjective, Projective
-from registration.robust import FitResult, RansacConfig, ReqconConfig, ransac, reqcon
+from registration.robust import FitResult, ReqconConfig, reqcon, supported_by_points
 
-Seed = tuple[float, float, float, float]
-
-
-@dataclass(frozen=True)
-class CoarseConfig:
-    """Coarse projective step at a reduced scale (paper 4.3.1, reused for intra-sensor frames).
-
-    Attributes:
-        scale: image scale of the coarse step (paper: both images sub-sampled to 1/4).
-        sift: SIFT settings at that scale.
-        ratio: Lowe's ratio test threshold for matching (stricter when smaller).
-        gating: location gating around the seed correspondence (paper 4.3.1).
-        ransac: RANSAC settings, in coarse-scale pixels (paper: 4 points, 5 px, 1000 iterations,
-            Nelder-Mead refinement).
-    """
-
-    scale: float = 0.25
-    sift: SiftConfig = field(default_factory=SiftConfig)
-    ratio: float = 0.8
-    gating: GatingConfig = field(default_factory=GatingConfig)
-    ransac: RansacConfig = field(default_factory=RansacConfig)
+__all__ = [
+    "CoarseBase",
+    "CoarseConfig",
+    "CoarseFeatures",
+    "CoarseResult",
+    "FineConfig",
+    "FineResult",
+    "FrameView",
+    "IntraConfig",
+    "JointBase",
+    "PreviousFrame",
+    "Seed",
+    "coarse_register",
+    "fine_register_reference",
+    "frame_view",
+    "make_joint_base",
+    "previous_frame_state",
+    "register_intra",
+]
 
 
 @dataclass(frozen=True)
@@ -72,11 +75,16 @@ class FineConfig:
             20x20 search neighbourhood).
         reqcon: REQCON settings (paper: drop the worst 5 % until the mean error < 2 px,
             Nelder-Mead).
+        check_support: beyond the paper: keep the projective part where the kept control
+            points do not support the degree-``degree`` terms over the frame
+            (:func:`registration.robust.supported_by_points`); the paper always keeps the
+            polyprojective.
     """
 
     degree: int = 2
     template: TemplateConfig = field(default_factory=TemplateConfig)
     reqcon: ReqconConfig = field(default_factory=ReqconConfig)
+    check_support: bool = False
 
 
 @dataclass(frozen=True)
@@ -128,40 +136,6 @@ class IntraConfig:
 
 
 @dataclass
-class CoarseResult:
-    """Outcome of a coarse projective step; match arrays are full-scale pixels.
-
-    ``frame_xy`` are corrected-frame pixels, ``base_xy`` base pixels (or, for intra-sensor
-    frames, base pixels of the joint base). ``gated`` marks matches that passed the location gate,
-    ``inliers`` the RANSAC inliers among all matches.
-    """
-
-    success: bool
-    reason: str
-    base_from_corrected: Projective | None
-    frame_xy: NDArray[np.float64]
-    base_xy: NDArray[np.float64]
-    gated: NDArray[np.bool_]
-    inliers: NDArray[np.bool_]
-    n_keypoints_frame: int
-    n_keypoints_base: int
-    gate_center_base: NDArray[np.float64] | None = None
-    gate_radius_base: float | None = None
-    time_s: float = 0.0
-
-    @property
-    def n_matches(self) -> int:
-        return int(len(self.frame_xy))
-
-    @property
-    def n_inliers(self) -> int:
-        return int(self.inliers.sum())
-
-    def __bool__(self) -> bool:
-        return self.success
-
-
-@dataclass
 class FineResult:
     """Outcome of a fine polyprojective step.
 
@@ -179,6 +153,9 @@ class FineResult:
     iterations: int
     time_s: float = 0.0
     source: NDArray[np.int_] | None = None
+    model_kind: str = "polyprojective"
+    model_reason: str = ""
+    sigma_px: float = float("nan")
 
     @property
     def residual_rms_px(self) -> float:
@@ -189,196 +166,6 @@ class FineResult:
         return self.success
 
 
-@dataclass
-class CoarseFeatures:
-    """SIFT keypoints of an image at the coarse scale (``xy`` in coarse-scale pixels)."""
-
-    keypoints: Keypoints
-    scale: float
-
-
-def corrected_grey(frame_raw: NDArray, gamma: float) -> NDArray[np.uint8]:
-    """Radially corrected grey frame on the raw frame's canvas (paper section 3)."""
-    w, h = image_size(frame_raw)
-    corrected, _ = undistort_image(frame_raw, HarrisModel(gamma, w, h), canvas="same")
-    return features.to_grey(corrected)
-
-
-@dataclass
-class FrameView:
-    """The grey image control points are found in, and its pixels' link to corrected pixels.
-
-    With ``match_in="corrected"`` (the paper) the image is the radially corrected frame on the
-    raw frame's canvas and the link is the identity; its corners lose the content that the
-    correction pushes outside the canvas (at γ = 0.7 the raw corners move 1.8x further out), so
-    the global model extrapolates there. With ``match_in="raw"`` the image is the raw frame and
-    the exact Harris model links its pixels to corrected ones: every raw pixel can carry a control
-    point and the frame is not resampled before matching.
-    """
-
-    grey: NDArray[np.uint8]
-    harris: HarrisModel | None
-
-    def to_corrected(self, xy: NDArray) -> NDArray:
-        return xy if self.harris is None else self.harris.corrected_from_raw(xy)
-
-    def from_corrected(self, xy: NDArray) -> NDArray:
-        return xy if self.harris is None else self.harris.raw_from_corrected(xy)
-
-
-def frame_view(frame_raw: NDArray, gamma: float, match_in: str) -> FrameView:
-    """See :class:`FrameView`."""
-    if match_in == "corrected":
-        return FrameView(corrected_grey(frame_raw, gamma), None)
-    if match_in == "raw":
-        w, h = image_size(frame_raw)
-        return FrameView(features.to_grey(frame_raw), HarrisModel(gamma, w, h))
-    raise ValueError(f"match_in must be 'raw' or 'corrected', got {match_in!r}")
-
-
-def coarse_features(
-    grey: NDArray[np.uint8], config: CoarseConfig, mask=None, view: FrameView | None = None
-) -> CoarseFeatures:
-    """SIFT at the coarse scale (paper 4.3.1 steps 1, 2 and 4).
-
-    With a ``view``, keypoint positions are converted to corrected-frame pixels (at the coarse
-    scale), so that everything downstream is in corrected coordinates.
-    """
-    s = config.scale
-    small = features.downscale(grey, s)
-    small_mask = None
-    if mask is not None:
-        small_mask = (features.downscale(mask.astype(np.uint8) * 255, s) > 250).astype(np.uint8)
-    kp = features.detect_sift(small, config.sift, mask=small_mask)
-    if view is not None and view.harris is not None and len(kp.xy):
-        kp = dataclasses.replace(kp, xy=rescale(view.to_corrected(rescale(kp.xy, 1.0 / s)), s))
-    return CoarseFeatures(kp, s)
-
-
-def _fit_coarse(
-    frame_feats: CoarseFeatures,
-    refs: list[tuple[CoarseFeatures, NDArray | None]],
-    config: CoarseConfig,
-    gate: NDArray[np.bool_] | None | callable,
-    rng: np.random.Generator,
-    n_keypoints_base: int,
-    known: list[features.Matches | None] | None = None,
-) -> CoarseResult:
-    """Match the frame against each reference separately, gate, RANSAC at the coarse scale.
-
-    ``refs`` holds (features, to_base) pairs: ``to_base`` maps the reference's full-scale pixels
-    to base pixels (None = already base pixels). Matching each reference on its own keeps the
-    ratio test from rejecting a point because it appears in two references. ``known`` gives
-    matches already computed, per reference (None = match here).
-    """
-    s = config.scale
-    frame_xy, base_xy = [], []
-    for i, (feats, to_base) in enumerate(refs):
-        m = known[i] if known is not None else None
-        if m is None:
-            m = features.match_ratio(frame_feats.keypoints, feats.keypoints, config.ratio)
-        if len(m.idx_a) == 0:
-            continue
-        f_full = rescale(frame_feats.keypoints.xy[m.idx_a], 1.0 / s)
-        b_full = rescale(feats.keypoints.xy[m.idx_b], 1.0 / s)
-        if to_base is not None:
-            b_full = to_base(b_full)
-        frame_xy.append(f_full)
-        base_xy.append(b_full)
-    frame_xy = np.concatenate(frame_xy) if frame_xy else np.zeros((0, 2))
-    base_xy = np.concatenate(base_xy) if base_xy else np.zeros((0, 2))
-    ok = np.isfinite(base_xy).all(axis=1)
-    gated = ok if gate is None else ok & gate(frame_xy, base_xy)
-    inliers = np.zeros(len(frame_xy), bool)
-    result = CoarseResult(
-        success=False,
-        reason="",
-        base_from_corrected=None,
-        frame_xy=frame_xy,
-        base_xy=base_xy,
-        gated=gated,
-        inliers=inliers,
-        n_keypoints_frame=len(frame_feats.keypoints.xy),
-        n_keypoints_base=n_keypoints_base,
-    )
-    n_gated = int(gated.sum())
-    if n_gated < Projective.min_samples:
-        result.reason = f"coarse step: only {n_gated} matches passed the location gate (need 4)"
-        return result
-    idx = np.flatnonzero(gated)
-    fit = ransac(
-        rescale(frame_xy[idx], s), rescale(base_xy[idx], s), Projective, config.ransac, rng
-    )
-    if not fit:
-        result.reason = f"coarse step: RANSAC failed: {fit.reason}"
-        return result
-    inliers[idx[fit.inliers]] = True
-    result.base_from_corrected = fit.model.rescaled(1.0 / s, 1.0 / s)
-    result.success = True
-    return result
-
-
-def coarse_register(
-    frame_raw: NDArray,
-    base: NDArray,
-    gamma: float,
-    seed: Seed | None,
-    config,
-    *,
-    base_features: CoarseFeatures | None = None,
-    rng: np.random.Generator | int | None = 0,
-) -> CoarseResult:
-    """Coarse inter-sensor registration of the reference frame (paper 4.3.1).
-
-    Args:
-        frame_raw: raw reference frame (H, W[, 3]) uint8.
-        base: base map (Hb, Wb[, 3]) uint8.
-        gamma: Harris γ of the frame.
-        seed: ``(fx, fy, bx, by)``: one corresponding point, raw frame px and base px; None runs
-            without location gating.
-        config: a :class:`registration.config.PipelineConfig`.
-        base_features: coarse SIFT of the base, when already computed.
-    """
-    t0 = time.perf_counter()
-    cfg: CoarseConfig = config.coarse
-    rng = np.random.default_rng(rng)
-    w, h = image_size(frame_raw)
-    view = frame_view(frame_raw, gamma, config.match_in)
-    frame_feats = coarse_features(view.grey, cfg, view=view)
-    if base_features is None:
-        base_features = coarse_features(features.to_grey(base), cfg)
-    gate = None
-    seed_corr = seed_base = None
-    if seed is not None:
-        seed_corr = HarrisModel(gamma, w, h).corrected_from_raw([seed[:2]])[0]
-        seed_base = np.asarray(seed[2:], float)
-
-        # The gate's slack is in coarse-scale pixels, like the rest of the coarse step.
-        s = cfg.scale
-        seed_corr_c, seed_base_c = rescale(seed_corr, s)[0], rescale(seed_base, s)[0]
-
-        def gate(fxy, bxy):
-            return features.gate_by_seed(
-                rescale(fxy, s), rescale(bxy, s), seed_corr_c, seed_base_c, cfg.gating
-            )
-
-    result = _fit_coarse(
-        frame_feats,
-        [(base_features, None)],
-        cfg,
-        gate,
-        rng,
-        len(base_features.keypoints.xy),
-    )
-    if seed is not None:
-        result.gate_center_base = seed_base
-        result.gate_radius_base = (
-            features.gate_radius(cfg.gating, frame_size=(w * cfg.scale, h * cfg.scale)) / cfg.scale
-        )
-    result.time_s = time.perf_counter() - t0
-    return result
-
-
 def _fit_fine(
     cps: ControlPoints,
     initial: Projective | PolyProjective,
@@ -386,7 +173,11 @@ def _fit_fine(
     reqcon_cfg,
     t0: float,
     domain: NDArray | None = None,
+    check_support: bool = False,
 ) -> FineResult:
+    """REQCON on the control points from ``initial``; with ``check_support``, the projective is
+    kept where the points do not support the polyprojective (:func:`_fall_back_if_unsupported`).
+    """
     n = len(cps.src)
     start = (
         initial
@@ -422,18 +213,54 @@ def _fit_fine(
         residuals=np.asarray(fit.residuals, float),
         iterations=int(fit.iterations),
         source=getattr(cps, "source", None),
+        sigma_px=float(fit.sigma_px),
     )
+    if fit and check_support and degree > 1 and domain is not None:
+        _fall_back_if_unsupported(result, degree, domain)
     result.time_s = time.perf_counter() - t0
     return result
 
 
+def _fall_back_if_unsupported(result: FineResult, degree: int, domain: NDArray) -> None:
+    """Keep the projective part when the control points do not support the polyprojective's
+    higher terms over the frame (``domain``, corrected px): points covering only part of the
+    frame (a map with no-data areas, another date with changed buildings) let those terms
+    extrapolate wildly elsewhere, which makes the fine step worse than the coarse one."""
+    src, dst = result.src[result.kept], result.dst[result.kept]
+    poly = result.base_from_corrected
+    proj = Projective.estimate(src, dst, initial=poly.projective_part(), optimizer="lm")
+    if not proj or supported_by_points(proj, poly, src, dst, domain):
+        result.model_reason = (
+            f"the {len(src)} kept control points support the degree-{degree} terms over the frame"
+        )
+        return
+    result.base_from_corrected = PolyProjective.from_projective(
+        proj, degree, poly.src_norm, poly.dst_norm
+    )
+    result.residuals = np.asarray(proj.residuals(result.src, result.dst), float)
+    result.model_kind = "projective"
+    result.model_reason = (
+        f"the {len(src)} kept control points do not support the degree-{degree} terms over the "
+        "frame (the projective predicts the frame within their uncertainty)"
+    )
+
+
 def fine_register_reference(
-    frame_raw: NDArray, base: NDArray, gamma: float, coarse: CoarseResult, config
+    frame_raw: NDArray,
+    base: NDArray,
+    gamma: float,
+    coarse: CoarseResult,
+    config,
+    *,
+    base_valid: NDArray | None = None,
 ) -> FineResult:
     """Fine inter-sensor registration of the reference frame (paper 4.3.2).
 
     The template grid of the corrected frame is matched in the base map around where the coarse
-    projective puts it; REQCON fits the polyprojective starting from the coarse model.
+    projective puts it (never where ``base_valid``, ``(Hb, Wb)`` bool, marks no data); REQCON
+    fits the polyprojective starting from the coarse model. With ``config.fine.check_support``
+    the projective is kept where the points do not support the polyprojective
+    (``FineResult.model_kind`` and ``model_reason`` say which and why).
     """
     t0 = time.perf_counter()
     if not coarse:
@@ -441,8 +268,10 @@ def fine_register_reference(
     cfg: FineConfig = config.fine
     model = coarse.base_from_corrected
     view = frame_view(frame_raw, gamma, config.match_in)
-    cps = _template_points(view, features.to_grey(base), model, cfg.template)
-    return _fit_fine(cps, model, cfg.degree, cfg.reqcon, t0, frame_domain(frame_raw, gamma))
+    cps = _template_points(view, features.to_grey(base), model, cfg.template, ref_valid=base_valid)
+    return _fit_fine(
+        cps, model, cfg.degree, cfg.reqcon, t0, frame_domain(frame_raw, gamma), cfg.check_support
+    )
 
 
 def frame_domain(frame_raw: NDArray, gamma: float, n: int = 9) -> NDArray[np.float64]:
@@ -583,7 +412,7 @@ def register_intra(
     refs.insert(0, (mid, None))
     known.insert(0, None)
     n_base = sum(len(r[0].keypoints.xy) for r in refs)
-    coarse = _fit_coarse(frame_coarse, refs, ccfg, gate, rng, n_base, known)
+    coarse = fit_coarse(frame_coarse, refs, ccfg, gate, rng, n_base, known)
     coarse.time_s = time.perf_counter() - t0
     if not coarse:
         return coarse, _failed_fine(coarse.reason), None

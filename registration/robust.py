@@ -27,6 +27,7 @@ from registration.coords import as_points
 
 __all__ = [
     "FitResult",
+    "supported_by_points",
     "RansacConfig",
     "ReqconConfig",
     "adaptive_max_iterations",
@@ -97,6 +98,19 @@ class ReqconConfig:
             (not in the paper: a guard against collapsing onto a few points).
         min_fraction: also keep at least this fraction of the input (not in the paper).
         max_iterations: upper bound on fit-and-drop rounds (not in the paper; 0.95^100 ~ 0.6 %).
+        stop: ``"mean"`` (the paper): drop the worst ``drop_fraction`` each round until the mean
+            residual is below ``target_mean_error_px``; failure when the guard is reached first.
+            ``"outliers"`` (beyond the paper): a model that cannot represent the data exactly
+            (a lens beyond its model, a rolling shutter) never reaches an absolute target, and
+            the paper's rule then drops good points until the guard fails the frame. Here each
+            round drops only the kept points beyond ``outlier_sigmas`` robust standard
+            deviations (at most ``drop_fraction`` of them, worst first), and REQCON stops
+            successfully when none is left (or when the mean is below the target). The robust
+            scale is the Rayleigh one of 2-D residuals, ``median / sqrt(2 ln 2)``. The final
+            spread is reported as the fit's quality (``FitResult.sigma_px``).
+        outlier_sigmas: the ``"outliers"`` rule's threshold in robust standard deviations; None
+            = ``sqrt(2 ln(n / 0.01))``, beyond which a Rayleigh sample of ``n`` right points
+            reaches with probability ~1 % only (4.9 for 2000 points).
     """
 
     drop_fraction: float = 0.05
@@ -105,6 +119,8 @@ class ReqconConfig:
     min_points: int | None = None
     min_fraction: float = 0.1
     max_iterations: int = 100
+    stop: str = "mean"
+    outlier_sigmas: float | None = None
 
     def __post_init__(self) -> None:
         if not (0 < self.drop_fraction < 1):
@@ -119,6 +135,10 @@ class ReqconConfig:
             raise ValueError(f"min_fraction must be in [0, 1), got {self.min_fraction}")
         if self.max_iterations < 1:
             raise ValueError(f"max_iterations must be >= 1, got {self.max_iterations}")
+        if self.stop not in ("mean", "outliers"):
+            raise ValueError(f"stop must be 'mean' or 'outliers', got {self.stop!r}")
+        if self.outlier_sigmas is not None and not self.outlier_sigmas > 0:
+            raise ValueError(f"outlier_sigmas must be > 0 or None, got {self.outlier_sigmas}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -135,6 +155,8 @@ class FitResult:
         reason: why it failed ("" on success).
         history: REQCON: mean residual of the kept points after each round (pixels);
             RANSAC: best inlier count after each improvement.
+        sigma_px: REQCON: robust standard deviation of the kept points' residuals (pixels,
+            Rayleigh scale ``median / sqrt(2 ln 2)``): the quality of the fit.
     """
 
     model: Any
@@ -144,6 +166,7 @@ class FitResult:
     success: bool
     reason: str = ""
     history: tuple[float, ...] = field(default_factory=tuple)
+    sigma_px: float = float("nan")
 
     def __bool__(self) -> bool:
         return bool(self.success)
@@ -151,6 +174,11 @@ class FitResult:
     @property
     def n_inliers(self) -> int:
         return int(np.count_nonzero(self.inliers))
+
+
+# Median of a Rayleigh distribution of unit scale: the length of a 2-D residual whose
+# components are independent unit Gaussians has median sqrt(2 ln 2).
+_RAYLEIGH_MEDIAN = math.sqrt(2.0 * math.log(2.0))
 
 
 def adaptive_max_iterations(inlier_ratio: float, sample_size: int, confidence: float) -> float:
@@ -197,12 +225,110 @@ def _safe_residuals(model: Any, src: NDArray, dst: NDArray) -> NDArray[np.float6
     return np.where(np.isfinite(r), r, np.inf)
 
 
+def _search_serial(s, d, fs, fd, idx_all, model_type, k_random, config, gen):
+    """One sample at a time through ``model_type.estimate`` (any model of the protocol)."""
+    n = len(s)
+    best_model, best_count, best_cost = None, -1, math.inf
+    best_inl = np.zeros(n, dtype=bool)
+    history: list[float] = []
+    limit = float(config.max_iterations)
+    trial = 0
+    while trial < min(limit, config.max_iterations):
+        trial += 1
+        sample = gen.choice(idx_all, size=k_random, replace=False)
+        model = model_type.estimate(np.vstack([fs, s[sample]]), np.vstack([fd, d[sample]]))
+        if not model:
+            continue
+        r = _safe_residuals(model, s, d)
+        inl = r < config.threshold_px
+        count = int(inl.sum())
+        cost = float(r[inl].sum())
+        if count > best_count or (count == best_count and cost < best_cost):
+            best_model, best_count, best_cost, best_inl = model, count, cost, inl
+            history.append(float(count))
+            limit = min(
+                limit,
+                adaptive_max_iterations(count / len(idx_all), k_random, config.confidence),
+            )
+    return best_model, best_count, best_inl, history, trial
+
+
+# Hypotheses scored per batch by the vectorised search: large enough to amortise numpy's
+# per-call cost, small enough that the adaptive stop wastes little.
+_BATCH = 64
+
+
+def _draw_samples(gen: np.random.Generator, idx_all: NDArray, k: int, b: int) -> NDArray:
+    """``(b, k)`` samples of distinct indices from ``idx_all`` (rows with repeats redrawn)."""
+    out = gen.integers(0, len(idx_all), size=(b, k))
+    for _ in range(100):
+        srt = np.sort(out, axis=1)
+        bad = (srt[:, 1:] == srt[:, :-1]).any(axis=1) if k > 1 else np.zeros(b, bool)
+        if not bad.any():
+            break
+        out[bad] = gen.integers(0, len(idx_all), size=(int(bad.sum()), k))
+    return idx_all[out]
+
+
+def _search_batched(s, d, fs, fd, idx_all, model_type, k_random, config, gen):
+    """The same search with ``model_type.minimal_batch`` fitting many samples at once (closed
+    forms for the linear models, a batched DLT for the projective) and scoring them together;
+    the best sample is then fitted again with ``estimate`` so that the result is the model the
+    serial search would return for it."""
+    n = len(s)
+    hs = np.c_[s, np.ones(n)]
+    best_count, best_cost, best_sample = -1, math.inf, None
+    history: list[float] = []
+    limit = float(config.max_iterations)
+    trial = 0
+    thr = config.threshold_px
+    batch = 8  # grows to _BATCH: an easy problem stops after a few samples, as serially
+    while trial < min(limit, config.max_iterations):
+        b = int(min(batch, min(limit, config.max_iterations) - trial))
+        batch = min(2 * batch, _BATCH)
+        samples = _draw_samples(gen, idx_all, k_random, b)
+        trial += b
+        src_b = np.concatenate([np.broadcast_to(fs, (b, *fs.shape)), s[samples]], axis=1)
+        dst_b = np.concatenate([np.broadcast_to(fd, (b, *fd.shape)), d[samples]], axis=1)
+        mats, ok = model_type.minimal_batch(src_b, dst_b)
+        if not ok.any():
+            continue
+        mats, samples = mats[ok], samples[ok]
+        proj = np.einsum("bij,nj->bni", mats, hs)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r = np.hypot(
+                proj[..., 0] / proj[..., 2] - d[:, 0], proj[..., 1] / proj[..., 2] - d[:, 1]
+            )
+        r = np.where(np.isfinite(r) & (proj[..., 2] > 0), r, np.inf)
+        inl = r < thr
+        counts = inl.sum(axis=1)
+        costs = np.where(inl, r, 0.0).sum(axis=1)
+        # Best of the batch: most inliers, then the smaller cost, then the earlier sample.
+        j = int(np.lexsort((np.arange(len(counts)), costs, -counts))[0])
+        if counts[j] > best_count or (counts[j] == best_count and costs[j] < best_cost):
+            best_count, best_cost, best_sample = int(counts[j]), float(costs[j]), samples[j]
+            history.append(float(best_count))
+            limit = min(
+                limit,
+                adaptive_max_iterations(best_count / len(idx_all), k_random, config.confidence),
+            )
+    if best_sample is None:
+        return None, -1, np.zeros(n, bool), history, trial
+    model = model_type.estimate(np.vstack([fs, s[best_sample]]), np.vstack([fd, d[best_sample]]))
+    if not model:
+        return None, -1, np.zeros(n, bool), history, trial
+    inl = _safe_residuals(model, s, d) < thr
+    return model, int(inl.sum()), inl, history, trial
+
+
 def ransac(
     src: ArrayLike,
     dst: ArrayLike,
     model_type: Any,
     config: RansacConfig = RansacConfig(),
     rng: np.random.Generator | int | None = None,
+    *,
+    fixed: tuple[ArrayLike, ArrayLike] | None = None,
 ) -> FitResult:
     """RANSAC over point pairs, then a refit of the best consensus set (paper 4.3.1).
 
@@ -218,6 +344,10 @@ def ransac(
         model_type: a model class (e.g. ``Projective``) with ``min_samples`` and ``estimate``.
         config: see :class:`RansacConfig`.
         rng: seed or generator; the same seed gives the same result.
+        fixed: optional ``(src, dst)`` pairs, ``(M, 2)`` each, that join every sample (beyond the
+            paper: a clicked seed point makes a similarity a one-point sample). They only shape
+            the samples: inliers, the consensus and the refit count the data pairs alone, so a
+            fixed pair that is a few pixels off does not bias the final model.
 
     Returns:
         :class:`FitResult`; ``history`` holds the best inlier count after each improvement.
@@ -233,37 +363,25 @@ def ransac(
             f"min_samples={min_s}"
         )
     min_inliers = max(config.min_inliers, min_s + 1)
+    fs = fd = np.zeros((0, 2))
+    if fixed is not None:
+        fs, fd = _pairs(*fixed)
+        if len(fs) >= k:
+            raise ValueError(f"{len(fs)} fixed pairs leave no room in samples of {k}")
+    k_random = k - len(fs)
     finite = np.isfinite(s).all(axis=1) & np.isfinite(d).all(axis=1)
     idx_all = np.flatnonzero(finite)
-    if len(idx_all) < max(k, min_inliers):
+    if len(idx_all) < max(k_random, min_inliers):
         return _failed(
-            n, f"needs at least {max(k, min_inliers)} finite point pairs, got {len(idx_all)}", 0
+            n,
+            f"needs at least {max(k_random, min_inliers)} finite point pairs, got {len(idx_all)}",
+            0,
         )
 
-    best_model, best_count, best_cost = None, -1, math.inf
-    best_inl = np.zeros(n, dtype=bool)
-    history: list[float] = []
-    n_degenerate = 0
-    limit = float(config.max_iterations)
-    trial = 0
-    while trial < min(limit, config.max_iterations):
-        trial += 1
-        sample = gen.choice(idx_all, size=k, replace=False)
-        model = model_type.estimate(s[sample], d[sample])
-        if not model:
-            n_degenerate += 1
-            continue
-        r = _safe_residuals(model, s, d)
-        inl = r < config.threshold_px
-        count = int(inl.sum())
-        cost = float(r[inl].sum())
-        if count > best_count or (count == best_count and cost < best_cost):
-            best_model, best_count, best_cost, best_inl = model, count, cost, inl
-            history.append(float(count))
-            limit = min(
-                limit,
-                adaptive_max_iterations(count / len(idx_all), k, config.confidence),
-            )
+    search = _search_batched if hasattr(model_type, "minimal_batch") else _search_serial
+    best_model, best_count, best_inl, history, trial = search(
+        s, d, fs, fd, idx_all, model_type, k_random, config, gen
+    )
     if best_model is None:
         return _failed(
             n, f"all {trial} samples were degenerate (collinear or duplicate points)", trial
@@ -349,6 +467,8 @@ def reqcon(
         )
     model = initial_model
     history: list[float] = []
+    n_valid = int(kept.sum())
+    k_sigma = config.outlier_sigmas or math.sqrt(2 * math.log(max(n_valid, 2) / 0.01))
     for it in range(1, config.max_iterations + 1):
         extra = {} if domain is None else {"domain": domain}
         fit = model_type.estimate(
@@ -367,11 +487,20 @@ def reqcon(
         model = fit
         r = _safe_residuals(model, s, d)
         mean_kept = float(np.mean(r[kept]))
+        sigma = float(np.median(r[kept])) / _RAYLEIGH_MEDIAN
         history.append(mean_kept)
-        if mean_kept < config.target_mean_error_px:
-            return FitResult(model, kept.copy(), r, it, True, "", tuple(history))
         n_kept = int(kept.sum())
         n_drop = max(1, math.ceil(config.drop_fraction * n_kept))
+        if config.stop == "outliers":
+            n_out = int(np.count_nonzero(r[kept] > k_sigma * sigma))
+            if n_out == 0:
+                return FitResult(model, kept.copy(), r, it, True, "", tuple(history), sigma)
+            n_drop = min(n_drop, n_out)
+        if mean_kept < config.target_mean_error_px:
+            return FitResult(model, kept.copy(), r, it, True, "", tuple(history), sigma)
+        if config.stop == "outliers" and n_kept - n_drop < guard:
+            # The guard protects against collapse; reaching it is the answer, not a failure.
+            return FitResult(model, kept.copy(), r, it, True, "", tuple(history), sigma)
         if n_kept - n_drop < guard:
             return _failed(
                 n,
@@ -388,6 +517,12 @@ def reqcon(
         # Stable sort so that ties drop deterministically (lowest index kept).
         worst = kept_idx[np.argsort(-r[kept_idx], kind="stable")[:n_drop]]
         kept[worst] = False
+    if config.stop == "outliers":
+        r = _safe_residuals(model, s, d)
+        sigma = float(np.median(r[kept])) / _RAYLEIGH_MEDIAN
+        return FitResult(
+            model, kept.copy(), r, config.max_iterations, True, "", tuple(history), sigma
+        )
     return _failed(
         n,
         f"mean error still {history[-1]:.3g} px after {config.max_iterations} rounds",
@@ -397,3 +532,60 @@ def reqcon(
         residuals=_safe_residuals(model, s, d),
         history=tuple(history),
     )
+
+
+def prediction_covariance(model: Any, src: ArrayLike, dst: ArrayLike, points: ArrayLike) -> NDArray:
+    """``(2M, 2M)`` covariance of ``model.apply(points)`` from the least-squares fit's
+    parameter covariance ``sigma^2 (J'J)^-1`` (numerical Jacobians, residual variance)."""
+    p0 = np.asarray(model.params, float)
+    step = 1e-6 * np.maximum(1.0, np.abs(p0))
+
+    def jac(fn):
+        cols = []
+        for i in range(len(p0)):
+            dp = np.zeros_like(p0)
+            dp[i] = step[i]
+            hi, lo = fn(model.with_params(p0 + dp)), fn(model.with_params(p0 - dp))
+            cols.append((hi - lo).ravel() / (2 * step[i]))
+        return np.stack(cols, axis=1)
+
+    j_fit = jac(lambda m: m.apply(src))
+    rss = float(np.sum((model.apply(src) - dst) ** 2))
+    dof = max(2 * len(src) - len(p0), 1)
+    cov = (rss / dof) * np.linalg.pinv(j_fit.T @ j_fit)
+    j_pts = jac(lambda m: m.apply(points))
+    return j_pts @ cov @ j_pts.T
+
+
+def supported_by_points(
+    simple: Any,
+    rich: Any,
+    src: ArrayLike,
+    dst: ArrayLike,
+    domain: ArrayLike,
+    confidence: float = 0.99,
+) -> bool:
+    """Whether the points support ``rich``'s extra freedom over ``simple`` on ``domain``.
+
+    ``rich`` was fitted (least squares) to the pairs ``src -> dst``; its predictions over
+    ``domain`` (``(M, 2)`` source pixels, e.g. the frame's outline) carry the uncertainty of that
+    fit (:func:`prediction_covariance`). When ``simple``'s predictions lie inside that
+    uncertainty (Mahalanobis distance below the chi-square quantile at ``confidence``, degrees of
+    freedom = the covariance's rank), the extra parameters only fit noise there, and where the
+    domain reaches beyond the points they extrapolate it: False. True when ``simple`` is
+    significantly off, or when there are too few pairs to tell.
+    """
+    from scipy.stats import chi2
+
+    s, d = _pairs(src, dst)
+    dom = as_points(domain, "domain")
+    if len(s) <= len(np.asarray(rich.params)):
+        return False
+    cov = prediction_covariance(rich, s, d, dom)
+    delta = (simple.apply(dom) - rich.apply(dom)).ravel()
+    if not np.isfinite(delta).all() or not np.isfinite(cov).all():
+        return True
+    tol = 1e-9 * max(float(np.abs(cov).max()), 1e-300)
+    rank = int(np.linalg.matrix_rank(cov, tol=tol))
+    d2 = float(delta @ np.linalg.pinv(cov, rcond=1e-9) @ delta)
+    return not d2 <= chi2.ppf(confidence, max(rank, 1))

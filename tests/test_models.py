@@ -304,8 +304,8 @@ def test_to_dict_round_trip_is_exact(model):
 
 
 def test_model_from_dict_rejects_unknown():
-    with pytest.raises(ValueError, match="unknown model type 'Affine'"):
-        model_from_dict({"type": "Affine"})
+    with pytest.raises(ValueError, match="unknown model type 'Shear'"):
+        model_from_dict({"type": "Shear"})
     with pytest.raises(ValueError, match="lacks key 'params'"):
         model_from_dict({"type": "Projective"})
     with pytest.raises(ValueError, match="not a PolyProjective"):

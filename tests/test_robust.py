@@ -243,3 +243,32 @@ def test_reqcon_with_projective_model():
     start = Projective.from_matrix(np.eye(3) + [[0, 0, 400], [0, 0, 160], [0, 0, 0]])
     res = reqcon(src, dst, start, ReqconConfig(optimizer="lm"))
     assert res and not res.inliers[outliers].any()
+
+
+def _mismatch_data(rng, n=600, n_out=60):
+    """Points from a smooth non-polyprojective warp (a radial term the model cannot represent,
+    up to ~1.5 px at the corners) plus 1 px noise, with gross outliers at named indices."""
+    src = rng.uniform([0, 0], [W - 1, H - 1], (n, 2))
+    c = np.array([W / 2, H / 2])
+    rho2 = (((src - c) / np.hypot(W, H) * 2) ** 2).sum(axis=1)
+    warped = src + 1.5 * (rho2**2)[:, None] * (src - c) / np.hypot(W, H) * 2
+    dst = true_poly().apply(warped) + rng.normal(0, 0.5, (n, 2))
+    outliers = np.sort(rng.choice(n, n_out, replace=False))
+    dst[outliers] += rng.uniform(8, 40, (n_out, 2)) * rng.choice([-1, 1], (n_out, 2))
+    return src, dst, outliers
+
+
+def test_reqcon_outlier_stop_keeps_good_points_under_model_mismatch(rng):
+    src, dst, outliers = _mismatch_data(rng)
+    good = np.setdiff1d(np.arange(len(src)), outliers)
+    start = PolyProjective.from_projective(true_projective(), 2)
+    robust = reqcon(
+        src, dst, start, ReqconConfig(optimizer="lm", target_mean_error_px=0.5, stop="outliers")
+    )
+    assert robust and robust.success
+    assert not robust.inliers[outliers].any()
+    assert robust.inliers[good].mean() >= 0.9
+    assert 0.3 < robust.sigma_px < 2.0
+    # The paper's absolute stop on the same points drops good points until the guard fails it.
+    paper = reqcon(src, dst, start, ReqconConfig(optimizer="lm", target_mean_error_px=0.5))
+    assert not paper or paper.inliers[good].mean() < 0.9

@@ -1,0 +1,740 @@
+"""The coarse projective step (paper 4.3.1), at any heading and scale between frame and map.
+
+Paper steps: grey, 1/4 scale, one manually identified correspondence, SIFT in both images,
+matches, RANSAC (4 points, 5 px, 1000 iterations) with Nelder-Mead. The paper's map was within
+~10° and ~20 % of its frames; ours may be at any heading and resolution, so (beyond the paper):
+
+1. The heading and scale are estimated first (:mod:`registration.heading`): from the seed's
+   vote histogram, fixed by a second seed, or, without a seed, from the 4-D Hough transform of
+   the matches (several candidates are tried and the best is kept only if it is clearly best).
+2. The location gate keeps the matches the estimate allows around the seed (paper), and, with
+   ``guided``, a second matching among base keypoints near each predicted position adds the
+   right matches a global ratio test loses to look-alikes elsewhere in a large map.
+3. With ``match_base_scale`` the base's coarse scale follows the estimated scale, so both coarse
+   images have about the same ground resolution (a map at 0.5x or 2x the frame's).
+4. RANSAC (paper), then ``refine_rounds`` of guided re-matching around the fitted model, and a
+   choice among similarity, affine and projective by BIC (``models``): a projective whose two
+   perspective terms are not supported by the points extrapolates badly at the frame's corners.
+5. A result that contradicts the clicked seed by more than the click can be off is refused with a
+   message that says so, never returned silently.
+
+All models are ``base_from_corrected``: corrected-frame pixels to base pixels. The intra-sensor
+coarse step (paper 4.4) shares :func:`fit_coarse` with a prediction gate instead of the seed.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from registration import features, heading
+from registration.coords import frame_outline, image_size, rescale
+from registration.distortion import HarrisModel, undistort_image
+from registration.features import Keypoints, SiftConfig
+from registration.heading import HeadingConfig, SimilarityPrior
+from registration.models import Affine, Projective, Similarity
+from registration.robust import RansacConfig, ransac, supported_by_points
+
+Seed = tuple[float, float, float, float]
+
+__all__ = [
+    "CoarseBase",
+    "CoarseConfig",
+    "CoarseFeatures",
+    "CoarseResult",
+    "FrameView",
+    "Seed",
+    "coarse_features",
+    "coarse_register",
+    "coarse_scale",
+    "fit_coarse",
+    "frame_view",
+    "normalise_seeds",
+]
+
+_MODELS = {"similarity": Similarity, "affine": Affine, "projective": Projective}
+
+
+@dataclass(frozen=True)
+class CoarseConfig:
+    """Coarse projective step at a reduced scale (paper 4.3.1, reused for intra-sensor frames).
+
+    Attributes:
+        scale: image scale of the coarse step (paper: both images sub-sampled to 1/4).
+        min_side_px: beyond the paper: the coarse frame's longer side is at least this many
+            pixels (0 = always ``scale``). 1/4 of the paper's 2560 px frames is 640 px; 1/4 of a
+            640 px frame (160 px) leaves too little for SIFT.
+        sift: SIFT settings at that scale.
+        ratio: Lowe's ratio test threshold for matching (stricter when smaller).
+        heading: heading and scale estimate and the location gate built on it
+            (:mod:`registration.heading`).
+        ransac: RANSAC settings, in coarse-scale pixels (paper: 4 points, 5 px, 1000 iterations,
+            Nelder-Mead refinement).
+        guided: beyond the paper: add matches found among the base keypoints near where the
+            heading estimate puts each frame keypoint, and keep only those consistent with a
+            similarity through the seed before RANSAC.
+        refine_rounds: beyond the paper: rounds of re-matching within ``refine_radius_px`` of
+            where the fitted model puts each keypoint, each followed by a refit.
+        refine_radius_px: search radius of those rounds, coarse base pixels.
+        match_base_scale: beyond the paper: detect the base's coarse keypoints at the scale
+            that gives both images the same ground resolution once the scale is estimated
+            (only when it differs from the frame's by more than 1.5x).
+        models: candidate models, chosen on the final inliers by BIC (paper: projective only).
+        min_inliers_unseeded: fewest inliers a registration found without a seed needs (12).
+        decisive_ratio: without a seed, the best candidate must have at least this many times
+            the inliers of any candidate that disagrees with it (1.5), else the step reports
+            that it cannot decide.
+        seed_check_px: a result that puts the seed's frame point farther than this (full-scale
+            base pixels, plus the click errors) from the clicked base point is refused (40).
+    """
+
+    scale: float = 0.25
+    min_side_px: int = 0
+    sift: SiftConfig = field(default_factory=SiftConfig)
+    ratio: float = 0.8
+    heading: HeadingConfig = field(default_factory=HeadingConfig)
+    ransac: RansacConfig = field(default_factory=RansacConfig)
+    guided: bool = False
+    refine_rounds: int = 0
+    refine_radius_px: float = 3.0
+    match_base_scale: bool = False
+    models: tuple[str, ...] = ("projective",)
+    min_inliers_unseeded: int = 12
+    decisive_ratio: float = 1.5
+    seed_check_px: float = 40.0
+
+    def __post_init__(self) -> None:
+        if not 0 < self.scale <= 1:
+            raise ValueError(f"CoarseConfig.scale must be in (0, 1], got {self.scale}")
+        if self.min_side_px < 0 or self.refine_rounds < 0:
+            raise ValueError(
+                f"CoarseConfig.min_side_px and refine_rounds must be >= 0, got "
+                f"{self.min_side_px}, {self.refine_rounds}"
+            )
+        unknown = [m for m in self.models if m not in _MODELS]
+        if not self.models or unknown:
+            raise ValueError(
+                f"CoarseConfig.models must be a non-empty subset of {sorted(_MODELS)}, "
+                f"got {self.models!r}"
+            )
+
+
+@dataclass
+class CoarseResult:
+    """Outcome of a coarse projective step; match arrays are full-scale pixels.
+
+    ``frame_xy`` are corrected-frame pixels, ``base_xy`` base pixels (or, for intra-sensor
+    frames, base pixels of the joint base). ``gated`` marks matches that passed the location gate,
+    ``inliers`` the RANSAC inliers among all matches. ``heading_deg`` and ``scale`` are the
+    estimate the gate used (rotation frame -> base in degrees, clockwise on screen; base px per
+    frame px), ``gate`` says what it was built from, ``gate_outline_base`` is the region of the
+    base where gated matches can lie (a polygon, ``(M, 2)`` base px), and ``model_kind`` which
+    model was kept.
+    """
+
+    success: bool
+    reason: str
+    base_from_corrected: Projective | None
+    frame_xy: NDArray[np.float64]
+    base_xy: NDArray[np.float64]
+    gated: NDArray[np.bool_]
+    inliers: NDArray[np.bool_]
+    n_keypoints_frame: int
+    n_keypoints_base: int
+    gate_center_base: NDArray[np.float64] | None = None
+    gate_radius_base: float | None = None
+    time_s: float = 0.0
+    heading_deg: float | None = None
+    scale: float | None = None
+    gate: str = ""
+    gate_outline_base: NDArray[np.float64] | None = None
+    model_kind: str = "projective"
+    ambiguity: float | None = None
+
+    @property
+    def n_matches(self) -> int:
+        return int(len(self.frame_xy))
+
+    @property
+    def n_inliers(self) -> int:
+        return int(self.inliers.sum())
+
+    def __bool__(self) -> bool:
+        return self.success
+
+
+@dataclass
+class CoarseFeatures:
+    """SIFT keypoints of an image at the coarse scale (``xy`` in coarse-scale pixels)."""
+
+    keypoints: Keypoints
+    scale: float
+
+
+@dataclass
+class FrameView:
+    """The grey image control points are found in, and its pixels' link to corrected pixels.
+
+    With ``match_in="corrected"`` (the paper) the image is the radially corrected frame on the
+    raw frame's canvas and the link is the identity; its corners lose the content that the
+    correction pushes outside the canvas (at γ = 0.7 the raw corners move 1.8x further out), so
+    the global model extrapolates there. With ``match_in="raw"`` the image is the raw frame and
+    the exact Harris model links its pixels to corrected ones: every raw pixel can carry a control
+    point and the frame is not resampled before matching.
+    """
+
+    grey: NDArray[np.uint8]
+    harris: HarrisModel | None
+
+    def to_corrected(self, xy: NDArray) -> NDArray:
+        return xy if self.harris is None else self.harris.corrected_from_raw(xy)
+
+    def from_corrected(self, xy: NDArray) -> NDArray:
+        return xy if self.harris is None else self.harris.raw_from_corrected(xy)
+
+
+def corrected_grey(frame_raw: NDArray, gamma: float) -> NDArray[np.uint8]:
+    """Radially corrected grey frame on the raw frame's canvas (paper section 3)."""
+    w, h = image_size(frame_raw)
+    corrected, _ = undistort_image(frame_raw, HarrisModel(gamma, w, h), canvas="same")
+    return features.to_grey(corrected)
+
+
+def frame_view(frame_raw: NDArray, gamma: float, match_in: str) -> FrameView:
+    """See :class:`FrameView`."""
+    if match_in == "corrected":
+        return FrameView(corrected_grey(frame_raw, gamma), None)
+    if match_in == "raw":
+        w, h = image_size(frame_raw)
+        return FrameView(features.to_grey(frame_raw), HarrisModel(gamma, w, h))
+    raise ValueError(f"match_in must be 'raw' or 'corrected', got {match_in!r}")
+
+
+def coarse_scale(width: int, height: int, config: CoarseConfig) -> float:
+    """The frame's coarse scale: ``config.scale``, raised so that the longer side keeps at least
+    ``config.min_side_px`` pixels (never above 1)."""
+    s = config.scale
+    if config.min_side_px:
+        s = max(s, config.min_side_px / max(width, height, 1))
+    return min(1.0, s)
+
+
+def coarse_features(
+    grey: NDArray[np.uint8],
+    config: CoarseConfig,
+    mask=None,
+    view: FrameView | None = None,
+    *,
+    scale: float | None = None,
+) -> CoarseFeatures:
+    """SIFT at the coarse scale (paper 4.3.1 steps 1, 2 and 4).
+
+    ``scale`` defaults to ``config.scale``. With a ``view``, keypoint positions are converted to
+    corrected-frame pixels (at the coarse scale), so that everything downstream is in corrected
+    coordinates. ``mask`` (``(H, W)``, non-zero = usable) keeps keypoints whose SIFT support lies
+    inside it: the coarse mask is eroded by 3 px so that the edge of a no-data area (black
+    corners of a rotated orthophoto) does not make keypoints of its own.
+    """
+    s = config.scale if scale is None else scale
+    small = features.downscale(grey, s)
+    small_mask = None
+    if mask is not None:
+        small_mask = (features.downscale(mask.astype(np.uint8) * 255, s) > 250).astype(np.uint8)
+        small_mask = cv2.erode(small_mask, np.ones((7, 7), np.uint8))
+    kp = features.detect_sift(small, config.sift, mask=small_mask)
+    if view is not None and view.harris is not None and len(kp.xy):
+        kp = dataclasses.replace(kp, xy=rescale(view.to_corrected(rescale(kp.xy, 1.0 / s)), s))
+    return CoarseFeatures(kp, s)
+
+
+class CoarseBase:
+    """The base map's coarse keypoints, computed once per scale (and region) and cached.
+
+    Args:
+        base: base map (Hb, Wb[, 3]) uint8.
+        config: the coarse step's settings.
+        valid: optional (Hb, Wb) bool, where the base has content (no-data elsewhere).
+    """
+
+    def __init__(self, base: NDArray, config: CoarseConfig, valid: NDArray | None = None):
+        self.grey = features.to_grey(base)
+        self.valid = None if valid is None else np.asarray(valid, bool)
+        if self.valid is not None and self.valid.shape != self.grey.shape:
+            raise ValueError(
+                f"base validity mask is {self.valid.shape[::-1]} but the base is "
+                f"{self.grey.shape[::-1]} (W, H)"
+            )
+        self.config = config
+        self._cache: dict[tuple, CoarseFeatures] = {}
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return image_size(self.grey)
+
+    def features(
+        self, scale: float, box: tuple[int, int, int, int] | None = None
+    ) -> CoarseFeatures:
+        """Keypoints at ``scale`` (coarse px of the whole base), optionally only inside the
+        full-scale box ``(x0, y0, x1, y1)`` (detected on that crop: cheaper on a large map)."""
+        key = (round(scale, 6), box)
+        if key not in self._cache:
+            grey, valid, offset = self.grey, self.valid, np.zeros(2)
+            if box is not None:
+                x0, y0, x1, y1 = box
+                # Snap the crop to whole coarse pixels so that crop and full-map coarse
+                # coordinates agree exactly.
+                step = max(1, round(1 / scale))
+                x0, y0 = x0 // step * step, y0 // step * step
+                grey = grey[y0:y1, x0:x1]
+                valid = None if valid is None else valid[y0:y1, x0:x1]
+                offset = np.array([x0, y0], float) * scale
+            feats = coarse_features(grey, self.config, mask=valid, scale=scale)
+            kp = feats.keypoints
+            if box is not None and len(kp):
+                kp = dataclasses.replace(kp, xy=kp.xy + offset)
+            self._cache[key] = CoarseFeatures(kp, scale)
+        return self._cache[key]
+
+
+def normalise_seeds(seed) -> list[Seed]:
+    """``None``, one ``(fx, fy, bx, by)`` or a sequence of up to two of them -> list of seeds."""
+    if seed is None:
+        return []
+    arr = np.asarray(seed, dtype=np.float64)
+    if arr.shape == (4,):
+        arr = arr[None]
+    if arr.ndim != 2 or arr.shape[1] != 4 or len(arr) > 2 or not np.isfinite(arr).all():
+        raise ValueError(
+            f"seed must be one or two finite (fx, fy, bx, by) correspondences, got {seed!r}"
+        )
+    return [tuple(float(v) for v in row) for row in arr]
+
+
+# ------------------------------------------------------------------------------------------
+# Fitting
+
+
+def _ransac_config(config: CoarseConfig, **changes) -> RansacConfig:
+    return dataclasses.replace(config.ransac, **changes)
+
+
+def _irls(model: Projective, kind: str, p: NDArray, q: NDArray, rounds: int = 5) -> Projective:
+    """Tukey-biweight iteratively reweighted refit of ``kind`` on the pairs: a RANSAC consensus
+    within a fixed threshold mixes right matches with near misses, and a plain least-squares
+    refit on all of them is pulled by the near misses; the biweight (scale from the residuals'
+    median absolute deviation) gives them no weight."""
+    cls = _MODELS[kind]
+    for _ in range(rounds):
+        r = np.hypot(*(model.apply(p) - q).T)
+        sigma = max(1.4826 * float(np.median(r)), 0.1)
+        u = r / (4.685 * sigma)
+        w = np.where(u < 1, (1 - u**2) ** 2, 0.0)
+        if np.count_nonzero(w) <= 2 * cls.min_samples:
+            break
+        if kind == "projective":
+            refit = Projective.estimate(p, q, initial=model, optimizer="lm", weights=w)
+        else:
+            refit = cls.estimate(p, q, weights=w)
+        if not refit:
+            break
+        model = refit if kind == "projective" else refit.as_projective()
+    return model
+
+
+def _select_model(src, dst, kinds: Sequence[str], current: Projective, domain) -> tuple:
+    """The simplest model among ``kinds`` whose predictions over ``domain`` (the frame's
+    outline, coarse px) agree with every more complex candidate's within that candidate's own
+    uncertainty (:func:`registration.robust.supported_by_points`): a projective's two
+    perspective terms are kept only where the points support them, since unsupported ones
+    extrapolate badly at the frame's corners. Returns ``(Projective, kind)``."""
+    order = [k for k in ("similarity", "affine", "projective") if k in kinds]
+    fits = {}
+    for kind in order:
+        m = current if kind == "projective" else _MODELS[kind].estimate(src, dst)
+        if m:
+            fits[kind] = m
+    order = [k for k in order if k in fits]
+    if not order:
+        return current, "projective"
+    for i, simple in enumerate(order[:-1]):
+        if all(
+            not supported_by_points(fits[simple], fits[rich], src, dst, domain)
+            for rich in order[i + 1 :]
+        ):
+            return fits[simple].as_projective(), simple
+    last = order[-1]
+    return (fits[last] if last == "projective" else fits[last].as_projective()), last
+
+
+@dataclass
+class _Attempt:
+    """One prior's outcome, in coarse pixels: every ratio match plus the guided ones (``gated``
+    marks those the gate let through), the inliers of the kept model among them, and ``score``:
+    the number of pairs the final model was fitted on."""
+
+    model: Projective | None
+    kind: str
+    frame_xy: NDArray
+    base_xy: NDArray
+    gated: NDArray
+    inliers: NDArray
+    reason: str
+    score: int = 0
+
+
+def _attempt(
+    prior: SimilarityPrior,
+    frame: CoarseFeatures,
+    base: CoarseFeatures,
+    matches: features.Matches,
+    config: CoarseConfig,
+    rng: np.random.Generator,
+    anchored: bool,
+    domain: NDArray,
+) -> _Attempt:
+    """Gate (and guide) the matches with a coarse-pixel prior, RANSAC, refine (see module doc).
+    ``domain``: the frame's outline in coarse corrected pixels (for the model choice)."""
+    hcfg = config.heading
+    fk, bk = frame.keypoints, base.keypoints
+    all_p, all_q = fk.xy[matches.idx_a], bk.xy[matches.idx_b]
+    gated = heading.gate_by_prior(all_p, all_q, prior, hcfg)
+    if config.guided and len(fk):
+        radius = heading.gate_radius_px(prior, fk.xy, hcfg)
+        g = heading.guided_matches(
+            fk, bk, prior.apply(fk.xy), radius, prior.heading_deg, prior.scale, hcfg
+        )
+        new = ~np.isin(g.idx_a, matches.idx_a[gated])
+        all_p = np.vstack([all_p, fk.xy[g.idx_a[new]]])
+        all_q = np.vstack([all_q, bk.xy[g.idx_b[new]]])
+        gated = np.concatenate([gated, np.ones(int(new.sum()), bool)])
+    out = _Attempt(None, "", all_p, all_q, gated, np.zeros(len(all_p), bool), "")
+    p, q = all_p[gated], all_q[gated]
+    if len(p) < Projective.min_samples:
+        out.reason = (
+            f"only {len(p)} matches agree with the heading {prior.heading_deg:.0f}° and scale "
+            f"{prior.scale * frame.scale / base.scale:.2f} estimated {_from(prior)} (need 4)"
+        )
+        return out
+    if config.guided:
+        # A similarity through the anchor (one point plus the seed per sample) removes most
+        # wrong matches before the projective RANSAC.
+        thr = config.ransac.threshold_px + prior.anchor_error_px
+        fixed = (prior.anchor_frame[None], prior.anchor_base[None]) if anchored else None
+        sim = ransac(
+            p, q, Similarity, _ransac_config(config, sample_size=2, threshold_px=thr,
+            refine="lstsq", min_inliers=4), rng, fixed=fixed,
+        )  # fmt: skip
+        if sim and sim.n_inliers >= Projective.min_samples:
+            p, q = p[sim.inliers], q[sim.inliers]
+    # Rounds of fit, then guided re-matching around the fit: the richest candidate model that
+    # the points can carry (affine before projective: perspective terms from a first, partial
+    # consensus extrapolate badly and would steer the search).
+    loop_kind = "affine" if "affine" in config.models else "projective"
+    model = None
+    cls = _MODELS[loop_kind]
+    for round_ in range(config.refine_rounds + 1):
+        fit = ransac(p, q, cls, _ransac_config(config, sample_size=cls.min_samples), rng)
+        if not fit:
+            break
+        model = fit.model if cls is Projective else fit.model.as_projective()
+        fit_p, fit_q = p[fit.inliers], q[fit.inliers]
+        if round_ == config.refine_rounds:
+            break
+        g = heading.guided_matches(
+            fk, bk, model.apply(fk.xy), config.refine_radius_px, prior.heading_deg,
+            prior.scale, hcfg, ratio=0.95,
+        )  # fmt: skip
+        if len(g) < Projective.min_samples:
+            break
+        p, q = fk.xy[g.idx_a], bk.xy[g.idx_b]
+    if model is None:
+        out.reason = f"RANSAC failed on the {len(p)} gated matches: {fit.reason}"
+        return out
+    if "projective" in config.models and loop_kind != "projective":
+        fit = ransac(fit_p, fit_q, Projective, config.ransac, rng)
+        proj = fit.model if fit else model
+    else:
+        proj = model
+    model, kind = _select_model(fit_p, fit_q, config.models, proj, domain)
+    if config.guided:
+        model = _irls(model, kind, fit_p, fit_q)
+    out.model, out.kind, out.score = model, kind, len(fit_p)
+    out.inliers = gated & (np.hypot(*(model.apply(all_p) - all_q).T) < config.ransac.threshold_px)
+    return out
+
+
+def _from(prior: SimilarityPrior) -> str:
+    return {"two seeds": "from the two seeds", "seed": "around the seed"}.get(
+        prior.source, "without a seed"
+    )
+
+
+def fit_coarse(
+    frame_feats: CoarseFeatures,
+    refs: list[tuple[CoarseFeatures, Callable | None]],
+    config: CoarseConfig,
+    gate: Callable | None,
+    rng: np.random.Generator,
+    n_keypoints_base: int,
+    known: list[features.Matches | None] | None = None,
+) -> CoarseResult:
+    """Match the frame against each reference separately, gate, RANSAC at the coarse scale
+    (the intra-sensor coarse step, paper 4.4).
+
+    ``refs`` holds (features, to_base) pairs: ``to_base`` maps the reference's full-scale pixels
+    to base pixels (None = already base pixels). Matching each reference on its own keeps the
+    ratio test from rejecting a point because it appears in two references. ``known`` gives
+    matches already computed, per reference (None = match here). ``gate`` is called with
+    full-scale ``(frame_xy, base_xy)`` and returns a bool mask (None = no gate).
+    """
+    s = frame_feats.scale
+    frame_xy, base_xy = [], []
+    for i, (feats, to_base) in enumerate(refs):
+        m = known[i] if known is not None else None
+        if m is None:
+            m = features.match_ratio(frame_feats.keypoints, feats.keypoints, config.ratio)
+        if len(m.idx_a) == 0:
+            continue
+        f_full = rescale(frame_feats.keypoints.xy[m.idx_a], 1.0 / s)
+        b_full = rescale(feats.keypoints.xy[m.idx_b], 1.0 / feats.scale)
+        if to_base is not None:
+            b_full = to_base(b_full)
+        frame_xy.append(f_full)
+        base_xy.append(b_full)
+    frame_xy = np.concatenate(frame_xy) if frame_xy else np.zeros((0, 2))
+    base_xy = np.concatenate(base_xy) if base_xy else np.zeros((0, 2))
+    ok = np.isfinite(base_xy).all(axis=1)
+    gated = ok if gate is None else ok & gate(frame_xy, base_xy)
+    inliers = np.zeros(len(frame_xy), bool)
+    result = CoarseResult(
+        success=False,
+        reason="",
+        base_from_corrected=None,
+        frame_xy=frame_xy,
+        base_xy=base_xy,
+        gated=gated,
+        inliers=inliers,
+        n_keypoints_frame=len(frame_feats.keypoints.xy),
+        n_keypoints_base=n_keypoints_base,
+        gate="prediction from the previous frame" if gate is not None else "none",
+    )
+    n_gated = int(gated.sum())
+    if n_gated < Projective.min_samples:
+        result.reason = f"coarse step: only {n_gated} matches passed the location gate (need 4)"
+        return result
+    idx = np.flatnonzero(gated)
+    fit = ransac(
+        rescale(frame_xy[idx], s), rescale(base_xy[idx], s), Projective, config.ransac, rng
+    )
+    if not fit:
+        result.reason = f"coarse step: RANSAC failed: {fit.reason}"
+        return result
+    inliers[idx[fit.inliers]] = True
+    result.base_from_corrected = fit.model.rescaled(1.0 / s, 1.0 / s)
+    result.success = True
+    return result
+
+
+# ------------------------------------------------------------------------------------------
+# Inter-sensor coarse step
+
+
+def _seed_priors(seeds, harris, frame, base, matches, attr, config) -> list[SimilarityPrior]:
+    """The prior(s) of the seed(s), in coarse pixels (empty when no match votes)."""
+    sf, sb = frame.scale, base.scale
+    fr = np.array([s[:2] for s in seeds], float)
+    fr = fr if harris is None else harris.corrected_from_raw(fr)
+    bs = np.array([s[2:] for s in seeds], float)
+    if len(seeds) == 2:
+        prior = heading.prior_from_seeds(fr, bs)
+        prior = dataclasses.replace(prior, anchor_frame=fr[0], anchor_base=bs[0])
+    else:
+        f_xy = frame.keypoints.xy[matches.idx_a]
+        b_xy = base.keypoints.xy[matches.idx_b]
+        prior = heading.prior_from_seed(
+            f_xy, b_xy, *attr, rescale(fr[0], sf)[0], rescale(bs[0], sb)[0], config.heading
+        )
+        if prior is None:
+            return []
+        prior = prior.rescaled(1.0 / sf, 1.0 / sb)
+    err = config.heading.seed_error_px * (1.0 + prior.scale)
+    prior = dataclasses.replace(prior, anchor_error_px=err)
+    return [prior.rescaled(sf, sb)]
+
+
+def _gate_outline(prior: SimilarityPrior, w: int, h: int, harris, config) -> NDArray:
+    """The base region where gated matches can lie (full-scale): the frame's outline under the
+    prior, pushed outwards by the gate's radius at each outline point."""
+    outline = frame_outline(w, h, per_edge=16)
+    corr = outline if harris is None else harris.corrected_from_raw(outline)
+    centre = prior.apply(corr)
+    radius = heading.gate_radius_px(prior, corr, config.heading)
+    mid = centre.mean(axis=0)
+    direction = centre - mid
+    norm = np.maximum(np.hypot(*direction.T), 1e-9)[:, None]
+    return centre + direction / norm * radius[:, None]
+
+
+def coarse_register(
+    frame_raw: NDArray,
+    base: NDArray,
+    gamma: float,
+    seed,
+    config,
+    *,
+    base_features: CoarseBase | None = None,
+    base_valid: NDArray | None = None,
+    rng: np.random.Generator | int | None = 0,
+) -> CoarseResult:
+    """Coarse inter-sensor registration of the reference frame (paper 4.3.1, module doc).
+
+    Args:
+        frame_raw: raw reference frame (H, W[, 3]) uint8.
+        base: base map (Hb, Wb[, 3]) uint8.
+        gamma: Harris γ of the frame.
+        seed: None, one ``(fx, fy, bx, by)`` correspondence (raw frame px, base px), or a list of
+            two (they fix heading and scale).
+        config: a :class:`registration.config.PipelineConfig`.
+        base_features: the base's coarse keypoints cache (:class:`CoarseBase`), when kept
+            between calls.
+        base_valid: (Hb, Wb) bool, where the base map has content; ignored with
+            ``base_features``.
+        rng: seed or generator of the random samples.
+
+    Returns:
+        :class:`CoarseResult`; falsy with a one-line reason when no registration is found, when
+        the seed contradicts the one found, or without a seed when two disagree.
+    """
+    t0 = time.perf_counter()
+    cfg: CoarseConfig = config.coarse
+    rng = np.random.default_rng(rng)
+    seeds = normalise_seeds(seed)
+    w, h = image_size(frame_raw)
+    view = frame_view(frame_raw, gamma, config.match_in)
+    s_f = coarse_scale(w, h, cfg)
+    frame = coarse_features(view.grey, cfg, view=view, scale=s_f)
+    cbase = base_features if base_features is not None else CoarseBase(base, cfg, base_valid)
+    base_c = cbase.features(s_f)
+    harris = HarrisModel(gamma, w, h)
+    priors, matches, attr = _priors(seeds, harris, frame, base_c, cfg, w, h)
+    if cfg.match_base_scale and priors:
+        # Re-detect the base at the scale that matches the frame's ground resolution.
+        full_scale = priors[0].scale * s_f / base_c.scale
+        s_b = min(1.0, s_f / full_scale)
+        if abs(math.log(s_b / base_c.scale)) > math.log(1.5):
+            base_c = cbase.features(s_b)
+            priors, matches, attr = _priors(seeds, harris, frame, base_c, cfg, w, h)
+    domain = rescale(harris.corrected_from_raw(frame_outline(w, h, per_edge=4)), s_f)
+    attempts = [_attempt(p, frame, base_c, matches, cfg, rng, bool(seeds), domain) for p in priors]
+    result = _decide(attempts, priors, seeds, frame, base_c, cfg, w, h)
+    result.n_keypoints_frame = len(frame.keypoints)
+    result.n_keypoints_base = len(base_c.keypoints)
+    if seeds and result.success:
+        _check_seed(result, seeds, harris, cfg, priors[0] if priors else None)
+    result.time_s = time.perf_counter() - t0
+    return result
+
+
+def _priors(seeds, harris, frame, base_c, cfg, w, h):
+    matches = features.match_ratio(frame.keypoints, base_c.keypoints, cfg.ratio)
+    attr = heading.attribute_differences(frame.keypoints, base_c.keypoints, matches)
+    if seeds:
+        priors = _seed_priors(seeds, harris, frame, base_c, matches, attr, cfg)
+    else:
+        priors = heading.priors_without_seed(
+            frame.keypoints.xy[matches.idx_a],
+            base_c.keypoints.xy[matches.idx_b],
+            *attr,
+            max(w, h) * frame.scale,
+            cfg.heading,
+        )
+    return priors, matches, attr
+
+
+def _decide(attempts, priors, seeds, frame, base_c, cfg, w, h) -> CoarseResult:
+    """Build the result from the best attempt (or say why there is none)."""
+    sf, sb = frame.scale, base_c.scale
+    empty = np.zeros((0, 2))
+    result = CoarseResult(False, "", None, empty, empty, np.zeros(0, bool), np.zeros(0, bool), 0, 0)
+    if not priors:
+        result.reason = (
+            "coarse step: no SIFT match between the frame and the map supports any heading "
+            "and scale"
+            + (" around the seed; check the seed click" if seeds else "; click one "
+               "corresponding point in the frame and the map (--seed FX,FY,BX,BY) to help")
+        )  # fmt: skip
+        return result
+    # Most support first; ties keep the candidates' order (stable).
+    order = sorted(range(len(attempts)), key=lambda i: -attempts[i].score)
+    best_i = order[0]
+    best, prior = attempts[best_i], priors[best_i]
+    result.frame_xy, result.base_xy = rescale(best.frame_xy, 1 / sf), rescale(best.base_xy, 1 / sb)
+    result.gated, result.inliers = best.gated, best.inliers
+    full = prior.rescaled(1 / sf, 1 / sb)
+    result.heading_deg, result.scale = full.heading_deg, full.scale
+    result.gate = {"two seeds": "two seeds", "seed": "seed"}.get(prior.source, "no seed")
+    result.ambiguity = prior.ambiguity
+    result.gate_center_base = full.anchor_base
+    if seeds:
+        harris = None  # the outline is drawn from the corrected frame's outline
+        outline = _gate_outline(full, w, h, harris, cfg)
+        result.gate_outline_base = outline
+        result.gate_radius_base = float(np.max(np.hypot(*(outline - full.anchor_base).T)))
+    if best.model is None:
+        result.reason = f"coarse step: {best.reason}" + (
+            "; check the seed click" if seeds else
+            "; click one corresponding point (--seed FX,FY,BX,BY) to help"
+        )  # fmt: skip
+        return result
+    if not seeds:
+        if best.score < cfg.min_inliers_unseeded:
+            result.reason = (
+                f"coarse step: without a seed the best registration has only "
+                f"{best.score} inliers (need {cfg.min_inliers_unseeded}); click one "
+                "corresponding point in the frame and the map (--seed FX,FY,BX,BY) to help"
+            )
+            return result
+        corners = frame_outline(w, h, per_edge=2) * sf
+        for i in order[1:]:
+            other = attempts[i]
+            if other.model is None or other.score * cfg.decisive_ratio < best.score:
+                continue
+            gap = np.nanmax(np.hypot(*(best.model.apply(corners) - other.model.apply(corners)).T))
+            if not gap <= 4 * cfg.ransac.threshold_px:
+                result.reason = (
+                    f"coarse step: cannot decide without a seed: two registrations {gap / sb:.0f} "
+                    f"map px apart have {best.score} and {other.score} inliers; click one "
+                    "corresponding point in the frame and the map (--seed FX,FY,BX,BY) to help"
+                )
+                return result
+    result.base_from_corrected = best.model.rescaled(1.0 / sf, 1.0 / sb)
+    result.model_kind = best.kind
+    result.success = True
+    return result
+
+
+def _check_seed(result: CoarseResult, seeds, harris, cfg: CoarseConfig, prior) -> None:
+    """Refuse a registration that puts a seed's frame point far from its clicked base point."""
+    model = result.base_from_corrected
+    for fx, fy, bx, by in seeds:
+        at = model.apply(harris.corrected_from_raw(np.array([[fx, fy]])))[0]
+        gap = float(np.hypot(at[0] - bx, at[1] - by))
+        scale = result.scale or 1.0
+        limit = cfg.seed_check_px + cfg.heading.seed_error_px * (1.0 + scale)
+        if not gap <= limit:
+            result.success = False
+            result.reason = (
+                f"coarse step: the registration found puts the seed's frame point "
+                f"({fx:.0f}, {fy:.0f}) at map ({at[0]:.0f}, {at[1]:.0f}), {gap:.0f} px from the "
+                f"clicked ({bx:.0f}, {by:.0f}); check the click (both points must show the "
+                "same ground spot)"
+            )
+            result.base_from_corrected = None
+            return
