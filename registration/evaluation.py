@@ -363,10 +363,19 @@ class EvaluationReport:
                 out.append(f"- {STAGE_LABELS[s]}: {items}")
         if not any_exc:
             out.append("- none")
-        failed = [p["frame"] for p in self.per_frame if p.get("status") not in (None, "ok")]
+        failed = [
+            p["frame"] for p in self.per_frame if p.get("status") not in (None, "ok", "damaged")
+        ]
         if failed:
             out.append("")
             out.append(f"Frames without a registration: {', '.join(map(str, failed))}")
+        damaged = [p["frame"] for p in self.per_frame if p.get("status") == "damaged"]
+        if damaged:
+            out.append("")
+            out.append(
+                f"Frames with a damaged record (not evaluated; `aerialreg register --resume` "
+                f"redoes them): {', '.join(map(str, damaged))}"
+            )
         return "\n".join(out) + "\n"
 
     def per_frame_csv(self) -> str:
