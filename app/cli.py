@@ -12,14 +12,16 @@ import argparse
 import importlib
 import json
 import logging
+import os
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
 # Subcommand modules in app/commands/, in the order --help lists them.
 COMMANDS = ("app", "simulate", "undistort", "calibrate", "register", "evaluate", "bench")
 
 
-class UsageError(Exception):
+class UsageError(ValueError):
     """Unusable input: reported as one line and exit status 2."""
 
 
@@ -69,6 +71,24 @@ def parse_size(text: str, *, max_pixels: int | None = None) -> tuple[int, int]:
             f"at most {max_pixels / 1e6:.0f} MP"
         )
     return w, h
+
+
+def check_output_file(
+    path: str | os.PathLike, flag: str, *, force: bool = False, inputs: Sequence = ()
+) -> Path:
+    """An output file a command may write: UsageError (one line) when it is a folder, its folder
+    does not exist, it is one of the command's ``inputs``, or it exists and ``force`` is off."""
+    p = Path(path)
+    if p.is_dir():
+        raise UsageError(f"{flag} {p} is a folder; give a file name")
+    if not p.parent.is_dir():
+        raise UsageError(f"{flag} {p}: folder {p.parent} does not exist")
+    for q in inputs:
+        if q is not None and p.exists() and Path(q).exists() and p.samefile(q):
+            raise UsageError(f"{flag} {p} is an input of this command; give another file name")
+    if p.exists() and not force:
+        raise UsageError(f"{flag} {p} exists; pass --force to overwrite it")
+    return p
 
 
 def emit_json(obj: object) -> None:
@@ -144,4 +164,7 @@ def _quiet_opencv() -> None:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # Through the package, so that the commands' ``app.cli.UsageError`` is the one caught here.
+    from app.cli import main as package_main
+
+    sys.exit(package_main())

@@ -690,13 +690,10 @@ def read_points_csv(
         FileNotFoundError: the file does not exist.
         ValueError: one line naming the problem, the line number and the value.
     """
+    from registration.io import read_text_file
+
     p = Path(path)
-    if not p.is_file():
-        raise FileNotFoundError(f"points file not found: {p}")
-    try:
-        text = p.read_text(encoding="utf-8-sig")
-    except UnicodeDecodeError as exc:
-        raise ValueError(f"{p.name} is not UTF-8 text ({exc.reason} at byte {exc.start})") from None
+    text = read_text_file(p, "points file")
     name = p.name
     w, h = frame_size
     rows = [

@@ -74,7 +74,10 @@ def decode_image_file(path: str | os.PathLike, *, max_pixels: int = MAX_BASE_PIX
         raise ValueError(f"{p}: {problem}")
     img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if img is None or img.size == 0:
-        raise ValueError(f"{p}: not a readable image (corrupt, or a format OpenCV cannot decode)")
+        raise ValueError(
+            f"cannot read {p} as an image (not an image file, corrupt, or a format OpenCV "
+            "cannot decode)"
+        )
     if img.ndim == 3 and img.shape[2] == 1:
         img = img[:, :, 0]
     if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] not in (3, 4)):
@@ -90,10 +93,10 @@ def _read_image_bytes(p: Path) -> bytes:
     if not p.exists():
         raise FileNotFoundError(f"image not found: {p}")
     if p.is_dir():
-        raise ValueError(f"expected an image file, got a directory: {p}")
+        raise ValueError(f"{p} is a directory, not an image file")
     n = p.stat().st_size
     if n == 0:
-        raise ValueError(f"image file is empty: {p}")
+        raise ValueError(f"image file {p} is empty")
     if n > MAX_IMAGE_FILE_BYTES:
         raise ValueError(
             f"{p}: file of {n / 2**20:.0f} MiB is over the {MAX_IMAGE_FILE_BYTES >> 20} MiB limit "

@@ -188,7 +188,8 @@ class RegistrationResult:
         if k not in self._arrays:
             path = frame_record_path(self.out_dir, k, ".npz")
             arrays: dict = {}
-            if _expects_npz(self.records[k]):
+            rec = self.records[k]
+            if _expects_npz(rec) or ("npz_bytes" not in rec and path.is_file()):
                 try:
                     with np.load(path) as z:
                         arrays = {name: z[name] for name in z.files}
@@ -197,6 +198,18 @@ class RegistrationResult:
                     return {}
             self._arrays[k] = arrays
         return self._arrays[k]
+
+    def inputs_difference(self, frames, base: NDArray) -> str:
+        """ "" when this result was made from ``frames`` (:class:`registration.io.FrameSource`)
+        and ``base``; otherwise one line saying what differs (as ``register --resume`` would).
+        For a viewer that must not show another input's result as this one's."""
+        old = self.meta.get("inputs")
+        if not old:
+            return "the result has no record of its inputs (written by an older aerialreg)"
+        identity = getattr(frames, "identity", None)
+        return _frames_difference(
+            old.get("frames"), identity() if identity else None, self.records, frames
+        ) or _base_difference(old.get("base"), base_identity(base))
 
     def _usable(self, k: int, stage: str) -> bool:
         """Whether frame ``k`` maps at ``stage``; reading its model and arrays may find them
@@ -309,11 +322,9 @@ def _damaged(reason: str) -> dict:
 
 
 def _expects_npz(record: dict) -> bool:
-    """Whether a record has arrays: ``npz_bytes`` says so; records written before it had arrays
-    whenever the frame was registered."""
-    if "npz_bytes" in record:
-        return record["npz_bytes"] is not None
-    return record.get("status") == "ok"
+    """Whether a record's ``.npz`` must exist (``npz_bytes`` is its size). Records written
+    before ``npz_bytes`` may or may not have one."""
+    return record.get("npz_bytes") is not None
 
 
 def read_record(out_dir: str | Path, k: int) -> dict:
@@ -346,9 +357,9 @@ def verify_record(out_dir: str | Path, k: int) -> dict:
     holds (records without one: every array decompressed, which checks the zip's CRCs). Used
     when a run resumes, so that it redoes frames whose arrays are corrupt."""
     rec = read_record(out_dir, k)
-    if rec.get("status") not in ("ok", "failed") or not _expects_npz(rec):
-        return rec
     path = frame_record_path(out_dir, k, ".npz")
+    if rec.get("status") not in ("ok", "failed") or not (_expects_npz(rec) or path.is_file()):
+        return rec
     try:
         if rec.get("npz_sha256"):
             if file_sha256(path) != rec["npz_sha256"]:
@@ -539,7 +550,7 @@ class ResultBusy(ValueError):
     """Another process is writing the result folder."""
 
 
-class _Lock:
+class ResultLock:
     """An exclusive ``flock`` on ``OUT/.lock``, held while a process writes the folder. The
     kernel releases it when the process dies, so a killed run never blocks the next one; the
     file keeps the holder's pid and host for the message."""
@@ -548,7 +559,7 @@ class _Lock:
         self.path = out_dir / LOCK_NAME
         self.fd: int | None = None
 
-    def acquire(self) -> _Lock:
+    def acquire(self) -> ResultLock:
         fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
         if fcntl is not None:
             try:
@@ -606,7 +617,10 @@ def folder_state(out_dir: Path) -> str:
         pass
     known = {RESULT_JSON, MID_BASE, MID_BASE_VALID, "frames", "registered"}
     frames = out_dir / "frames"
-    only_records = frames.is_dir() and all(_own_entry("frames", n) for n in os.listdir(frames))
+    records = os.listdir(frames) if frames.is_dir() and not frames.is_symlink() else None
+    if names == ["frames"] and records == []:
+        return "empty"  # a run killed between creating frames/ and writing result.json
+    only_records = records is not None and all(_own_entry("frames", n) for n in records)
     return "damaged" if set(names) <= known and only_records else "foreign"
 
 
@@ -620,9 +634,10 @@ def check_out_dir(out_dir: Path, *, resume: bool = False, force: bool = False) -
     if state == "foreign":
         raise ValueError(_foreign_message(out_dir))
     if state == "damaged" and not force:
+        what = f"cannot resume {out_dir}: it holds" if resume else f"{out_dir} holds"
         raise ValueError(
-            f"{out_dir} holds a damaged registration result (result.json missing or corrupt); "
-            "use --force to start over or another --out"
+            f"{what} a damaged registration result (result.json missing or corrupt); use "
+            "another --out or --force to start over"
         )
     if state == "result" and not (resume or force):
         raise ValueError(
@@ -683,7 +698,7 @@ class ResultWriter:
     into place; a frame's arrays before its record, so a record means a complete frame.
     """
 
-    def __init__(self, out_dir: Path, lock: _Lock, frames=None) -> None:
+    def __init__(self, out_dir: Path, lock: ResultLock, frames=None) -> None:
         self.out_dir = out_dir
         self._lock = lock
         self._frames = frames
@@ -715,7 +730,7 @@ class ResultWriter:
         out_dir = Path(out_dir)
         check_out_dir(out_dir, resume=resume, force=force)  # before anything is written
         out_dir.mkdir(parents=True, exist_ok=True)
-        lock = _Lock(out_dir).acquire()
+        lock = ResultLock(out_dir).acquire()
         try:
             state = check_out_dir(out_dir, resume=resume, force=force)  # now no one else writes
             if state in ("result", "damaged") and force:
