@@ -68,8 +68,17 @@ RESULT_JSON = "result.json"
 MID_BASE = "mid_base.png"
 MID_BASE_VALID = "mid_base_valid.png"
 # Keys of result.json that must agree for a resume to continue a result rather than mix two runs
-# (the inputs' identity is compared separately, see _inputs_difference).
-RESUME_KEYS = ("n_frames", "gamma", "frame_size", "base_size", "reference_frame", "seed", "config")
+# (the inputs' identity is compared separately, see _frames_difference).
+RESUME_KEYS = (
+    "n_frames",
+    "gamma",
+    "frame_size",
+    "base_size",
+    "reference_frame",
+    "seed",
+    "config",
+    "base_georef",  # absent (None) for a plain image base
+)
 # What a result folder may hold; only these are ever deleted (``--force``).
 _TEMP = re.compile(r"^\..+\.tmp$")
 _OWN = {
@@ -99,9 +108,9 @@ class RegistrationResult:
       run resumes, see :class:`ResultWriter`), plus extra keys of other stages.
     * ``frames/KKKKKK.json``: one record per finished frame: ``status`` ("ok" or "failed"),
       ``reason``, ``stats``, the global ``model`` (``base_from_corrected``, a polyprojective),
-      ``npz_bytes`` (size of the frame's ``.npz``, None without one) and ``input_sha256`` (of the
-      frame's image file). Written last for a frame, atomically: its presence means the frame is
-      done.
+      ``npz_bytes`` and ``npz_sha256`` (of the frame's ``.npz``; None without one) and
+      ``input_sha256`` (of the frame's image file). Written last for a frame, atomically: its
+      presence means the frame is done.
     * ``frames/KKKKKK.npz``: the frame's control points (``src`` corrected px, ``dst`` base px,
       ``kept``, ``residuals``) and its local displacement field (``field_*`` arrays).
     * ``mid_base.png``, ``mid_base_valid.png``: the reference frame in base pixels and its mask.

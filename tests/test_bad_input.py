@@ -999,3 +999,91 @@ def test_app_register_all_after_opening_other_inputs_recomputes(sims, tmp_path):
         assert "Starting a new result" in [n[0] for n in app.notices]
     finally:
         app.stop()
+
+
+# ------------------------------------------------------------------------------------------
+# image reading at the boundary (registration.io)
+
+
+def _encodings(img: np.ndarray) -> dict[str, bytes]:
+    from io import BytesIO
+
+    from PIL import Image
+
+    out = {
+        ext: cv2.imencode(ext, img)[1].tobytes()
+        for ext in (".png", ".jpg", ".tif", ".bmp", ".webp")
+    }
+    out[".jpg-progressive"] = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_PROGRESSIVE, 1])[
+        1
+    ].tobytes()
+    out[".png-16bit"] = cv2.imencode(".png", img.astype(np.uint16) * 257)[1].tobytes()
+    out[".webp-lossless"] = cv2.imencode(".webp", img, [cv2.IMWRITE_WEBP_QUALITY, 101])[1].tobytes()
+    for fmt, kw in (("TIFF", {"big_tiff": True}), ("JPEG", {"exif": Image.Exif()}), ("BMP", {})):
+        buf = BytesIO()
+        Image.fromarray(img[:, :, ::-1]).save(buf, fmt, **kw)
+        out[f"pil-{fmt}-{'-'.join(kw) or 'plain'}"] = buf.getvalue()
+    return out
+
+
+def test_header_sizes_match_the_decoded_images():
+    """The size read from the header (before decoding, for the limits) is the decoded size."""
+    from registration.io import image_header_size, incomplete_image
+
+    img = np.random.default_rng(0).integers(0, 255, (37, 53, 3), np.uint8)
+    for name, data in _encodings(img).items():
+        assert image_header_size(data) == (53, 37), name
+        assert incomplete_image(data) == "", name
+        decoded = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+        assert decoded.shape[:2] == (37, 53), name
+
+
+@pytest.mark.parametrize("fmt", [".png", ".jpg", ".webp"])
+def test_truncated_files_are_found_before_decoding(fmt):
+    from registration.io import incomplete_image
+
+    img = np.random.default_rng(1).integers(0, 255, (64, 80, 3), np.uint8)
+    data = cv2.imencode(fmt, img)[1].tobytes()
+    for cut in (0.3, 0.9, (len(data) - 2) / len(data)):
+        assert incomplete_image(data[: int(len(data) * cut)]).startswith("truncated"), (fmt, cut)
+
+
+def test_frame_read_errors_name_the_frame(sims, tmp_path):
+    from registration.io import FrameReadError
+
+    frames = copy_frames(sims[0], tmp_path)
+    truncate(frames / "000003.png")
+    src = open_frames(frames)
+    assert src.size == SIZE
+    with pytest.raises(FrameReadError, match=r"000003\.png: truncated PNG"):
+        src.get(3)
+    # The size comes from the first readable frame, here frame 1.
+    truncate(frames / "000000.png")
+    assert open_frames(frames).size == SIZE
+
+
+# ------------------------------------------------------------------------------------------
+# videos
+
+
+def test_resume_with_another_video_is_refused_and_a_copied_one_accepted(sims, tmp_path, capsys):
+    from registration.render import write_video
+
+    videos = {}
+    for name, sim in zip("AB", sims, strict=True):
+        videos[name] = tmp_path / f"{name}.mp4"
+        write_video(
+            [read_image(p) for p in sorted((sim / "frames").glob("*.png"))], videos[name], fps=5
+        )
+    out = tmp_path / "out"
+    assert cli(capsys, *register_args(sims[0], out, videos["A"]))[0] == 0
+    before = snapshot(out)
+    code, _, err = cli(capsys, *register_args(sims[0], out, videos["B"]), "--resume")
+    assert_refused(code, err, "register", "the video B.mp4 differs from the run's input")
+    assert_unchanged(before)
+    copy = tmp_path / "copy" / "A.mp4"
+    copy.parent.mkdir()
+    shutil.copyfile(videos["A"], copy)  # same bytes, new mtime
+    code, _, err = cli(capsys, *register_args(sims[0], out, copy), "--resume")
+    assert code == 0, err
+    assert_unchanged(before)
