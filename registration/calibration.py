@@ -59,6 +59,7 @@ from registration.distortion import (
     check_valid,
     harris_gamma_limit,
 )
+from registration.io import MAX_TEXT_FILE_BYTES
 
 log = logging.getLogger(__name__)
 
@@ -175,6 +176,11 @@ def load_lines(path: str | Path) -> LinesFile:
         raise FileNotFoundError(f"lines file not found: {path}")
     if path.is_dir():
         raise ValueError(f"lines file {path} is a directory")
+    if path.stat().st_size > MAX_TEXT_FILE_BYTES:
+        raise ValueError(
+            f"lines file {path} has {path.stat().st_size >> 20} MiB, over the "
+            f"{MAX_TEXT_FILE_BYTES >> 20} MiB limit"
+        )
     text = path.read_bytes()
     if not text.strip():
         raise ValueError(f"{path}: file is empty")

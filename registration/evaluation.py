@@ -363,10 +363,19 @@ class EvaluationReport:
                 out.append(f"- {STAGE_LABELS[s]}: {items}")
         if not any_exc:
             out.append("- none")
-        failed = [p["frame"] for p in self.per_frame if p.get("status") not in (None, "ok")]
+        failed = [
+            p["frame"] for p in self.per_frame if p.get("status") not in (None, "ok", "damaged")
+        ]
         if failed:
             out.append("")
             out.append(f"Frames without a registration: {', '.join(map(str, failed))}")
+        damaged = [p["frame"] for p in self.per_frame if p.get("status") == "damaged"]
+        if damaged:
+            out.append("")
+            out.append(
+                f"Frames with a damaged record (not evaluated; `aerialreg register --resume` "
+                f"redoes them): {', '.join(map(str, damaged))}"
+            )
         return "\n".join(out) + "\n"
 
     def per_frame_csv(self) -> str:
@@ -681,13 +690,10 @@ def read_points_csv(
         FileNotFoundError: the file does not exist.
         ValueError: one line naming the problem, the line number and the value.
     """
+    from registration.io import read_text_file
+
     p = Path(path)
-    if not p.is_file():
-        raise FileNotFoundError(f"points file not found: {p}")
-    try:
-        text = p.read_text(encoding="utf-8-sig")
-    except UnicodeDecodeError as exc:
-        raise ValueError(f"{p.name} is not UTF-8 text ({exc.reason} at byte {exc.start})") from None
+    text = read_text_file(p, "points file")
     name = p.name
     w, h = frame_size
     rows = [

@@ -7,9 +7,12 @@ in memory), a directory of images (sorted by name), or a glob pattern. Frames ar
 from __future__ import annotations
 
 import glob as globlib
+import hashlib
 import json
 import os
+import struct
 import tempfile
+import zlib
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -20,31 +23,235 @@ from numpy.typing import NDArray
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp"}
 VIDEO_SUFFIXES = {".mp4", ".avi", ".mov", ".mkv", ".m4v", ".mpg", ".mpeg", ".webm"}
 
+# Limits on what is read (README "Reliability"). The paper's frames are 2560x1920 = 4.9 MP; an
+# 8K video frame is 33 MP. A base map covers more ground than a frame and may be larger.
+MIN_IMAGE_SIDE = 16
+MAX_FRAME_PIXELS = 100_000_000
+MAX_BASE_PIXELS = 250_000_000
+MAX_IMAGE_FILE_BYTES = 2 << 30
+MAX_TEXT_FILE_BYTES = 64 << 20  # JSON and CSV inputs (LINES.json, POINTS.csv, result records)
 
-def read_image(path: str | os.PathLike, *, grey: bool = False) -> NDArray[np.uint8]:
+
+class FrameReadError(ValueError):
+    """A frame of a sequence cannot be read (missing, truncated, corrupt, too large or small)."""
+
+
+def read_image(
+    path: str | os.PathLike,
+    *,
+    grey: bool = False,
+    max_pixels: int = MAX_BASE_PIXELS,
+) -> NDArray[np.uint8]:
     """Read an image as BGR uint8 ``(H, W, 3)`` (or grey ``(H, W)``).
+
+    Checks before decoding where the format allows (PNG, JPEG, TIFF, BMP, WebP headers): at
+    least ``MIN_IMAGE_SIDE`` pixels a side and at most ``max_pixels`` pixels, and a complete
+    file (a truncated PNG or JPEG is refused instead of decoded into a partly grey image).
 
     Raises:
         FileNotFoundError: the file does not exist.
-        ValueError: the file is empty or not a readable image.
+        ValueError: one line naming the file and the problem (a directory, empty, too large or
+            small, truncated, corrupt or not an image).
     """
-    p = Path(path)
-    if not p.exists():
-        raise FileNotFoundError(f"image not found: {p}")
-    if p.is_dir():
-        raise ValueError(f"expected an image file, got a directory: {p}")
-    if p.stat().st_size == 0:
-        raise ValueError(f"image file is empty: {p}")
-    data = np.fromfile(str(p), dtype=np.uint8)
-    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise ValueError(f"not a readable image: {p}")
-    img = to_uint8(img)
+    img = to_uint8(decode_image_file(path, max_pixels=max_pixels))
     if img.ndim == 2:
         return img if grey else cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
     if img.shape[2] == 4:
         img = cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
     return cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) if grey else img
+
+
+def decode_image_file(path: str | os.PathLike, *, max_pixels: int = MAX_BASE_PIXELS) -> NDArray:
+    """An image file decoded as stored (grey, BGR or BGRA; 8 or 16 bit), after the checks of
+    :func:`read_image`. Raises as :func:`read_image`."""
+    p = Path(path)
+    data = _read_image_bytes(p)
+    size = image_header_size(data)
+    if size is not None:
+        check_image_size(size, p, max_pixels=max_pixels)
+    problem = incomplete_image(data)
+    if problem:
+        raise ValueError(f"{p}: {problem}")
+    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if img is None or img.size == 0:
+        raise ValueError(
+            f"cannot read {p} as an image (not an image file, corrupt, or a format OpenCV "
+            "cannot decode)"
+        )
+    if img.ndim == 3 and img.shape[2] == 1:
+        img = img[:, :, 0]
+    if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] not in (3, 4)):
+        raise ValueError(
+            f"{p}: unsupported image layout {img.shape} (need grey, colour or colour+alpha)"
+        )
+    if size is None:
+        check_image_size((img.shape[1], img.shape[0]), p, max_pixels=max_pixels)
+    return img
+
+
+def _read_image_bytes(p: Path) -> bytes:
+    if not p.exists():
+        raise FileNotFoundError(f"image not found: {p}")
+    if p.is_dir():
+        raise ValueError(f"{p} is a directory, not an image file")
+    n = p.stat().st_size
+    if n == 0:
+        raise ValueError(f"image file {p} is empty")
+    if n > MAX_IMAGE_FILE_BYTES:
+        raise ValueError(
+            f"{p}: file of {n / 2**20:.0f} MiB is over the {MAX_IMAGE_FILE_BYTES >> 20} MiB limit "
+            "for images"
+        )
+    with open(p, "rb") as f:
+        return f.read()
+
+
+def check_image_size(size: tuple[int, int], path: object, *, max_pixels: int) -> None:
+    """ValueError naming ``path`` and its ``(width, height)`` when outside the limits."""
+    w, h = int(size[0]), int(size[1])
+    if min(w, h) < MIN_IMAGE_SIDE:
+        raise ValueError(
+            f"{path}: image of {w}x{h} pixels is too small (at least {MIN_IMAGE_SIDE} a side)"
+        )
+    if w * h > max_pixels:
+        raise ValueError(
+            f"{path}: image of {w}x{h} pixels ({w * h / 1e6:.0f} MP) is over the limit of "
+            f"{max_pixels / 1e6:.0f} MP"
+        )
+
+
+def image_header_size(data: bytes) -> tuple[int, int] | None:
+    """``(width, height)`` from the header of a PNG, JPEG, TIFF, BMP or WebP file's bytes, without
+    decoding; None for other formats or an unreadable header."""
+    try:
+        if data[:8] == b"\x89PNG\r\n\x1a\n" and data[12:16] == b"IHDR":
+            return struct.unpack(">II", data[16:24])
+        if data[:2] == b"\xff\xd8":
+            return _jpeg_size(data)
+        if data[:4] in (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+"):
+            return _tiff_size(data)
+        if data[:2] == b"BM":
+            if struct.unpack("<I", data[14:18])[0] == 12:  # OS/2 BITMAPCOREHEADER
+                return struct.unpack("<HH", data[18:22])
+            w, h = struct.unpack("<ii", data[18:26])
+            return abs(w), abs(h)
+        if data[:4] == b"RIFF" and data[8:12] == b"WEBP":
+            return _webp_size(data)
+    except (struct.error, IndexError, ValueError):
+        return None
+    return None
+
+
+_JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+_JPEG_STANDALONE = {0x01, *range(0xD0, 0xD9)}
+
+
+def _jpeg_segments(data: bytes) -> Iterator[tuple[int, int]]:
+    """``(marker, offset of the marker)`` of a JPEG's header segments, up to and including SOS."""
+    i = 2
+    while i + 4 <= len(data):
+        if data[i] != 0xFF:
+            raise ValueError("JPEG marker expected")
+        marker = data[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        yield marker, i
+        if marker == 0xDA:
+            return
+        if marker in _JPEG_STANDALONE:
+            i += 2
+        else:
+            i += 2 + struct.unpack(">H", data[i + 2 : i + 4])[0]
+
+
+def _jpeg_size(data: bytes) -> tuple[int, int] | None:
+    for marker, i in _jpeg_segments(data):
+        if marker in _JPEG_SOF:
+            h, w = struct.unpack(">HH", data[i + 5 : i + 9])
+            return w, h
+    return None
+
+
+def _tiff_size(data: bytes) -> tuple[int, int] | None:
+    e = "<" if data[:2] == b"II" else ">"
+    big = data[2:4] in (b"+\x00", b"\x00+")
+    if big:
+        off = struct.unpack(e + "Q", data[8:16])[0]
+        n = struct.unpack(e + "Q", data[off : off + 8])[0]
+        first, step, head = off + 8, 20, e + "HHQ"
+    else:
+        off = struct.unpack(e + "I", data[4:8])[0]
+        n = struct.unpack(e + "H", data[off : off + 2])[0]
+        first, step, head = off + 2, 12, e + "HHI"
+    hsize = struct.calcsize(head)
+    found = {}
+    for j in range(min(n, 4096)):
+        at = first + j * step
+        tag, typ, _count = struct.unpack(head, data[at : at + hsize])
+        if tag in (256, 257):
+            fmt = e + ("H" if typ == 3 else "Q" if typ == 16 else "I")
+            found[tag] = struct.unpack(fmt, data[at + hsize : at + hsize + struct.calcsize(fmt)])[0]
+    if 256 in found and 257 in found:
+        return found[256], found[257]
+    return None
+
+
+def _webp_size(data: bytes) -> tuple[int, int] | None:
+    kind = data[12:16]
+    if kind == b"VP8X":
+        w = int.from_bytes(data[24:27], "little") + 1
+        h = int.from_bytes(data[27:30], "little") + 1
+        return w, h
+    if kind == b"VP8L" and data[20] == 0x2F:
+        bits = int.from_bytes(data[21:25], "little")
+        return (bits & 0x3FFF) + 1, ((bits >> 14) & 0x3FFF) + 1
+    if kind == b"VP8 " and data[23:26] == b"\x9d\x01\x2a":
+        w, h = struct.unpack("<HH", data[26:30])
+        return w & 0x3FFF, h & 0x3FFF
+    return None
+
+
+def incomplete_image(data: bytes) -> str:
+    """Why the bytes of a PNG, JPEG or WebP file are not a complete image ("" when they are, or
+    for other formats): a truncated file, a PNG chunk failing its CRC. OpenCV decodes some
+    truncated files into partly grey images without an error; this catches them first."""
+    try:
+        if data[:8] == b"\x89PNG\r\n\x1a\n":
+            return _png_problem(data)
+        if data[:2] == b"\xff\xd8":
+            sos = [i for m, i in _jpeg_segments(data) if m == 0xDA]
+            if not sos:
+                return "truncated JPEG (no image data)"
+            if data.rfind(b"\xff\xd9") < sos[0]:
+                return "truncated JPEG (no end-of-image marker)"
+            return ""
+        if data[:4] == b"RIFF" and data[8:12] == b"WEBP":
+            declared = struct.unpack("<I", data[4:8])[0] + 8
+            if len(data) < declared:
+                return f"truncated WebP ({len(data)} of {declared} bytes)"
+    except (struct.error, IndexError, ValueError) as exc:
+        return f"corrupt header ({exc})"
+    return ""
+
+
+def _png_problem(data: bytes) -> str:
+    i, n = 8, len(data)
+    view = memoryview(data)
+    while i + 12 <= n:
+        length = struct.unpack(">I", data[i : i + 4])[0]
+        kind = data[i + 4 : i + 8]
+        end = i + 8 + length
+        if end + 4 > n:
+            break
+        crc = struct.unpack(">I", data[end : end + 4])[0]
+        if zlib.crc32(view[i + 4 : end]) != crc:
+            name = kind.decode("latin-1")
+            return f"corrupt PNG (chunk {name!r} at byte {i} fails its CRC check)"
+        if kind == b"IEND":
+            return ""
+        i = end + 4
+    return f"truncated PNG (no IEND chunk; {n} bytes)"
 
 
 def to_uint8(img: NDArray) -> NDArray[np.uint8]:
@@ -64,6 +271,8 @@ def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:
     p.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=p.parent, prefix=f".{p.name}.", suffix=".tmp")
     try:
+        if hasattr(os, "fchmod"):
+            os.fchmod(fd, 0o644)  # mkstemp's 0600 would hide results from other users
         with os.fdopen(fd, "wb") as f:
             f.write(data)
             f.flush()
@@ -89,12 +298,77 @@ def write_image_atomic(path: str | os.PathLike, image: NDArray, *, jpeg_quality:
     write_bytes_atomic(path, buf.tobytes())
 
 
-def write_npz_atomic(path: str | os.PathLike, **arrays: NDArray) -> None:
+def encode_npz(**arrays: NDArray) -> bytes:
+    """``arrays`` as the bytes of a compressed ``.npz`` file."""
     import io as _io
 
     buf = _io.BytesIO()
     np.savez_compressed(buf, **arrays)
-    write_bytes_atomic(path, buf.getvalue())
+    return buf.getvalue()
+
+
+def write_npz_atomic(path: str | os.PathLike, **arrays: NDArray) -> None:
+    write_bytes_atomic(path, encode_npz(**arrays))
+
+
+def read_text_file(
+    path: str | os.PathLike, what: str, *, max_bytes: int = MAX_TEXT_FILE_BYTES
+) -> str:
+    """A UTF-8 text file (JSON, CSV) of at most ``max_bytes``.
+
+    Raises:
+        FileNotFoundError: ``{what} not found: {path}``.
+        ValueError: one line naming the file: a directory, too large, or not UTF-8.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise FileNotFoundError(f"{what} not found: {p}")
+    if p.is_dir():
+        raise ValueError(f"{what} {p} is a directory, not a file")
+    n = p.stat().st_size
+    if n > max_bytes:
+        raise ValueError(
+            f"{what} {p} has {n / 2**20:.1f} MiB, over the {max_bytes >> 20} MiB limit"
+        )
+    data = p.read_bytes()
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise ValueError(
+            f"{what} {p} is not UTF-8 text ({exc.reason} at byte {exc.start})"
+        ) from None
+
+
+SAMPLE_BYTES = 64 << 10
+
+
+def file_fingerprint(path: str | os.PathLike) -> dict:
+    """A cheap identity of a file: ``size``, ``mtime_ns`` and ``sample_sha256``, the SHA-256 of
+    its first and last ``SAMPLE_BYTES`` (the whole file when it is at most twice that)."""
+    p = Path(path)
+    st = p.stat()
+    h = hashlib.sha256()
+    with open(p, "rb") as f:
+        if st.st_size <= 2 * SAMPLE_BYTES:
+            h.update(f.read())
+        else:
+            h.update(f.read(SAMPLE_BYTES))
+            f.seek(-SAMPLE_BYTES, os.SEEK_END)
+            h.update(f.read(SAMPLE_BYTES))
+    return {
+        "size": int(st.st_size),
+        "mtime_ns": int(st.st_mtime_ns),
+        "sample_sha256": h.hexdigest(),
+    }
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+    """SHA-256 of a whole file, read in 1 MiB blocks."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(1 << 20):
+            h.update(block)
+    return h.hexdigest()
 
 
 def _json_default(o):
@@ -112,8 +386,11 @@ class FrameSource:
 
     Attributes:
         description: what was opened (for messages and the result's metadata).
-        size: ``(width, height)`` of the frames.
+        size: ``(width, height)`` of the frames: the first readable frame's (from its header for
+            images; frames of another size are refused by the pipeline, frame by frame).
     """
+
+    max_pixels = MAX_FRAME_PIXELS
 
     def __init__(self, spec: str | os.PathLike) -> None:
         self.description = str(spec)
@@ -121,7 +398,9 @@ class FrameSource:
         self._video: str | None = None
         self._paths: list[Path] = []
         if p.is_dir():
-            self._paths = sorted(q for q in p.iterdir() if q.suffix.lower() in IMAGE_SUFFIXES)
+            self._paths = sorted(
+                q for q in p.iterdir() if q.suffix.lower() in IMAGE_SUFFIXES and not q.is_dir()
+            )
             if not self._paths:
                 raise ValueError(
                     f"no images ({', '.join(sorted(IMAGE_SUFFIXES))}) in directory {p}"
@@ -133,7 +412,9 @@ class FrameSource:
                 self._video = str(p)
         elif any(ch in str(spec) for ch in "*?["):
             self._paths = sorted(
-                Path(q) for q in globlib.glob(str(spec)) if Path(q).suffix.lower() in IMAGE_SUFFIXES
+                Path(q)
+                for q in globlib.glob(str(spec))
+                if Path(q).suffix.lower() in IMAGE_SUFFIXES and not Path(q).is_dir()
             )
             if not self._paths:
                 raise ValueError(f"glob pattern matched no images: {spec}")
@@ -141,14 +422,58 @@ class FrameSource:
             raise FileNotFoundError(f"frames not found: {spec}")
         if self._video is not None:
             self._n = self._count_video_frames()
-            first = self.get(0)
         else:
             self._n = len(self._paths)
-            first = self.get(0)
-        self.size = (int(first.shape[1]), int(first.shape[0]))
+        self.size = self._first_size()
 
     def __len__(self) -> int:
         return self._n
+
+    def path(self, k: int) -> Path | None:
+        """The image file of frame ``k`` (None for a video)."""
+        return self._paths[k] if self._video is None else None
+
+    def name(self, k: int) -> str:
+        """Frame ``k`` for messages: its file (images) or ``video.mp4 frame k``."""
+        if self._video is None:
+            return str(self._paths[k])
+        return f"{self._video} frame {k}"
+
+    def _first_size(self) -> tuple[int, int]:
+        if self._video is not None:
+            frame = self.get(0)
+            return int(frame.shape[1]), int(frame.shape[0])
+        first_problem = ""
+        for k in range(self._n):
+            try:
+                return self.frame_size(k)
+            except (ValueError, OSError) as exc:
+                first_problem = first_problem or str(exc)
+        raise ValueError(f"no readable frame in {self.description} ({first_problem})")
+
+    def frame_size(self, k: int) -> tuple[int, int]:
+        """``(width, height)`` of frame ``k`` from its file's header when the format allows
+        (decoding it otherwise), checked against the size limits.
+
+        Raises:
+            FrameReadError: naming the frame and the problem.
+        """
+        if self._video is not None:
+            return self.size
+        path = self._paths[k]
+        try:
+            with open(path, "rb") as f:
+                head = f.read(SAMPLE_BYTES)
+            size = image_header_size(head)
+            if size is None:
+                img = self.get(k)
+                return int(img.shape[1]), int(img.shape[0])
+            check_image_size(size, path, max_pixels=self.max_pixels)
+        except FrameReadError:
+            raise
+        except (ValueError, OSError) as exc:
+            raise FrameReadError(_one_line(exc)) from None
+        return int(size[0]), int(size[1])
 
     def _reader(self):
         import imageio.v2 as iio
@@ -163,7 +488,15 @@ class FrameSource:
     def _count_video_frames(self) -> int:
         reader = self._reader()
         try:
+            meta = reader.get_meta_data()
+            w, h = (int(v) for v in meta.get("size", (0, 0)))
+            if w and h:
+                check_image_size((w, h), self._video, max_pixels=self.max_pixels)
             n = reader.count_frames()
+        except ValueError:
+            raise
+        except Exception as exc:  # imageio/ffmpeg: RuntimeError, OSError, ...
+            raise ValueError(f"not a readable video: {self._video} ({_one_line(exc)})") from None
         finally:
             reader.close()
         if n <= 0:
@@ -171,14 +504,24 @@ class FrameSource:
         return int(n)
 
     def get(self, k: int) -> NDArray[np.uint8]:
-        """Frame ``k`` as BGR uint8."""
+        """Frame ``k`` as BGR uint8.
+
+        Raises:
+            IndexError: ``k`` outside the sequence.
+            FrameReadError: the frame cannot be read (one line naming the frame and why).
+        """
         if not 0 <= k < self._n:
             raise IndexError(f"frame {k} out of range: the source has {self._n} frames")
         if self._video is None:
-            return read_image(self._paths[k])
+            try:
+                return read_image(self._paths[k], max_pixels=self.max_pixels)
+            except (ValueError, OSError) as exc:
+                raise FrameReadError(_one_line(exc)) from None
         reader = self._reader()
         try:
             rgb = reader.get_data(k)
+        except Exception as exc:  # imageio/ffmpeg: IndexError, RuntimeError, OSError, ...
+            raise FrameReadError(f"{self.name(k)}: {_one_line(exc)}") from None
         finally:
             reader.close()
         return cv2.cvtColor(np.asarray(rgb), cv2.COLOR_RGB2BGR)
@@ -196,6 +539,32 @@ class FrameSource:
                     yield k, cv2.cvtColor(np.asarray(rgb), cv2.COLOR_RGB2BGR)
         finally:
             reader.close()
+
+    def identity(self) -> dict:
+        """What the frames are, cheaply (README "Reliability"): per image file its name and
+        :func:`file_fingerprint`; for a video the file's fingerprint, frame count and size."""
+        if self._video is not None:
+            return {
+                "kind": "video",
+                "name": Path(self._video).name,
+                "n_frames": self._n,
+                "frame_size": list(self.size),
+                **file_fingerprint(self._video),
+            }
+        files = []
+        for q in self._paths:
+            try:
+                files.append({"name": q.name, **file_fingerprint(q)})
+            except OSError as exc:  # unreadable now: the frame will fail, say so
+                files.append({"name": q.name, "error": _one_line(exc)})
+        return {"kind": "images", "n_frames": self._n, "files": files}
+
+
+def _one_line(exc: BaseException) -> str:
+    text = str(exc).strip()
+    if isinstance(exc, OSError) and exc.strerror:
+        text = f"{exc.strerror}: {exc.filename}" if exc.filename else exc.strerror
+    return text.splitlines()[0] if text else type(exc).__name__
 
 
 def open_frames(spec: str | os.PathLike) -> FrameSource:

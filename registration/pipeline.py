@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from registration import features
-from registration.config import PipelineConfig, config_from_dict, config_to_dict
+from registration.config import PipelineConfig, config_from_dict
 from registration.coords import image_size
 from registration.distortion import HarrisModel, check_valid
 from registration.global_registration import (
@@ -34,14 +34,10 @@ from registration.global_registration import (
     previous_frame_state,
     register_intra,
 )
-from registration.io import (
-    FrameSource,
-    read_image,
-    write_image_atomic,
-    write_json_atomic,
-    write_npz_atomic,
-)
-from registration.result import FORMAT, VERSION, RegistrationResult, frame_record_path
+from registration.io import FrameSource
+from registration.result import RegistrationResult, ResultWriter, make_metadata
+from registration.result import frame_arrays as _frame_arrays
+from registration.result import frame_stats as _stats
 from registration.warp import warp_image
 
 log = logging.getLogger(__name__)
@@ -67,34 +63,27 @@ def previous_in_order(k: int, reference_frame: int) -> int:
     return k - 1 if k > reference_frame else k + 1
 
 
-def _metadata(frames, base, base_path, gamma, seed, reference_frame, config, preset) -> dict:
-    return {
-        "format": FORMAT,
-        "version": VERSION,
-        "n_frames": len(frames),
-        "gamma": float(gamma),
-        "frame_size": list(frames.size),
-        "base_size": list(image_size(base)),
-        "base_path": str(base_path) if base_path else None,
-        "frames_source": frames.description,
-        "reference_frame": int(reference_frame),
-        "seed": None if seed is None else [float(v) for v in seed],
-        "preset": preset,
-        "config": config_to_dict(config),
-    }
-
-
-# Keys that must agree for --resume to continue a result rather than mix two different runs.
-_RESUME_KEYS = ("n_frames", "gamma", "frame_size", "base_size", "reference_frame", "seed", "config")
-
-
 def validate_inputs(frames: FrameSource, base: NDArray, gamma, seed, reference_frame) -> None:
-    """ValueError naming the problem for a γ, seed or reference frame that cannot work."""
+    """ValueError naming the problem for a γ, seed or reference frame that cannot work (out of
+    range, unreadable, or of another size than the sequence's first readable frame)."""
     w, h = frames.size
     check_valid(HarrisModel(float(gamma), w, h))
     if not 0 <= reference_frame < len(frames):
         raise ValueError(
             f"reference frame {reference_frame} out of range: the sequence has {len(frames)} frames"
+        )
+    # Before anything is written: a run cannot start from an unreadable reference frame.
+    try:
+        rw, rh = image_size(frames.get(reference_frame))
+    except ValueError as exc:  # FrameReadError
+        raise ValueError(
+            f"cannot read reference frame {reference_frame}: {exc}; choose another "
+            "--reference-frame"
+        ) from None
+    if (rw, rh) != (w, h):
+        raise ValueError(
+            f"reference frame {reference_frame} is {rw}x{rh} pixels but the sequence's first "
+            f"readable frame is {w}x{h}; choose another --reference-frame"
         )
     if seed is not None:
         fx, fy, bx, by = seed
@@ -130,84 +119,6 @@ def render_to_base(
     return warp_image(frame_raw, raw_from_base, x1 - x0, y1 - y0, origin=(x0, y0))
 
 
-def _frame_arrays(fine: FineResult, field, field_stats=None) -> dict[str, NDArray]:
-    arrays = {
-        "src": fine.src.astype(np.float64),
-        "dst": fine.dst.astype(np.float64),
-        "kept": fine.kept.astype(np.uint8),
-        "residuals": fine.residuals.astype(np.float64),
-    }
-    if fine.source is not None:
-        arrays["source"] = np.asarray(fine.source, np.int16)
-    if field is not None:
-        arrays.update({f"field_{k}": np.asarray(v) for k, v in field.to_arrays().items()})
-    if field_stats is not None:
-        arrays.update({f"field_stats_{k}": v for k, v in field_stats.to_arrays().items()})
-    return arrays
-
-
-def _stats(
-    coarse: CoarseResult, fine: FineResult, times: dict[str, float], field_stats=None
-) -> dict:
-    kept = fine.residuals[fine.kept] if len(fine.residuals) else np.zeros(0)
-    stats = {
-        "n_keypoints_frame": coarse.n_keypoints_frame,
-        "n_keypoints_base": coarse.n_keypoints_base,
-        "n_matches": coarse.n_matches,
-        "n_gated": int(coarse.gated.sum()),
-        "n_coarse_inliers": coarse.n_inliers,
-        "n_control_points": int(len(fine.src)),
-        "n_inliers": int(fine.kept.sum()),
-        "reqcon_iterations": int(fine.iterations),
-        "residual_rms_px": float(np.sqrt(np.mean(kept**2))) if len(kept) else None,
-        "residual_mean_px": float(np.mean(kept)) if len(kept) else None,
-        "time_s": {name: round(v, 4) for name, v in times.items()},
-    }
-    if field_stats is not None:
-        stats["local"] = field_stats.to_dict()
-    return stats
-
-
-class _Writer:
-    def __init__(self, out_dir: Path) -> None:
-        self.out_dir = out_dir
-
-    def done(self, k: int) -> bool:
-        return frame_record_path(self.out_dir, k, ".json").is_file()
-
-    def write(self, k: int, record: dict, arrays: dict[str, NDArray] | None) -> None:
-        # The arrays first, the record last: a record on disk means the frame is complete.
-        if arrays:
-            write_npz_atomic(frame_record_path(self.out_dir, k, ".npz"), **arrays)
-        write_json_atomic(frame_record_path(self.out_dir, k, ".json"), {"k": k, **record})
-
-
-def _prepare_out(out_dir: Path, meta: dict, resume: bool) -> None:
-    meta_path = out_dir / "result.json"
-    if meta_path.is_file():
-        if not resume:
-            raise ValueError(
-                f"{out_dir} already holds a registration result; pass --resume to continue it "
-                "or choose another folder"
-            )
-        try:
-            old = json.loads(meta_path.read_text())
-        except json.JSONDecodeError:
-            raise ValueError(f"cannot resume: {meta_path} is corrupt") from None
-        for key in _RESUME_KEYS:
-            if old.get(key) != json.loads(json.dumps(meta[key])):
-                raise ValueError(
-                    f"cannot resume {out_dir}: its {key} differs from this run's "
-                    f"({old.get(key)!r} vs {meta[key]!r})"
-                    if key != "config"
-                    else f"cannot resume {out_dir}: it was made with a different configuration"
-                )
-        return
-    out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "frames").mkdir(exist_ok=True)
-    write_json_atomic(meta_path, meta)
-
-
 def register_sequence(
     frames: FrameSource,
     base: NDArray,
@@ -220,6 +131,7 @@ def register_sequence(
     seed: tuple[float, float, float, float] | None = None,
     reference_frame: int = 0,
     resume: bool = False,
+    force: bool = False,
     progress: Progress | None = None,
     cancel: threading.Event | None = None,
     reference: tuple[CoarseResult, FineResult] | None = None,
@@ -234,6 +146,7 @@ def register_sequence(
         seed: one corresponding point ``(fx, fy, bx, by)``: raw reference-frame px, base px.
         reference_frame: the frame registered inter-sensor (paper: the first).
         resume: continue a result folder made with the same inputs and configuration.
+        force: delete the result already in ``out_dir`` and start over.
         progress: called with ``(frames done, n_frames)`` after each frame.
         cancel: when set, the run stops after the frame in progress (finished frames are kept).
         reference: coarse and fine results for the reference frame computed beforehand (the
@@ -243,58 +156,88 @@ def register_sequence(
         The result, as :func:`registration.load` would open it.
 
     Raises:
-        ValueError: unusable input (γ out of range, seed outside the images, a folder holding
-            another run); :class:`RegistrationFailed` when the reference frame cannot be
-            registered.
+        ValueError: unusable input (γ out of range, seed outside the images, an unreadable
+            reference frame, a folder holding another run or being written by another process,
+            see :class:`registration.result.ResultWriter`); :class:`RegistrationFailed` when the
+            reference frame cannot be registered.
     """
     out_dir = Path(out_dir)
     validate_inputs(frames, base, gamma, seed, reference_frame)
-    meta = _metadata(frames, base, base_path, gamma, seed, reference_frame, config, preset)
-    _prepare_out(out_dir, meta, resume)
-    writer = _Writer(out_dir)
-    n = len(frames)
-    order = processing_order(n, reference_frame)
-    n_done = sum(writer.done(k) for k in order)
-    if progress:
-        progress(n_done, n)
-
-    joint = _reference_step(frames, base, gamma, seed, reference_frame, config, writer, reference)
-    n_done = sum(writer.done(k) for k in order)
-    if progress:
-        progress(n_done, n)
-
-    result = RegistrationResult(out_dir)
-    for k in order[1:]:
-        if cancel is not None and cancel.is_set():
-            break
-        if writer.done(k):
-            continue
-        _set_previous(joint, frames, gamma, result, previous_in_order(k, reference_frame), config)
-        frame = frames.get(k)
-        record, arrays, state = _register_one(frame, k, gamma, joint, config)
-        writer.write(k, record, arrays)
-        if state is not None:
-            joint.previous = state
-            joint.previous_index = k
-        n_done += 1
+    meta = make_metadata(frames, base, base_path, gamma, seed, reference_frame, config, preset)
+    with ResultWriter.create(out_dir, meta, frames=frames, resume=resume, force=force) as writer:
+        n = len(frames)
+        order = processing_order(n, reference_frame)
+        n_done = sum(writer.done(k) for k in order)
         if progress:
             progress(n_done, n)
+
+        joint = _reference_step(
+            frames, base, gamma, seed, reference_frame, config, writer, reference
+        )
+        n_done = sum(writer.done(k) for k in order)
+        if progress:
+            progress(n_done, n)
+
+        result = RegistrationResult(out_dir)
+        for k in order[1:]:
+            if cancel is not None and cancel.is_set():
+                break
+            if writer.done(k):
+                continue
+            frame, problem = read_frame(frames, k)
+            if frame is None:
+                # Unreadable or of another size: marked failed, the run goes on (the next frame
+                # takes the last good one as its previous frame).
+                writer.write_frame(k, _failed_record(problem))
+            else:
+                prev = previous_in_order(k, reference_frame)
+                _set_previous(joint, frames, gamma, result, prev, config)
+                record, arrays, state = _register_one(frame, k, gamma, joint, config)
+                writer.write_frame(k, record, arrays)
+                if state is not None:
+                    joint.previous = state
+                    joint.previous_index = k
+            n_done += 1
+            if progress:
+                progress(n_done, n)
     result.reload()
     return result
+
+
+def read_frame(frames: FrameSource, k: int) -> tuple[NDArray | None, str]:
+    """``(frame, "")``, or ``(None, why)`` when frame ``k`` cannot be read or its size differs
+    from the sequence's (the reference frame's)."""
+    try:
+        frame = frames.get(k)
+    except ValueError as exc:  # FrameReadError
+        return None, f"cannot read frame {k}: {exc}"
+    w, h = image_size(frame)
+    if (w, h) != tuple(frames.size):
+        fw, fh = frames.size
+        return None, f"frame {k} is {w}x{h} pixels but the reference frame is {fw}x{fh}"
+    return frame, ""
+
+
+def _failed_record(reason: str) -> dict:
+    return {"status": "failed", "reason": reason, "stats": {}, "model": None}
 
 
 def _reference_step(frames, base, gamma, seed, ref, config, writer, reference) -> JointBase:
     """Register the reference frame (or load it when resuming) and build the joint base."""
     out_dir = writer.out_dir
-    frame = frames.get(ref)
+    frame, problem = read_frame(frames, ref)
+    if frame is None:
+        raise ValueError(f"{problem}; choose another --reference-frame")
+    # Redone when its record or the mid base image is damaged or missing.
+    mid_base = writer.read_mid_base() if writer.done(ref) else None
     if writer.done(ref):
         rec = RegistrationResult(out_dir)
         if not rec.is_ok(ref):
             raise RegistrationFailed(
                 f"the reference frame {ref} failed before: {rec.records[ref].get('reason')}"
             )
-        mid = read_image(out_dir / "mid_base.png")
-        valid = read_image(out_dir / "mid_base_valid.png", grey=True) > 127
+    if mid_base is not None:
+        mid, valid = mid_base
         joint = make_joint_base(mid, valid, config)
         joint.previous = previous_frame_state(frame, gamma, rec.model(ref), config)
         joint.previous_index = ref
@@ -312,9 +255,7 @@ def _reference_step(frames, base, gamma, seed, ref, config, writer, reference) -
         )
     times = {"coarse": coarse.time_s, "fine": fine.time_s, "total": time.perf_counter() - t0}
     if not fine:
-        writer.write(
-            ref, {"status": "failed", "reason": fine.reason, "stats": {}, "model": None}, None
-        )
+        writer.write_frame(ref, _failed_record(fine.reason))
         raise RegistrationFailed(
             f"the reference frame {ref} could not be registered to the base map ({fine.reason}); "
             "check --seed and --gamma"
@@ -327,8 +268,7 @@ def _reference_step(frames, base, gamma, seed, ref, config, writer, reference) -
     # The mid base image is the reference frame registered with its own field: every other
     # frame's local stage aligns to it, so its accuracy is theirs.
     mid, valid = render_to_base(frame, gamma, model, (0, 0, wb, hb), field)
-    write_image_atomic(out_dir / "mid_base.png", mid)
-    write_image_atomic(out_dir / "mid_base_valid.png", valid.astype(np.uint8) * 255)
+    writer.write_mid_base(mid, valid)
     record = {
         "status": "ok",
         "reason": "",
@@ -336,7 +276,7 @@ def _reference_step(frames, base, gamma, seed, ref, config, writer, reference) -
         "stats": _stats(coarse, fine, times, field_stats),
         "model": model.to_dict(),
     }
-    writer.write(ref, record, _frame_arrays(fine, field, field_stats))
+    writer.write_frame(ref, record, _frame_arrays(fine, field, field_stats))
     joint = make_joint_base(mid, valid, config)
     joint.previous = previous_frame_state(frame, gamma, model, config)
     joint.previous_index = ref

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import math
+from pathlib import Path
 
 NAME = "app"
 HELP = (
@@ -54,8 +56,10 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError("--frames and --base go together (or give neither for the built-in demo)")
     if not 0 <= args.port <= 65535:
         raise UsageError(f"--port must be 0..65535, got {args.port}")
-    if args.max_upload_mb <= 0:
-        raise UsageError(f"--max-upload-mb must be positive, got {args.max_upload_mb}")
+    if not 0 < args.max_upload_mb < math.inf:
+        raise UsageError(f"--max-upload-mb must be a positive number, got {args.max_upload_mb}")
+    if args.project and Path(args.project).exists() and not Path(args.project).is_dir():
+        raise UsageError(f"--project {args.project} is a file, not a folder")
     serve(
         frames=args.frames,
         base=args.base,

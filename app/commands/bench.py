@@ -11,6 +11,7 @@ from app.cli import UsageError, emit_json, parse_size
 NAME = "bench"
 HELP = "Measure speed and accuracy against in-run baselines and print the figures (markdown or --json)."
 SUITES = ("distortion", "simulate", "register", "srif", "app")
+MAX_FRAMES = 1000
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -43,7 +44,14 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"unknown bench suite {unknown[0]!r}; choose from {', '.join(SUITES)}")
     if (args.scene is None) != (args.base is None):
         raise UsageError("--scene and --base go together")
+    if not 1 <= args.frames <= MAX_FRAMES:
+        raise UsageError(f"--frames must be 1..{MAX_FRAMES}, got {args.frames}")
     args.size_wh = parse_size(args.size)
+    if args.scene is not None:
+        from registration.io import read_image
+
+        for path in (args.scene, args.base):  # one-line errors before any suite starts
+            read_image(path)
     results = {}
     for name in suites:
         module = importlib.import_module(f"app.bench.{name}")

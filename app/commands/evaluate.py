@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
-from app.cli import UsageError, emit_json
+from app.cli import UsageError, check_output_file, emit_json
 from app.progress import ProgressBar
 
 NAME = "evaluate"
@@ -48,6 +49,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--markdown", metavar="FILE", help="also write the markdown report to FILE")
     p.add_argument("--csv", metavar="FILE", help="also write Table 2 as CSV to FILE")
     p.add_argument("--frames-csv", metavar="FILE", help="also write per-frame statistics as CSV")
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="overwrite existing --markdown/--csv/--frames-csv files",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -59,8 +65,21 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError("give exactly one of --truth DIR or --points POINTS.csv")
     if args.frames_for_table < 1:
         raise UsageError(f"--frames-for-table must be >= 1, got {args.frames_for_table}")
-    if not args.grid_step > 0:
-        raise UsageError(f"--grid-step must be positive, got {args.grid_step}")
+    if not (1 <= args.grid_step < math.inf):
+        # Below 1 px the grid only repeats points, and its size grows without bound.
+        raise UsageError(f"--grid-step must be a number >= 1 (base px), got {args.grid_step}")
+    inputs = (
+        args.points,
+        args.truth and Path(args.truth) / "truth.json",
+        Path(args.out) / "result.json",
+    )
+    outputs = {"--markdown": args.markdown, "--csv": args.csv, "--frames-csv": args.frames_csv}
+    for flag, path in outputs.items():
+        if path is not None:
+            check_output_file(path, flag, force=args.force, inputs=inputs)
+    named = [Path(p).resolve() for p in outputs.values() if p is not None]
+    if len(set(named)) < len(named):
+        raise UsageError("--markdown, --csv and --frames-csv must name different files")
     config = evaluation.EvaluationConfig(
         grid_step_px=args.grid_step, table_frames=args.frames_for_table, anchor=args.anchor
     )

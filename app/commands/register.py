@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from pathlib import Path
@@ -56,7 +57,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--resume",
         action="store_true",
-        help="continue an interrupted run in --out without redoing finished frames",
+        help="continue an interrupted run in --out without redoing finished frames (refused when "
+        "the frames, base map or settings differ from the run's; damaged frames are redone)",
+    )
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="delete the registration result already in --out and start over (only a folder "
+        "written by 'aerialreg register' is ever deleted)",
     )
     p.add_argument(
         "--write-frames",
@@ -87,20 +95,30 @@ def run(args: argparse.Namespace) -> int:
     from registration.config import get_preset
     from registration.io import open_frames, read_image
     from registration.pipeline import register_sequence, validate_inputs
+    from registration.result import check_out_dir
 
     seed = parse_seed(args.seed)
+    if not math.isfinite(args.gamma):
+        raise UsageError(f"--gamma must be a finite number, got {args.gamma}")
     config = get_preset(args.preset)
     if args.no_local:
         config = replace(config, run_local=False)
+    # A file, another tool's folder or a result without --resume/--force: refused before any work.
+    check_out_dir(Path(args.out), resume=args.resume, force=args.force)
     base = read_image(args.base)
     frames = open_frames(args.frames)
     validate_inputs(frames, base, args.gamma, seed, args.reference_frame)
     t0 = time.perf_counter()
-    with ProgressBar(len(frames), "register") as bar:
+    # The bar starts with the first frame, so a refused folder gives just the error line.
+    bar = None
 
-        def progress(done: int, total: int) -> None:
-            bar.update(done - bar.done)
+    def progress(done: int, total: int) -> None:
+        nonlocal bar
+        if bar is None:
+            bar = ProgressBar(total, "register").__enter__()
+        bar.update(done - bar.done)
 
+    try:
         result = register_sequence(
             frames,
             base,
@@ -112,8 +130,12 @@ def run(args: argparse.Namespace) -> int:
             seed=seed,
             reference_frame=args.reference_frame,
             resume=args.resume,
+            force=args.force,
             progress=progress,
         )
+    finally:
+        if bar is not None:
+            bar.__exit__(None, None, None)
     elapsed = time.perf_counter() - t0
     written = None
     if args.write_frames:

@@ -67,27 +67,13 @@ def read_image(path: str | Path) -> np.ndarray:
 
     Raises:
         FileNotFoundError: no such file.
-        ValueError: a directory, an empty file, or data OpenCV cannot decode (one line each).
+        ValueError: a directory, an empty, truncated or corrupt file, data OpenCV cannot decode,
+            an image outside the size limits (one line each).
     """
-    p = Path(path)
-    if not p.exists():
-        raise FileNotFoundError(f"image not found: {path}")
-    if p.is_dir():
-        raise ValueError(f"{path} is a directory, not an image file")
-    if p.stat().st_size == 0:
-        raise ValueError(f"image file {path} is empty")
-    img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
-    if img is None or img.size == 0:
-        raise ValueError(
-            f"cannot read {path} as an image (not an image file, or a format OpenCV cannot decode)"
-        )
-    if img.ndim == 3 and img.shape[2] == 1:
-        img = img[:, :, 0]
-    if img.ndim not in (2, 3) or (img.ndim == 3 and img.shape[2] not in (3, 4)):
-        raise ValueError(
-            f"{path}: unsupported image layout {img.shape} (need grey, colour or colour+alpha)"
-        )
-    return img
+    from registration.io import MAX_FRAME_PIXELS, decode_image_file
+
+    # Checks size limits before decoding and refuses truncated files (registration.io).
+    return decode_image_file(path, max_pixels=MAX_FRAME_PIXELS)
 
 
 def run(args: argparse.Namespace) -> int:
