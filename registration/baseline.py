@@ -16,9 +16,9 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from registration.coarse import corrected_grey
 from registration.coords import as_points
 from registration.distortion import HarrisModel
-from registration.coarse import corrected_grey
 
 
 @dataclass(frozen=True)
