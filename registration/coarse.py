@@ -40,7 +40,7 @@ from registration.distortion import HarrisModel, undistort_image
 from registration.features import Keypoints, SiftConfig
 from registration.heading import HeadingConfig, SimilarityPrior
 from registration.models import Affine, Projective, Similarity
-from registration.robust import RansacConfig, ransac, supported_by_points
+from registration.robust import RansacConfig, ransac, simplest_supported
 
 Seed = tuple[float, float, float, float]
 
@@ -106,6 +106,7 @@ class CoarseConfig:
     refine_radius_px: float = 3.0
     match_base_scale: bool = False
     models: tuple[str, ...] = ("projective",)
+    prefilter_slope: float = 0.0
     min_inliers_unseeded: int = 12
     decisive_ratio: float = 1.5
     seed_check_px: float = 40.0
@@ -325,52 +326,23 @@ def _ransac_config(config: CoarseConfig, **changes) -> RansacConfig:
     return dataclasses.replace(config.ransac, **changes)
 
 
-def _irls(model: Projective, kind: str, p: NDArray, q: NDArray, rounds: int = 5) -> Projective:
-    """Tukey-biweight iteratively reweighted refit of ``kind`` on the pairs: a RANSAC consensus
-    within a fixed threshold mixes right matches with near misses, and a plain least-squares
-    refit on all of them is pulled by the near misses; the biweight (scale from the residuals'
-    median absolute deviation) gives them no weight."""
-    cls = _MODELS[kind]
-    for _ in range(rounds):
-        r = np.hypot(*(model.apply(p) - q).T)
-        sigma = max(1.4826 * float(np.median(r)), 0.1)
-        u = r / (4.685 * sigma)
-        w = np.where(u < 1, (1 - u**2) ** 2, 0.0)
-        if np.count_nonzero(w) <= 2 * cls.min_samples:
-            break
-        if kind == "projective":
-            refit = Projective.estimate(p, q, initial=model, optimizer="lm", weights=w)
-        else:
-            refit = cls.estimate(p, q, weights=w)
-        if not refit:
-            break
-        model = refit if kind == "projective" else refit.as_projective()
-    return model
-
-
 def _select_model(src, dst, kinds: Sequence[str], current: Projective, domain) -> tuple:
-    """The simplest model among ``kinds`` whose predictions over ``domain`` (the frame's
-    outline, coarse px) agree with every more complex candidate's within that candidate's own
-    uncertainty (:func:`registration.robust.supported_by_points`): a projective's two
-    perspective terms are kept only where the points support them, since unsupported ones
-    extrapolate badly at the frame's corners. Returns ``(Projective, kind)``."""
-    order = [k for k in ("similarity", "affine", "projective") if k in kinds]
-    fits = {}
-    for kind in order:
-        m = current if kind == "projective" else _MODELS[kind].estimate(src, dst)
-        if m:
-            fits[kind] = m
-    order = [k for k in order if k in fits]
-    if not order:
+    """The model among ``kinds`` that predicts held-out parts of the pairs best
+    (:func:`registration.robust.simplest_supported`, spatial cross-validation): a projective's
+    two perspective terms are kept only where the points determine them, since undetermined
+    ones extrapolate badly at the frame's corners. Returns ``(Projective, kind)``."""
+    fits = []
+    for kind in ("similarity", "affine", "projective"):
+        if kind in kinds:
+            m = current if kind == "projective" else _MODELS[kind].estimate(src, dst)
+            if m:
+                fits.append((kind, m))
+    if not fits:
         return current, "projective"
-    for i, simple in enumerate(order[:-1]):
-        if all(
-            not supported_by_points(fits[simple], fits[rich], src, dst, domain)
-            for rich in order[i + 1 :]
-        ):
-            return fits[simple].as_projective(), simple
-    last = order[-1]
-    return (fits[last] if last == "projective" else fits[last].as_projective()), last
+    kind, model = simplest_supported(
+        fits, src, dst, domain=domain, min_coverage={"projective": 0.5}
+    )
+    return (model if kind == "projective" else model.as_projective()), kind
 
 
 @dataclass
@@ -399,12 +371,20 @@ def _attempt(
     anchored: bool,
     domain: NDArray,
 ) -> _Attempt:
-    """Gate (and guide) the matches with a coarse-pixel prior, RANSAC, refine (see module doc).
-    ``domain``: the frame's outline in coarse corrected pixels (for the model choice)."""
+    """Gate (and guide) the matches with a coarse-pixel prior, RANSAC, refine (module doc).
+
+    Two consensus searches when ``guided``: on the gated ratio matches (the paper; right
+    matches are then often the majority, and a strongly tilted frame's perspective survives),
+    and on those plus the guided matches, pre-filtered by a similarity through the anchor (more
+    right matches when the ratio test keeps few, as across years and sensors). Each is refined;
+    the one the final model fits more pairs of is kept. ``domain``: the frame's outline in
+    coarse corrected pixels (for the model choice).
+    """
     hcfg = config.heading
     fk, bk = frame.keypoints, base.keypoints
     all_p, all_q = fk.xy[matches.idx_a], bk.xy[matches.idx_b]
     gated = heading.gate_by_prior(all_p, all_q, prior, hcfg)
+    n_ratio = len(all_p)
     if config.guided and len(fk):
         radius = heading.gate_radius_px(prior, fk.xy, hcfg)
         g = heading.guided_matches(
@@ -415,59 +395,107 @@ def _attempt(
         all_q = np.vstack([all_q, bk.xy[g.idx_b[new]]])
         gated = np.concatenate([gated, np.ones(int(new.sum()), bool)])
     out = _Attempt(None, "", all_p, all_q, gated, np.zeros(len(all_p), bool), "")
-    p, q = all_p[gated], all_q[gated]
-    if len(p) < Projective.min_samples:
+    sources = [np.flatnonzero(gated[:n_ratio])]
+    if config.guided:
+        sources.append(_similarity_prefilter(all_p, all_q, np.flatnonzero(gated), prior, config,
+                                             rng, anchored))  # fmt: skip
+    found_all = []
+    firsts = [Projective] + ([Affine] if "affine" in config.models and config.guided else [])
+    for idx in sources:
+        if len(idx) < Projective.min_samples:
+            continue
+        for first in firsts:
+            found = _consensus(all_p[idx], all_q[idx], fk, bk, prior, config, rng, domain, first)
+            if found is None:
+                continue
+            # One yardstick for every search: the gated candidates the final model fits (the
+            # refinement's own matches would favour a search that confirms itself).
+            support = _support(found[0], all_p[gated], all_q[gated], config)
+            found_all.append((support, found))
+    best, best_support = None, -1
+    if found_all:
+        top = max(f[0] for f in found_all)
+        # The simplest model among the nearly best wins (ties: the first found).
+        near = [f for f in found_all if f[0] >= _NEAR_BEST * top]
+        best_support, best = min(near, key=lambda f: _COMPLEXITY[f[1][1]])
+    if best is None:
+        n = int(gated.sum())
         out.reason = (
-            f"only {len(p)} matches agree with the heading {prior.heading_deg:.0f}° and scale "
-            f"{prior.scale * frame.scale / base.scale:.2f} estimated {_from(prior)} (need 4)"
+            f"only {n} matches agree with the heading {prior.heading_deg:.0f}° and scale "
+            f"{prior.scale * frame.scale / base.scale:.2f} estimated {_from(prior)}"
+            if n < Projective.min_samples
+            else f"RANSAC found no consensus among the {n} gated matches"
         )
         return out
-    if config.guided:
-        # A similarity through the anchor (one point plus the seed per sample) removes most
-        # wrong matches before the projective RANSAC.
-        thr = config.ransac.threshold_px + prior.anchor_error_px
-        fixed = (prior.anchor_frame[None], prior.anchor_base[None]) if anchored else None
-        sim = ransac(
-            p, q, Similarity, _ransac_config(config, sample_size=2, threshold_px=thr,
-            refine="lstsq", min_inliers=4), rng, fixed=fixed,
-        )  # fmt: skip
-        if sim and sim.n_inliers >= Projective.min_samples:
-            p, q = p[sim.inliers], q[sim.inliers]
-    # Rounds of fit, then guided re-matching around the fit: the richest candidate model that
-    # the points can carry (affine before projective: perspective terms from a first, partial
-    # consensus extrapolate badly and would steer the search).
-    loop_kind = "affine" if "affine" in config.models else "projective"
-    model = None
-    cls = _MODELS[loop_kind]
-    for round_ in range(config.refine_rounds + 1):
-        fit = ransac(p, q, cls, _ransac_config(config, sample_size=cls.min_samples), rng)
-        if not fit:
-            break
-        model = fit.model if cls is Projective else fit.model.as_projective()
-        fit_p, fit_q = p[fit.inliers], q[fit.inliers]
-        if round_ == config.refine_rounds:
-            break
+    model, kind, fit_p, fit_q = best
+    out.model, out.kind, out.score = model, kind, best_support
+    out.inliers = gated & (np.hypot(*(model.apply(all_p) - all_q).T) < config.ransac.threshold_px)
+    return out
+
+
+def _support(model, p, q, config: CoarseConfig) -> int:
+    return int(np.count_nonzero(np.hypot(*(model.apply(p) - q).T) < config.ransac.threshold_px))
+
+
+def _similarity_prefilter(p, q, idx, prior, config, rng, anchored) -> NDArray:
+    """The pairs ``idx`` consistent with a similarity through the anchor (one pair plus the seed
+    per sample): most wrong guided matches go before the projective RANSAC."""
+    if len(idx) < Similarity.min_samples + 1:
+        return idx
+    extent = float(np.ptp(p[idx], axis=0).max())
+    thr = (
+        config.ransac.threshold_px
+        + prior.anchor_error_px
+        + config.prefilter_slope * prior.scale * extent
+    )
+    fixed = (prior.anchor_frame[None], prior.anchor_base[None]) if anchored else None
+    cfg = _ransac_config(config, sample_size=2, threshold_px=thr, refine="lstsq", min_inliers=4)
+    sim = ransac(p[idx], q[idx], Similarity, cfg, rng, fixed=fixed)
+    if sim and sim.n_inliers >= Projective.min_samples:
+        return idx[sim.inliers]
+    return idx
+
+
+# Searches whose support is within this share of the best count as equally good; the simplest
+# model among them is kept (a richer one fits a few more pairs of a partial overlap and
+# extrapolates worse).
+_NEAR_BEST = 0.9
+_COMPLEXITY = {"similarity": 0, "affine": 1, "projective": 2}
+
+
+def _consensus(p, q, fk, bk, prior, config, rng, domain, first=Projective):
+    """RANSAC (projective) on the pairs, the model the points support (:func:`_select_model`),
+    then ``refine_rounds`` of guided re-matching within ``refine_radius_px`` of that model and
+    again; a round that fits fewer of the original pairs is undone. Returns ``(model, kind,
+    fitted frame px, fitted base px)`` or None."""
+    fit = ransac(p, q, first, _ransac_config(config, sample_size=first.min_samples), rng)
+    if not fit:
+        return None
+    start = fit.model if first is Projective else fit.model.as_projective()
+    if first is not Projective:
+        refit = Projective.estimate(p[fit.inliers], q[fit.inliers], initial=start, optimizer="lm")
+        start = refit if refit else start
+    model, kind = _select_model(p[fit.inliers], q[fit.inliers], config.models, start, domain)
+    best = (model, kind, p[fit.inliers], q[fit.inliers])
+    support = _support(model, p, q, config)
+    for _ in range(config.refine_rounds):
         g = heading.guided_matches(
-            fk, bk, model.apply(fk.xy), config.refine_radius_px, prior.heading_deg,
-            prior.scale, hcfg, ratio=0.95,
+            fk, bk, best[0].apply(fk.xy), config.refine_radius_px, prior.heading_deg,
+            prior.scale, config.heading, ratio=0.95,
         )  # fmt: skip
         if len(g) < Projective.min_samples:
             break
-        p, q = fk.xy[g.idx_a], bk.xy[g.idx_b]
-    if model is None:
-        out.reason = f"RANSAC failed on the {len(p)} gated matches: {fit.reason}"
-        return out
-    if "projective" in config.models and loop_kind != "projective":
-        fit = ransac(fit_p, fit_q, Projective, config.ransac, rng)
-        proj = fit.model if fit else model
-    else:
-        proj = model
-    model, kind = _select_model(fit_p, fit_q, config.models, proj, domain)
-    if config.guided:
-        model = _irls(model, kind, fit_p, fit_q)
-    out.model, out.kind, out.score = model, kind, len(fit_p)
-    out.inliers = gated & (np.hypot(*(model.apply(all_p) - all_q).T) < config.ransac.threshold_px)
-    return out
+        gp, gq = fk.xy[g.idx_a], bk.xy[g.idx_b]
+        refit = ransac(gp, gq, Projective, config.ransac, rng)
+        if not refit:
+            break
+        m, k = _select_model(gp[refit.inliers], gq[refit.inliers], config.models, refit.model,
+                             domain)  # fmt: skip
+        s = _support(m, p, q, config)
+        if s < support:
+            break
+        best, support = (m, k, gp[refit.inliers], gq[refit.inliers]), s
+    return best
 
 
 def _from(prior: SimilarityPrior) -> str:

@@ -41,8 +41,8 @@ from registration.coarse import (
 from registration.coords import bbox_of, frame_outline, image_size, rescale
 from registration.distortion import HarrisModel
 from registration.features import ControlPoints, GriddedSiftConfig, Keypoints, TemplateConfig
-from registration.models import PolyProjective, Projective
-from registration.robust import FitResult, ReqconConfig, reqcon, supported_by_points
+from registration.models import Affine, PolyProjective, Projective, Similarity
+from registration.robust import FitResult, ReqconConfig, reqcon, simplest_supported
 
 __all__ = [
     "CoarseBase",
@@ -195,6 +195,18 @@ def _fit_fine(
         iterations=0,
         source=getattr(cps, "source", None),
     )
+    if n < 3 * start.min_samples and check_support and isinstance(initial, Projective):
+        # Too few points for REQCON on the polyprojective: the coarse model stays, said so.
+        empty.success = True
+        empty.base_from_corrected = PolyProjective.from_projective(initial, degree)
+        empty.residuals = np.asarray(initial.residuals(cps.src, cps.dst), float)
+        empty.model_kind = "coarse"
+        empty.model_reason = (
+            f"only {n} control points matched (REQCON on a degree-{degree} polyprojective "
+            f"needs {3 * start.min_samples}): the coarse model is kept"
+        )
+        empty.time_s = time.perf_counter() - t0
+        return empty
     if n < start.min_samples:
         empty.reason = (
             f"fine step: only {n} control points, a degree-{degree} polyprojective needs "
@@ -221,27 +233,52 @@ def _fit_fine(
     return result
 
 
+# Models the fine step may fall back to, simplest first (all expressed as polyprojectives).
+_FALLBACKS = (("similarity", Similarity), ("affine", Affine), ("projective", Projective))
+
+
+# Share of the frame the kept control points must span for the fine step to consider a model:
+# beyond the points, cross-validation cannot check a model's extra terms, and a
+# polyprojective's curvature explodes there (on SRIF pairs whose overlap covers part of image
+# 1, its corners went thousands of pixels off while cross-validation within the overlap
+# preferred it).
+FINE_MIN_COVERAGE = {"projective": 0.5, "polyprojective": 0.8}
+
+
 def _fall_back_if_unsupported(result: FineResult, degree: int, domain: NDArray) -> None:
-    """Keep the projective part when the control points do not support the polyprojective's
-    higher terms over the frame (``domain``, corrected px): points covering only part of the
-    frame (a map with no-data areas, another date with changed buildings) let those terms
-    extrapolate wildly elsewhere, which makes the fine step worse than the coarse one."""
+    """Keep the model (similarity, affine, projective or the polyprojective) that predicts
+    held-out parts of the kept control points best (spatial cross-validation,
+    :func:`registration.robust.simplest_supported`): points covering only part of the frame (a
+    map with no-data areas, another date with changed buildings) let a richer model's extra
+    terms extrapolate wildly elsewhere, which would make the fine step worse than the coarse
+    one."""
     src, dst = result.src[result.kept], result.dst[result.kept]
     poly = result.base_from_corrected
-    proj = Projective.estimate(src, dst, initial=poly.projective_part(), optimizer="lm")
-    if not proj or supported_by_points(proj, poly, src, dst, domain):
+    fits = []
+    for name, cls in _FALLBACKS:
+        if cls is Projective:
+            m = Projective.estimate(src, dst, initial=poly.projective_part(), optimizer="lm")
+        else:
+            m = cls.estimate(src, dst)
+        if m:
+            fits.append((name, m))
+    fits.append(("polyprojective", poly))
+    kind, model = simplest_supported(fits, src, dst, domain=domain, min_coverage=FINE_MIN_COVERAGE)
+    result.model_kind = kind
+    if kind == "polyprojective":
         result.model_reason = (
-            f"the {len(src)} kept control points support the degree-{degree} terms over the frame"
+            f"the degree-{degree} polyprojective predicts held-out parts of the {len(src)} kept "
+            "control points better than the simpler models"
         )
         return
+    proj = model if kind == "projective" else model.as_projective()
     result.base_from_corrected = PolyProjective.from_projective(
         proj, degree, poly.src_norm, poly.dst_norm
     )
     result.residuals = np.asarray(proj.residuals(result.src, result.dst), float)
-    result.model_kind = "projective"
     result.model_reason = (
-        f"the {len(src)} kept control points do not support the degree-{degree} terms over the "
-        "frame (the projective predicts the frame within their uncertainty)"
+        f"the {kind} predicts held-out parts of the {len(src)} kept control points at least as "
+        "well as the richer models, whose extra terms the points do not determine"
     )
 
 

@@ -382,8 +382,8 @@ def priors_without_seed(
         if any(len(key & u) > 0.5 * len(key) for u in used):
             continue
         used.append(key)
-        sim = Similarity.estimate(p[idx], q[idx])
-        if not sim:
+        sim, idx = _trimmed_similarity(p, q, idx)
+        if sim is None:
             continue
         anchor = p[idx].mean(axis=0)
         spread = float(np.median(np.hypot(*(sim.apply(p[idx]) - q[idx]).T)))
@@ -403,6 +403,23 @@ def priors_without_seed(
         nxt = priors[k + 1].votes if k + 1 < len(priors) else 0
         priors[k] = _with_ambiguity(priors[k], nxt / max(priors[k].votes, 1))
     return priors
+
+
+def _trimmed_similarity(p, q, idx, rounds: int = 3):
+    """Least-squares similarity of the pairs ``idx``, refitted without those beyond three
+    times the median residual (a bin also catches a few wrong matches)."""
+    sim = None
+    for _ in range(rounds):
+        fit = Similarity.estimate(p[idx], q[idx])
+        if not fit:
+            return sim, idx
+        sim = fit
+        r = np.hypot(*(sim.apply(p[idx]) - q[idx]).T)
+        keep = r <= 3.0 * max(float(np.median(r)), 1e-9)
+        if keep.all() or keep.sum() < 2:
+            break
+        idx = idx[keep]
+    return sim, idx
 
 
 def _with_ambiguity(prior: SimilarityPrior, ambiguity: float) -> SimilarityPrior:

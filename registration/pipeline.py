@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -20,6 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from registration import features
+from registration.coarse import normalise_seeds
 from registration.config import PipelineConfig, config_from_dict
 from registration.coords import image_size
 from registration.distortion import HarrisModel, check_valid
@@ -85,13 +87,21 @@ def validate_inputs(frames: FrameSource, base: NDArray, gamma, seed, reference_f
             f"reference frame {reference_frame} is {rw}x{rh} pixels but the sequence's first "
             f"readable frame is {w}x{h}; choose another --reference-frame"
         )
-    if seed is not None:
-        fx, fy, bx, by = seed
-        wb, hb = image_size(base)
+    seeds = normalise_seeds(seed)
+    wb, hb = image_size(base)
+    for fx, fy, bx, by in seeds:
         if not (0 <= fx <= w - 1 and 0 <= fy <= h - 1):
             raise ValueError(f"seed frame point ({fx}, {fy}) lies outside the {w}x{h} frame")
         if not (0 <= bx <= wb - 1 and 0 <= by <= hb - 1):
             raise ValueError(f"seed base point ({bx}, {by}) lies outside the {wb}x{hb} base map")
+    if len(seeds) == 2:
+        (f0, g0, b0, c0), (f1, g1, b1, c1) = seeds
+        if math.hypot(f1 - f0, g1 - g0) < 20 or math.hypot(b1 - b0, c1 - c0) < 20:
+            raise ValueError(
+                "the two seeds must be at least 20 px apart in both images to fix heading and "
+                f"scale, got frame ({f0:g}, {g0:g}) and ({f1:g}, {g1:g}), base ({b0:g}, {c0:g}) "
+                f"and ({b1:g}, {c1:g})"
+            )
 
 
 def render_to_base(
@@ -128,7 +138,8 @@ def register_sequence(
     config: PipelineConfig,
     preset: str | None = None,
     base_path: str | Path | None = None,
-    seed: tuple[float, float, float, float] | None = None,
+    seed=None,
+    base_valid: NDArray | None = None,
     reference_frame: int = 0,
     resume: bool = False,
     force: bool = False,
@@ -143,7 +154,11 @@ def register_sequence(
         base: base map, BGR uint8 (Hb, Wb, 3).
         gamma: Harris γ of the frames.
         config: pipeline configuration (:mod:`registration.config`).
-        seed: one corresponding point ``(fx, fy, bx, by)``: raw reference-frame px, base px.
+        seed: one corresponding point ``(fx, fy, bx, by)`` (raw reference-frame px, base px),
+            or a list of two (they fix heading and scale); None searches all headings and
+            scales.
+        base_valid: ``(Hb, Wb)`` bool, where the base map has content (no control points
+            elsewhere); None = everywhere.
         reference_frame: the frame registered inter-sensor (paper: the first).
         resume: continue a result folder made with the same inputs and configuration.
         force: delete the result already in ``out_dir`` and start over.
@@ -172,7 +187,7 @@ def register_sequence(
             progress(n_done, n)
 
         joint = _reference_step(
-            frames, base, gamma, seed, reference_frame, config, writer, reference
+            frames, base, gamma, seed, reference_frame, config, writer, reference, base_valid
         )
         n_done = sum(writer.done(k) for k in order)
         if progress:
@@ -222,7 +237,9 @@ def _failed_record(reason: str) -> dict:
     return {"status": "failed", "reason": reason, "stats": {}, "model": None}
 
 
-def _reference_step(frames, base, gamma, seed, ref, config, writer, reference) -> JointBase:
+def _reference_step(
+    frames, base, gamma, seed, ref, config, writer, reference, base_valid=None
+) -> JointBase:
     """Register the reference frame (or load it when resuming) and build the joint base."""
     out_dir = writer.out_dir
     frame, problem = read_frame(frames, ref)
@@ -247,9 +264,11 @@ def _reference_step(frames, base, gamma, seed, ref, config, writer, reference) -
     if reference is not None:
         coarse, fine = reference
     else:
-        coarse = coarse_register(frame, base, gamma, seed, config, rng=config.random_seed + ref)
+        coarse = coarse_register(
+            frame, base, gamma, seed, config, base_valid=base_valid, rng=config.random_seed + ref
+        )
         fine = (
-            fine_register_reference(frame, base, gamma, coarse, config)
+            fine_register_reference(frame, base, gamma, coarse, config, base_valid=base_valid)
             if coarse
             else FineResult(False, coarse.reason, None, *_empty_points())
         )
@@ -257,8 +276,7 @@ def _reference_step(frames, base, gamma, seed, ref, config, writer, reference) -
     if not fine:
         writer.write_frame(ref, _failed_record(fine.reason))
         raise RegistrationFailed(
-            f"the reference frame {ref} could not be registered to the base map ({fine.reason}); "
-            "check --seed and --gamma"
+            f"the reference frame {ref} could not be registered to the base map: {fine.reason}"
         )
     model = fine.base_from_corrected
     wb, hb = image_size(base)

@@ -411,6 +411,10 @@ def frame_arrays(fine, field, field_stats=None) -> dict[str, NDArray]:
     return arrays
 
 
+def _finite_or_none(v: float) -> float | None:
+    return float(v) if np.isfinite(v) else None
+
+
 def frame_stats(coarse, fine, times: dict[str, float], field_stats=None) -> dict:
     """A frame record's ``stats``: counts of the coarse (``CoarseResult``) and fine steps,
     residuals, times (s) and the local stage's summary."""
@@ -427,7 +431,15 @@ def frame_stats(coarse, fine, times: dict[str, float], field_stats=None) -> dict
         "residual_rms_px": float(np.sqrt(np.mean(kept**2))) if len(kept) else None,
         "residual_mean_px": float(np.mean(kept)) if len(kept) else None,
         "time_s": {name: round(v, 4) for name, v in times.items()},
+        "coarse_model": getattr(coarse, "model_kind", "projective"),
+        "fine_model": getattr(fine, "model_kind", "polyprojective"),
+        "fine_model_reason": getattr(fine, "model_reason", ""),
+        "residual_sigma_px": _finite_or_none(getattr(fine, "sigma_px", float("nan"))),
     }
+    if getattr(coarse, "heading_deg", None) is not None:
+        stats["heading_deg"] = round(float(coarse.heading_deg), 3)
+        stats["scale"] = round(float(coarse.scale), 5)
+        stats["gate"] = coarse.gate
     if field_stats is not None:
         stats["local"] = field_stats.to_dict()
     return stats
@@ -446,6 +458,14 @@ def base_identity(base: NDArray, base_path: str | os.PathLike | None = None) -> 
         "shape": list(pixels.shape),
         "pixels_sha256": hashlib.sha256(pixels.data).hexdigest(),
     }
+
+
+def _seed_json(seed) -> list | None:
+    """One seed as ``[fx, fy, bx, by]``, two as a list of two such lists (as given)."""
+    if seed is None:
+        return None
+    arr = np.asarray(seed, dtype=np.float64)
+    return [float(v) for v in arr] if arr.ndim == 1 else [[float(v) for v in row] for row in arr]
 
 
 def make_metadata(
@@ -473,7 +493,7 @@ def make_metadata(
         "base_path": str(base_path) if base_path else None,
         "frames_source": getattr(frames, "description", None),
         "reference_frame": int(reference_frame),
-        "seed": None if seed is None else [float(v) for v in seed],
+        "seed": _seed_json(seed),
         "preset": preset,
         "config": config_to_dict(config),
         "inputs": {

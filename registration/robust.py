@@ -27,7 +27,9 @@ from registration.coords import as_points
 
 __all__ = [
     "FitResult",
-    "supported_by_points",
+    "cross_validated_error",
+    "hull_coverage",
+    "simplest_supported",
     "RansacConfig",
     "ReqconConfig",
     "adaptive_max_iterations",
@@ -534,58 +536,100 @@ def reqcon(
     )
 
 
-def prediction_covariance(model: Any, src: ArrayLike, dst: ArrayLike, points: ArrayLike) -> NDArray:
-    """``(2M, 2M)`` covariance of ``model.apply(points)`` from the least-squares fit's
-    parameter covariance ``sigma^2 (J'J)^-1`` (numerical Jacobians, residual variance)."""
-    p0 = np.asarray(model.params, float)
-    step = 1e-6 * np.maximum(1.0, np.abs(p0))
-
-    def jac(fn):
-        cols = []
-        for i in range(len(p0)):
-            dp = np.zeros_like(p0)
-            dp[i] = step[i]
-            hi, lo = fn(model.with_params(p0 + dp)), fn(model.with_params(p0 - dp))
-            cols.append((hi - lo).ravel() / (2 * step[i]))
-        return np.stack(cols, axis=1)
-
-    j_fit = jac(lambda m: m.apply(src))
-    rss = float(np.sum((model.apply(src) - dst) ** 2))
-    dof = max(2 * len(src) - len(p0), 1)
-    cov = (rss / dof) * np.linalg.pinv(j_fit.T @ j_fit)
-    j_pts = jac(lambda m: m.apply(points))
-    return j_pts @ cov @ j_pts.T
+def spatial_folds(src: ArrayLike, cells: int = 3) -> NDArray[np.int64]:
+    """``(N,)`` fold index of each point: the cell of a ``cells`` x ``cells`` grid over the
+    points' bounding box it falls in (cells without points are no folds)."""
+    pts = as_points(src, "src")
+    lo, hi = pts.min(axis=0), pts.max(axis=0)
+    span = np.maximum(hi - lo, 1e-9)
+    ij = np.minimum(((pts - lo) / span * cells).astype(np.int64), cells - 1)
+    return ij[:, 1] * cells + ij[:, 0]
 
 
-def supported_by_points(
-    simple: Any,
-    rich: Any,
+def _refit(model: Any, src: NDArray, dst: NDArray, domain: NDArray | None) -> Any:
+    """``model``'s type fitted to the pairs, started from ``model`` (least squares)."""
+    kw = {} if domain is None or not hasattr(model, "degree") or model.degree < 2 else {
+        "domain": domain
+    }  # fmt: skip
+    return type(model).estimate(src, dst, initial=model, optimizer="lm", **kw)
+
+
+def cross_validated_error(
+    model: Any, src: ArrayLike, dst: ArrayLike, *, cells: int = 3, domain: ArrayLike | None = None
+) -> float:
+    """Mean held-out residual (pixels) of ``model``'s type under spatial cross-validation.
+
+    The points are split by a ``cells`` x ``cells`` grid over their extent; each cell is
+    predicted by the model fitted to all the others (started from ``model``). Cells at the edge
+    of the points are then predicted by extrapolation, which is exactly what a model does
+    wherever the points do not reach (the corners of a frame over a map with no-data areas, or
+    over another date whose buildings changed): a model whose extra terms only fit the points it
+    saw predicts them badly. ``inf`` when a fold cannot be fitted.
+    """
+    s, d = _pairs(src, dst)
+    dom = None if domain is None else as_points(domain, "domain")
+    folds = spatial_folds(s, cells)
+    held = np.full(len(s), np.nan)
+    for f in np.unique(folds):
+        out = folds == f
+        if (~out).sum() <= len(np.asarray(model.params)):
+            return math.inf
+        fit = _refit(model, s[~out], d[~out], dom)
+        if not fit:
+            return math.inf
+        with np.errstate(all="ignore"):
+            held[out] = np.hypot(*(fit.apply(s[out]) - d[out]).T)
+    held = np.where(np.isfinite(held), held, 1e6)
+    return float(np.mean(held))
+
+
+def hull_coverage(src: ArrayLike, domain: ArrayLike, cells: int = 10) -> float:
+    """Share of the ``domain``'s bounding box (e.g. the frame) inside the convex hull of
+    ``src``, counted on the centres of a ``cells`` x ``cells`` grid: how much of the frame the
+    points span (1 = all of it)."""
+    import scipy.spatial
+
+    s, d = as_points(src, "src"), as_points(domain, "domain")
+    if len(s) < 3:
+        return 0.0
+    lo, hi = d.min(axis=0), d.max(axis=0)
+    t = (np.arange(cells) + 0.5) / cells
+    gx, gy = np.meshgrid(lo[0] + t * (hi[0] - lo[0]), lo[1] + t * (hi[1] - lo[1]))
+    dom = np.c_[gx.ravel(), gy.ravel()]
+    try:
+        tri = scipy.spatial.Delaunay(s)
+    except scipy.spatial.QhullError:
+        return 0.0
+    return float(np.mean(tri.find_simplex(dom) >= 0))
+
+
+def simplest_supported(
+    fits: list[tuple[str, Any]],
     src: ArrayLike,
     dst: ArrayLike,
-    domain: ArrayLike,
-    confidence: float = 0.99,
-) -> bool:
-    """Whether the points support ``rich``'s extra freedom over ``simple`` on ``domain``.
-
-    ``rich`` was fitted (least squares) to the pairs ``src -> dst``; its predictions over
-    ``domain`` (``(M, 2)`` source pixels, e.g. the frame's outline) carry the uncertainty of that
-    fit (:func:`prediction_covariance`). When ``simple``'s predictions lie inside that
-    uncertainty (Mahalanobis distance below the chi-square quantile at ``confidence``, degrees of
-    freedom = the covariance's rank), the extra parameters only fit noise there, and where the
-    domain reaches beyond the points they extrapolate it: False. True when ``simple`` is
-    significantly off, or when there are too few pairs to tell.
-    """
-    from scipy.stats import chi2
-
-    s, d = _pairs(src, dst)
-    dom = as_points(domain, "domain")
-    if len(s) <= len(np.asarray(rich.params)):
-        return False
-    cov = prediction_covariance(rich, s, d, dom)
-    delta = (simple.apply(dom) - rich.apply(dom)).ravel()
-    if not np.isfinite(delta).all() or not np.isfinite(cov).all():
-        return True
-    tol = 1e-9 * max(float(np.abs(cov).max()), 1e-300)
-    rank = int(np.linalg.matrix_rank(cov, tol=tol))
-    d2 = float(delta @ np.linalg.pinv(cov, rcond=1e-9) @ delta)
-    return not d2 <= chi2.ppf(confidence, max(rank, 1))
+    *,
+    domain: ArrayLike | None = None,
+    min_coverage: dict[str, float] | None = None,
+    margin: float = 0.05,
+) -> tuple[str, Any]:
+    """The model of ``fits`` (``(name, model)`` pairs ordered from simplest to richest, each
+    fitted to ``src -> dst``) with the smallest spatially cross-validated error
+    (:func:`cross_validated_error`); a richer model must beat a simpler one by more than
+    ``margin`` (relative) to be kept. Cross-validation tests extrapolation within the points'
+    extent only; beyond it a richer model's extra terms are unchecked, so with a ``domain``
+    (where the model will be used, e.g. a grid over the frame) a model named in
+    ``min_coverage`` is a candidate only when the points span at least that share of the
+    domain (:func:`hull_coverage`). The first model is always a candidate."""
+    if not fits:
+        raise ValueError("simplest_supported needs at least one fitted model")
+    coverage = 1.0 if domain is None else hull_coverage(src, domain)
+    need = min_coverage or {}
+    best_name, best_model = fits[0]
+    best_err = cross_validated_error(best_model, src, dst, domain=domain)
+    for name, model in fits[1:]:
+        if coverage < need.get(name, 0.0):
+            continue
+        err = cross_validated_error(model, src, dst, domain=domain)
+        if err < (1.0 - margin) * best_err:
+            best_name, best_model, best_err = name, model, err
+    return best_name, best_model

@@ -16,7 +16,6 @@ import pytest
 from registration import coords, warp
 from registration.features import (
     ControlPoints,
-    GatingConfig,
     GriddedSiftConfig,
     Keypoints,
     Reference,
@@ -24,8 +23,6 @@ from registration.features import (
     TemplateConfig,
     detect_sift,
     downscale,
-    gate_by_seed,
-    gate_radius,
     gridded_sift_control_points,
     match_ratio,
     subpixel_peak,
@@ -218,115 +215,6 @@ def test_match_ratio_ratio_test_and_empty_inputs():
         match_ratio(a, b, 0.0)
     with pytest.raises(ValueError, match="method"):
         match_ratio(a, b, method="exhaustive")
-
-
-# ---------------------------------------------------------------------------------------------
-# location gating around the seed
-# ---------------------------------------------------------------------------------------------
-
-
-def test_gate_by_seed_raises_inlier_share_of_90_percent_outliers(rng):
-    n_true, n_false = 100, 900
-    h = similarity(1.2, 10.0, (0, 0), (0, 0))
-    h[:2, 2] = (40.0, -25.0)
-    to_dst = homography_fn(h)
-    src = rng.uniform(0, 1000, (n_true + n_false, 2))
-    dst = to_dst(src) + rng.normal(0, 1.0, src.shape)
-    is_true = np.zeros(len(src), bool)
-    is_true[:n_true] = True
-    dst[~is_true] = rng.uniform(-100, 1300, (n_false, 2))
-    # Named false matches, each breaking one bound only slightly beyond the tolerance.
-    seed_src = np.array([500.0, 480.0])
-    seed_dst = to_dst(seed_src)[0] + (1.5, -1.0)  # a hand-picked seed, off by ~2 px
-    named = {
-        900: ("mirrored", lambda p, q: 2 * seed_dst - q),
-        901: ("scale x2", lambda p, q: seed_dst + 2.0 * (q - seed_dst)),
-        902: ("rotated 40 deg", lambda p, q: seed_dst + (q - seed_dst) @ _rot(40).T),
-        903: ("scale x0.6", lambda p, q: seed_dst + 0.6 * (q - seed_dst)),
-    }
-    for i, (_, f) in named.items():
-        src[i] = seed_src + np.array([300.0, 150.0]) * (1 if i % 2 else -1)
-        dst[i] = f(src[i], to_dst(src[i])[0])
-    config = GatingConfig(expected_scale=1.0, max_scale_error=0.25, max_rotation_deg=15.0)
-    keep = gate_by_seed(src, dst, seed_src, seed_dst, config)
-    assert keep[is_true].all(), "every true match must survive gating"
-    for i, (name, _) in named.items():
-        assert not keep[i], f"false match {i} ({name}) was kept"
-    share_before = is_true.mean()
-    share_after = is_true[keep].mean()
-    assert share_before == pytest.approx(0.1)
-    assert share_after > 0.5, f"inlier share only rose to {share_after:.2f}"
-
-
-def _rot(deg: float) -> np.ndarray:
-    a = math.radians(deg)
-    return np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
-
-
-def test_gate_by_seed_geometry():
-    seed = np.zeros(2)
-    cfg = GatingConfig(expected_scale=1.0, max_scale_error=0.2, max_rotation_deg=10.0, slack_px=1.0)
-    p = np.array([[100.0, 0.0]] * 6 + [[0.5, 0.5]])
-    q = np.array(
-        [
-            [100.0, 0.0],  # identity: kept
-            [119.0, 0.0],  # scale 1.19: kept
-            [122.0, 0.0],  # scale 1.22: 1 px beyond 1.2 + slack 1 -> dropped
-            100 * np.array([math.cos(math.radians(9)), math.sin(math.radians(9))]),  # kept
-            100 * np.array([math.cos(math.radians(12)), math.sin(math.radians(12))]),  # ~3.5 px out
-            [-100.0, 0.0],  # opposite direction: dropped
-            [0.0, -0.5],  # near the seed the sector shrinks to a point: |b| < ~slack kept
-        ]
-    )
-    np.testing.assert_array_equal(
-        gate_by_seed(p, q, seed, seed, cfg), [True, True, False, True, False, False, True]
-    )
-    rotated = GatingConfig(expected_rotation_deg=30.0, max_rotation_deg=5.0, slack_px=0.5)
-    q30 = 100 * np.array([[math.cos(math.radians(30)), math.sin(math.radians(30))]])
-    assert gate_by_seed(p[:1], q30, seed, seed, rotated).tolist() == [True]
-    assert gate_by_seed(p[:1], p[:1], seed, seed, rotated).tolist() == [False]
-    assert GatingConfig(max_distance_px=50).max_distance_px == 50
-    assert gate_by_seed(p[:1], p[:1], seed, seed, GatingConfig(max_distance_px=50)).tolist() == [
-        False
-    ]
-    # gate_radius bounds every kept match's distance from seed_dst.
-    rng = np.random.default_rng(2)
-    src = rng.uniform(0, [400, 300], (5000, 2))
-    dst = rng.uniform(-800, 800, (5000, 2))
-    kept = gate_by_seed(src, dst, (200, 150), (0, 0), cfg)
-    radius = gate_radius(cfg, frame_size=(400, 300))
-    assert kept.any() and (np.linalg.norm(dst[kept], axis=1) <= radius).all()
-    assert radius == pytest.approx(1.2 * 500 + 1.0)
-    assert gate_radius(GatingConfig(max_distance_px=50, slack_px=8)) == pytest.approx(1.25 * 50 + 8)
-    assert gate_radius(cfg) == math.inf
-    with pytest.raises(ValueError, match="seed_src"):
-        gate_by_seed(p, q, [np.nan, 0], seed, cfg)
-    with pytest.raises(ValueError, match="same length"):
-        gate_by_seed(p, q[:3], seed, seed, cfg)
-    with pytest.raises(ValueError, match="max_scale_error"):
-        GatingConfig(max_scale_error=1.5)
-
-
-def test_gate_by_seed_on_real_pair():
-    """SIFT at 1/4 scale between a real aerial image and the same scene at another date (SRIF
-    pair, known similarity): gating around one gt-derived seed raises the share of correct matches."""
-    folder = shared_data("srif-optical-optical")
-    gt = np.vstack([np.loadtxt(folder / "gt_1.txt"), [0, 0, 1]])
-    a = to_grey(cv2.imread(str(folder / "pair1_1.jpg")))
-    b = to_grey(cv2.imread(str(folder / "pair1_2.jpg")))
-    ka, kb = detect_sift(a), detect_sift(b)
-    m = match_ratio(ka, kb, 0.9)  # a loose ratio leaves many false matches, as on the paper's pair
-    p, q = ka.xy[m.idx_a], kb.xy[m.idx_b]
-    correct = np.linalg.norm(homography_fn(gt)(p) - q, axis=1) < 5.0
-    seed_src = np.array([a.shape[1] / 2, a.shape[0] / 2])
-    seed_dst = homography_fn(gt)(seed_src)[0]
-    scale = math.sqrt(abs(np.linalg.det(gt[:2, :2])))
-    angle = math.degrees(math.atan2(gt[1, 0], gt[0, 0]))
-    cfg = GatingConfig(expected_scale=scale, expected_rotation_deg=angle, slack_px=8.0)
-    keep = gate_by_seed(p, q, seed_src, seed_dst, cfg)
-    assert correct.sum() >= 20
-    assert keep[correct].mean() > 0.95
-    assert correct[keep].mean() > correct.mean() + 0.1
 
 
 # ---------------------------------------------------------------------------------------------

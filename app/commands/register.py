@@ -35,8 +35,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--seed",
-        help="one corresponding point FX,FY,BX,BY: raw pixel of the reference frame and base pixel "
-        "(without it the coarse step runs without location gating)",
+        action="append",
+        metavar="FX,FY,BX,BY",
+        help="one corresponding point: raw pixel of the reference frame and base pixel of the "
+        "same ground spot; heading and scale between frame and map are estimated from it. Give "
+        "it twice (two points at least 20 px apart) to fix heading and scale exactly. Without "
+        "it the coarse step searches all headings and scales",
     )
     p.add_argument(
         "--reference-frame",
@@ -76,17 +80,26 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
-def parse_seed(text: str | None) -> tuple[float, float, float, float] | None:
+def parse_seed(text: str | list[str] | None):
+    """``--seed`` values -> None, one ``(fx, fy, bx, by)`` or a list of two."""
     if text is None:
         return None
-    parts = text.replace(" ", "").split(",")
-    try:
-        values = tuple(float(v) for v in parts)
-    except ValueError:
-        raise UsageError(f"--seed must be four numbers FX,FY,BX,BY, got {text!r}") from None
-    if len(values) != 4:
-        raise UsageError(f"--seed must be four numbers FX,FY,BX,BY, got {len(values)} in {text!r}")
-    return values
+    texts = [text] if isinstance(text, str) else list(text)
+    if len(texts) > 2:
+        raise UsageError(f"--seed may be given at most twice, got {len(texts)} times")
+    seeds = []
+    for t in texts:
+        parts = t.replace(" ", "").split(",")
+        try:
+            values = tuple(float(v) for v in parts)
+        except ValueError:
+            raise UsageError(f"--seed must be four numbers FX,FY,BX,BY, got {t!r}") from None
+        if len(values) != 4:
+            raise UsageError(f"--seed must be four numbers FX,FY,BX,BY, got {len(values)} in {t!r}")
+        if not all(math.isfinite(v) for v in values):
+            raise UsageError(f"--seed must be four finite numbers, got {t!r}")
+        seeds.append(values)
+    return seeds[0] if len(seeds) == 1 else seeds
 
 
 def run(args: argparse.Namespace) -> int:
