@@ -207,12 +207,23 @@ def test_same_seed_same_bytes_and_different_seed_differs(tmp_path):
     )
 
 
-def test_rerun_into_same_folder_leaves_no_stale_frames(tmp_path):
+def test_rerun_into_same_folder_needs_force_and_leaves_no_stale_frames(tmp_path):
     simulate(tmp_path, SimConfig(frame_size=(160, 120), n_frames=4, seed=1))
-    simulate(tmp_path, SimConfig(frame_size=(160, 120), n_frames=2, seed=1, video=False))
+    before = {p.name: p.read_bytes() for p in (tmp_path / "frames").iterdir()}
+    with pytest.raises(FileExistsError, match="already holds a simulated sequence") as info:
+        simulate(tmp_path, SimConfig(frame_size=(160, 120), n_frames=2, seed=1, video=False))
+    assert str(tmp_path) in str(info.value) and "\n" not in str(info.value)
+    # Refused: nothing touched.
+    assert {p.name: p.read_bytes() for p in (tmp_path / "frames").iterdir()} == before
+    assert load_truth(tmp_path).n_frames == 4
+    simulate(
+        tmp_path, SimConfig(frame_size=(160, 120), n_frames=2, seed=1, video=False), force=True
+    )
     assert sorted(p.name for p in (tmp_path / "frames").iterdir()) == ["000000.png", "000001.png"]
     assert not (tmp_path / "sequence.mp4").exists()
-    assert load_truth(tmp_path).n_frames == 2
+    truth = load_truth(tmp_path)
+    assert truth.n_frames == 2 and truth.verify_files() == []
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["base.png", "frames", "truth.json"]
 
 
 def test_video_written_with_even_size(tmp_path):
