@@ -395,3 +395,25 @@ def test_demo_damaged_cache_is_rebuilt(small_demo, damage):
     assert demomod.is_complete(path)
     assert frame.read_bytes() == original
     assert not [p for p in small_demo.iterdir() if p.name.startswith(".")]
+
+
+def test_demo_cache_rebuilt_when_renderer_or_truth_format_changes(small_demo, monkeypatch):
+    """A cache from older code (no version record, or another renderer version) is rebuilt; the
+    same config and code reuse it."""
+    path = demomod.demo_sequence()
+    assert demomod.is_complete(path)
+    marker = json.loads((path / "COMPLETE.json").read_text())
+    assert marker["versions"] == {"truth": 2, "render": demomod.RENDER_VERSION}
+    # A marker written before versions were recorded (and its config without the new fields).
+    old = {k: v for k, v in marker.items() if k != "versions"}
+    old["config"] = {k: v for k, v in old["config"].items() if k not in ("lens_k2", "base_scale")}
+    (path / "COMPLETE.json").write_text(json.dumps(old))
+    assert not demomod.is_complete(path)
+    calls = []
+    demomod.demo_sequence(progress=lambda d, t: calls.append(d))
+    assert calls and demomod.is_complete(path)
+    monkeypatch.setattr(demomod, "RENDER_VERSION", demomod.RENDER_VERSION + 1)
+    assert not demomod.is_complete(path)
+    calls.clear()
+    demomod.demo_sequence(progress=lambda d, t: calls.append(d))
+    assert calls and demomod.is_complete(path)

@@ -44,7 +44,7 @@ def write_bytes(path: Path, data: bytes) -> None:
 
 def encode_png(rgb: NDArray[np.uint8], name: str = "image") -> bytes:
     """PNG bytes of an RGB (or grey) uint8 image (fast compression: frames are large)."""
-    img = rgb[..., ::-1] if rgb.ndim == 3 else rgb
+    img = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR) if rgb.ndim == 3 else rgb
     ok, buf = cv2.imencode(".png", np.ascontiguousarray(img), [cv2.IMWRITE_PNG_COMPRESSION, 1])
     if not ok:
         raise OSError(f"could not encode {name} as PNG")

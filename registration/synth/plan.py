@@ -195,6 +195,13 @@ def _jitter_for_shake(parts: PoseParts, cfg: SimConfig, slow: float) -> float:
 
     floor = peak(0.0)
     if floor > target:
+        if cfg.unregistered_px is not None:
+            raise ValueError(
+                f"shake_deg {target:g} cannot be met: moving {cfg.unregistered_px:g} px "
+                f"(unregistered_px) within {cfg.n_frames} frames takes slow motion that alone "
+                f"turns the camera by {floor:.3f} deg between frames; use more frames (paper-hard "
+                "needs ~15) or drop unregistered_px"
+            )
         raise ValueError(
             f"shake_deg {target:g} is below what the slow motion alone gives ({floor:.3f} deg "
             "between frames from wander, yaw and drift); lower wander_deg, yaw_deg or wander_hz"
