@@ -271,6 +271,55 @@ class _VideoWriter:
 # The simulator
 
 
+def _paint_city(cfg: SimConfig, geom: SequenceGeometry):
+    """``(layout, scene, native base)`` of the procedural city planned in ``geom``: the frames'
+    sensor and the base's (another sun, other parked cars and traffic, another sensor)."""
+    layout = citymod.make_layout(*geom.scene_size, gsd=cfg.gsd_m, seed=cfg.seed)
+    scene_img = citymod.render_city(layout, citymod.Look(parked_seed=cfg.seed * 2 + 1))
+    base_img = citymod.second_sensor(
+        citymod.render_city(
+            layout,
+            citymod.Look(
+                sun_azimuth_deg=cfg.base_sun_deg[0],
+                sun_elevation_deg=cfg.base_sun_deg[1],
+                parked_seed=cfg.seed * 2 + 2,
+                parked_fraction=0.55,
+                traffic_seed=cfg.seed + 1000,
+                traffic_per_km=cfg.traffic_per_km * 0.8,
+            ),
+        ),
+        cfg.seed,
+    )
+    return layout, scene_img, base_img
+
+
+def _plan_user_scene(cfg: SimConfig, scene, base, base_from_scene):
+    """``(geometry, scene, native base)`` for a user scene (and base, related by
+    ``base_from_scene``; identity needs sizes within 3 %)."""
+    scene_img = _as_rgb(scene, "scene")
+    base_img = citymod.second_sensor(scene_img, cfg.seed) if base is None else _as_rgb(base, "base")
+    sh, sw = scene_img.shape[:2]
+    bh, bw = base_img.shape[:2]
+    if base_from_scene is None:
+        if abs(sw - bw) > 0.03 * sw or abs(sh - bh) > 0.03 * sh:
+            raise ValueError(
+                f"scene is {sw}x{sh} px but base is {bw}x{bh} px; give base_from_scene "
+                "(--base-from-scene, 9 numbers) to relate them"
+            )
+        h = np.eye(3)
+    else:
+        h = np.asarray(base_from_scene, np.float64)
+        if h.size != 9:
+            raise ValueError(f"base_from_scene must have 9 numbers (3x3), got {h.size}")
+        h = h.reshape(3, 3)
+        if not np.isfinite(h).all() or abs(np.linalg.det(h)) < 1e-12:
+            raise ValueError(
+                f"base_from_scene must be a finite invertible 3x3 matrix, got {h.ravel().tolist()}"
+            )
+        h = h / h[2, 2] if abs(h[2, 2]) > 1e-12 else h
+    return plan_scene(cfg, (sw, sh), (bw, bh), h), scene_img, base_img
+
+
 def simulate(
     out_dir: str | os.PathLike,
     config: SimConfig | None = None,
@@ -309,57 +358,19 @@ def simulate(
     out = Path(out_dir)
     check_target(out, force)
     total = cfg.n_frames + 2  # scene, frames, video
-    layout = None
+    # Progress starts once the flight is planned (a bad flight fails before any bar).
     if scene is None:
         if base is not None or base_from_scene is not None:
             raise ValueError("base and base_from_scene need a scene image")
         geom = plan_procedural(cfg)
-        # Progress starts once the flight is planned (a bad flight fails before any bar).
         if progress:
             progress(0, total)
-        layout = citymod.make_layout(*geom.scene_size, gsd=cfg.gsd_m, seed=cfg.seed)
-        scene_img = citymod.render_city(layout, citymod.Look(parked_seed=cfg.seed * 2 + 1))
-        base_img = citymod.second_sensor(
-            citymod.render_city(
-                layout,
-                citymod.Look(
-                    sun_azimuth_deg=cfg.base_sun_deg[0],
-                    sun_elevation_deg=cfg.base_sun_deg[1],
-                    parked_seed=cfg.seed * 2 + 2,
-                    parked_fraction=0.55,
-                    traffic_seed=cfg.seed + 1000,
-                    traffic_per_km=cfg.traffic_per_km * 0.8,
-                ),
-            ),
-            cfg.seed,
-        )
+        layout, scene_img, base_img = _paint_city(cfg, geom)
         scene_desc = "procedural"
     else:
+        layout = None
         scene_desc = str(scene) if isinstance(scene, (str, os.PathLike)) else "array"
-        scene_img = _as_rgb(scene, "scene")
-        base_img = (
-            citymod.second_sensor(scene_img, cfg.seed) if base is None else _as_rgb(base, "base")
-        )
-        sh, sw = scene_img.shape[:2]
-        bh, bw = base_img.shape[:2]
-        if base_from_scene is None:
-            if abs(sw - bw) > 0.03 * sw or abs(sh - bh) > 0.03 * sh:
-                raise ValueError(
-                    f"scene is {sw}x{sh} px but base is {bw}x{bh} px; give base_from_scene "
-                    "(--base-from-scene, 9 numbers) to relate them"
-                )
-            H = np.eye(3)
-        else:
-            H = np.asarray(base_from_scene, np.float64)
-            if H.size != 9:
-                raise ValueError(f"base_from_scene must have 9 numbers (3x3), got {H.size}")
-            H = H.reshape(3, 3)
-            if not np.isfinite(H).all() or abs(np.linalg.det(H)) < 1e-12:
-                raise ValueError(
-                    f"base_from_scene must be a finite invertible 3x3 matrix, got {H.ravel().tolist()}"
-                )
-            H = H / H[2, 2] if abs(H[2, 2]) > 1e-12 else H
-        geom = plan_scene(cfg, (sw, sh), (bw, bh), H)
+        geom, scene_img, base_img = _plan_user_scene(cfg, scene, base, base_from_scene)
         if progress:
             progress(0, total)
 
