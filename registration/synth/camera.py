@@ -253,9 +253,9 @@ class SimLens:
             hi = np.where(f > 0, rho, hi)
             with np.errstate(invalid="ignore", divide="ignore"):
                 new = rho - f / self._dg(rho)
-            bad = ~(np.isfinite(new) & (new > lo) & (new < hi))
+            bad = ~(np.isfinite(new) & (new >= lo) & (new <= hi))
             new = np.where(bad, 0.5 * (lo + hi), new)
-            done = np.all(np.abs(new - rho) <= 1e-16 + 4e-16 * np.abs(rho))
+            done = np.all(np.abs(new - rho) <= 1e-15 + 1e-14 * np.abs(rho))
             rho = new
             if done:
                 break
