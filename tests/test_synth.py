@@ -207,12 +207,23 @@ def test_same_seed_same_bytes_and_different_seed_differs(tmp_path):
     )
 
 
-def test_rerun_into_same_folder_leaves_no_stale_frames(tmp_path):
+def test_rerun_into_same_folder_needs_force_and_leaves_no_stale_frames(tmp_path):
     simulate(tmp_path, SimConfig(frame_size=(160, 120), n_frames=4, seed=1))
-    simulate(tmp_path, SimConfig(frame_size=(160, 120), n_frames=2, seed=1, video=False))
+    before = {p.name: p.read_bytes() for p in (tmp_path / "frames").iterdir()}
+    with pytest.raises(FileExistsError, match="already holds a simulated sequence") as info:
+        simulate(tmp_path, SimConfig(frame_size=(160, 120), n_frames=2, seed=1, video=False))
+    assert str(tmp_path) in str(info.value) and "\n" not in str(info.value)
+    # Refused: nothing touched.
+    assert {p.name: p.read_bytes() for p in (tmp_path / "frames").iterdir()} == before
+    assert load_truth(tmp_path).n_frames == 4
+    simulate(
+        tmp_path, SimConfig(frame_size=(160, 120), n_frames=2, seed=1, video=False), force=True
+    )
     assert sorted(p.name for p in (tmp_path / "frames").iterdir()) == ["000000.png", "000001.png"]
     assert not (tmp_path / "sequence.mp4").exists()
-    assert load_truth(tmp_path).n_frames == 2
+    truth = load_truth(tmp_path)
+    assert truth.n_frames == 2 and truth.verify_files() == []
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["base.png", "frames", "truth.json"]
 
 
 def test_video_written_with_even_size(tmp_path):
@@ -384,3 +395,25 @@ def test_demo_damaged_cache_is_rebuilt(small_demo, damage):
     assert demomod.is_complete(path)
     assert frame.read_bytes() == original
     assert not [p for p in small_demo.iterdir() if p.name.startswith(".")]
+
+
+def test_demo_cache_rebuilt_when_renderer_or_truth_format_changes(small_demo, monkeypatch):
+    """A cache from older code (no version record, or another renderer version) is rebuilt; the
+    same config and code reuse it."""
+    path = demomod.demo_sequence()
+    assert demomod.is_complete(path)
+    marker = json.loads((path / "COMPLETE.json").read_text())
+    assert marker["versions"] == {"truth": 2, "render": demomod.RENDER_VERSION}
+    # A marker written before versions were recorded (and its config without the new fields).
+    old = {k: v for k, v in marker.items() if k != "versions"}
+    old["config"] = {k: v for k, v in old["config"].items() if k not in ("lens_k2", "base_scale")}
+    (path / "COMPLETE.json").write_text(json.dumps(old))
+    assert not demomod.is_complete(path)
+    calls = []
+    demomod.demo_sequence(progress=lambda d, t: calls.append(d))
+    assert calls and demomod.is_complete(path)
+    monkeypatch.setattr(demomod, "RENDER_VERSION", demomod.RENDER_VERSION + 1)
+    assert not demomod.is_complete(path)
+    calls.clear()
+    demomod.demo_sequence(progress=lambda d, t: calls.append(d))
+    assert calls and demomod.is_complete(path)

@@ -47,15 +47,86 @@ def test_simulate_cli_writes_sequence(tmp_path, capsys):
     ],
 )
 def test_simulate_cli_errors(tmp_path, capsys, argv, needle):
-    rc = main(["simulate", str(tmp_path / "o"), *argv])
+    try:
+        rc = main(["simulate", str(tmp_path / "o"), *argv])
+    except SystemExit as exc:  # argparse's own errors (bad types) exit from the parser
+        rc = exc.code
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2
-    assert err[-1].startswith("aerialreg simulate: error: ") and needle in err[-1]
+    assert len(err) == 1, err  # one line: no usage, no progress bar, no traceback
+    assert err[0].startswith("aerialreg simulate: error: ") and needle in err[0]
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize(
+    ("argv", "needle"),
+    [
+        (["--size", "9000x100"], "between 16 and 8192 px per side, got 9000x100"),
+        (["--size", "8000x8000"], "8000x8000 is 64.0 MP, over the limit of 40 MP"),
+        (["--frames", "200000"], "at most 100000, got 200000"),
+        (["--frames", "3000", "--size", "2560x1920"], "14.7 gigapixels, over the limit of 10"),
+        (["--frames", "abc"], "argument --frames: invalid int value: 'abc'"),
+        (["--profile", "nope"], "unknown profile 'nope'; choose from default, paper-hard"),
+        (["--base-heading", "nan"], "base heading must be a finite angle"),
+        (["--base-scale", "0.01"], "base scale must be in [0.05, 8]"),
+        (["--seed", "-3"], "seed must be a non-negative integer, got -3"),
+        (["--lens-k2", "0.3"], "gamma + lens_k2 must be at most 0.9"),
+        (["--shake", "0.01", "--size", "64x48"], "shake_deg 0.01 is below"),
+        (["--profile", "paper-hard", "--frames", "3"], "use more frames (paper-hard needs ~15)"),
+        (["--fps", "nan"], "fps must be positive"),
+        (["--rebase", "/nonexistent", "--base-heading", "30"], "--rebase source folder not found"),
+        (["--rebase", "x", "--frames", "3"], "--rebase reuses SRC's frames"),
+        (["--rebase", "x"], "--rebase needs --base-heading and/or --base-scale"),
+    ],
+)
+def test_simulate_cli_limits_one_line(tmp_path, capsys, argv, needle):
+    test_simulate_cli_errors(tmp_path, capsys, argv, needle)
+
+
+def test_simulate_cli_force_profile_and_rebase(tmp_path, capsys):
+    out = tmp_path / "sim"
+    argv = ["simulate", str(out), "--profile", "paper-hard", "--size", "160x120", "--frames", "16"]
+    assert main([*argv, "--no-video", "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    cfg = info["config"]
+    # Profile values, with the command line's overrides.
+    assert info["profile"] == "paper-hard" and cfg["n_frames"] == 16
+    assert cfg["rolling_shutter_s"] == 0.15 and cfg["lens_k2"] == 0.04 and cfg["shake_deg"] == 0.6
+    assert cfg["unregistered_px"] == pytest.approx(93.3 * 160 / 2560)
+    first = (out / "frames" / "000000.png").read_bytes()
+    # Again without --force: refused in one line, nothing touched.
+    assert main([*argv, "--seed", "5", "--no-video"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "already holds a simulated sequence" in err[0] and str(out) in err[0]
+    assert (out / "frames" / "000000.png").read_bytes() == first
+    assert main([*argv, "--seed", "5", "--no-video", "--force"]) == 0
+    capsys.readouterr()
+    assert (out / "frames" / "000000.png").read_bytes() != first
+    # A copy with the base turned and halved.
+    rot = tmp_path / "rot"
+    assert main(["simulate", str(rot), "--rebase", str(out), "--base-heading", "30",
+                 "--base-scale", "0.5", "--json"]) == 0  # fmt: skip
+    info = json.loads(capsys.readouterr().out)
+    assert info["base_heading_deg"] == 30.0 and info["base_scale"] == 0.5
+    assert (rot / "frames" / "000000.png").samefile(out / "frames" / "000000.png")
+
+
+def test_simulate_cli_foreign_folder(tmp_path, capsys):
+    (tmp_path / "keep.txt").write_text("mine")
+    argv = ["simulate", str(tmp_path), "--size", "64x48", "--frames", "2", "--no-video"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "is not empty and is not a simulator output" in err[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["keep.txt"]
+    assert main([*argv, "--force"]) == 0
+    assert (tmp_path / "keep.txt").read_text() == "mine"
 
 
 def test_simulate_cli_demo_flags(tmp_path, capsys):
     assert main(["simulate", "--demo", str(tmp_path)]) == 2
     assert "--demo takes no OUT" in capsys.readouterr().err
+    assert main(["simulate", "--demo", "--profile", "paper-hard"]) == 2
+    assert "got --profile" in capsys.readouterr().err
     assert main(["simulate"]) == 2
     assert "OUT is required" in capsys.readouterr().err
 

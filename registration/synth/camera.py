@@ -18,6 +18,7 @@ a small fixed-point iteration on the row time.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -137,12 +138,191 @@ class Terrain:
 
 
 @dataclass(frozen=True)
+class SimLens:
+    """The simulated camera's radial lens: Harris (paper eq. 4) plus an optional fourth-order
+    term that no one-parameter Harris model can absorb.
+
+    Raw to corrected (normalised radii as in ``conventions.md``, ``ρ'`` raw, ``ρ`` corrected)::
+
+        ρ = ρ' / sqrt(1 - γ ρ'² - k2 ρ'⁴)
+
+    With ``k2 = 0`` this is exactly the inverse Harris model (conventions: the same formula with
+    ``-γ``), and the lens delegates to :class:`HarrisModel` bit for bit. ``k2 > 0`` bends the
+    frame's outer part further (stronger barrel towards the corners), ``k2 < 0`` less. Corrected
+    to raw (what the truth's ``raw_from_ground`` needs) is solved by Newton's method inside a
+    bisection bracket, to ~1e-15 of ``r_n``.
+
+    Attributes:
+        gamma: Harris γ (the nominal lens; paper section 3: 0.7).
+        k2: the extra fourth-order coefficient (dimensionless, radius normalised by ``r_n``).
+        width, height: raw frame size, px (centre and ``r_n`` as for :class:`HarrisModel`).
+    """
+
+    gamma: float
+    k2: float
+    width: int
+    height: int
+
+    @functools.cached_property
+    def harris(self) -> HarrisModel:
+        """The nominal Harris model (γ only)."""
+        return HarrisModel(self.gamma, self.width, self.height)
+
+    @property
+    def c(self) -> NDArray[np.float64]:
+        return self.harris.c
+
+    @property
+    def r_n(self) -> float:
+        return self.harris.r_n
+
+    @functools.cached_property
+    def raw_rho_limit(self) -> float:
+        """Largest normalised raw radius (exclusive) where the lens is defined and monotone:
+        the first root of ``1 - γ u - k2 u²`` (``u = ρ'²``) or, for ``k2 < 0``, where
+        ``dρ/dρ' ∝ 1 + k2 ρ'⁴`` vanishes; inf when neither exists."""
+        g, k = float(self.gamma), float(self.k2)
+        roots = np.roots([-k, -g, 1.0]) if k != 0 else (np.array([1.0 / g]) if g > 0 else [])
+        u = [r.real for r in np.atleast_1d(roots) if abs(r.imag) < 1e-12 and r.real > 0]
+        lim = float(np.sqrt(min(u))) if u else float("inf")
+        if k < 0:
+            lim = min(lim, float((-1.0 / k) ** 0.25))
+        return lim
+
+    def _g(self, rho_raw: NDArray) -> NDArray:
+        u = rho_raw * rho_raw
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return rho_raw / np.sqrt(1.0 - self.gamma * u - self.k2 * u * u)
+
+    def _dg(self, rho_raw: NDArray) -> NDArray:
+        u = rho_raw * rho_raw
+        d = 1.0 - self.gamma * u - self.k2 * u * u
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return (1.0 + self.k2 * u * u) / (d * np.sqrt(d))
+
+    def corrected_from_raw(self, xy: ArrayLike) -> NDArray[np.float64]:
+        """``(N, 2)`` raw pixels -> ``(N, 2)`` corrected pixels (closed form; NaN where
+        undefined)."""
+        if self.k2 == 0:
+            return self.harris.corrected_from_raw(xy)
+        xy = as_points(xy)
+        c, r_n = self.c, self.r_n
+        d = (xy - c) / r_n
+        u = np.sum(d * d, axis=1)
+        den = 1.0 - self.gamma * u - self.k2 * u * u
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out = c + r_n * d / np.sqrt(den)[:, None]
+        out[~((den > 0) & (np.sqrt(u) < self.raw_rho_limit))] = np.nan
+        return out
+
+    def raw_from_corrected(self, xy: ArrayLike) -> NDArray[np.float64]:
+        """``(N, 2)`` corrected pixels -> ``(N, 2)`` raw pixels (Newton; NaN where no raw radius
+        inside the lens's monotone range maps there)."""
+        if self.k2 == 0:
+            return self.harris.raw_from_corrected(xy)
+        xy = as_points(xy)
+        c, r_n = self.c, self.r_n
+        target = np.linalg.norm(xy - c, axis=1) / r_n
+        rho = self._solve(target)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            factor = np.where(target > 0, rho / np.where(target > 0, target, 1.0), 1.0)
+        return c + (xy - c) * factor[:, None]
+
+    def _solve(self, target: NDArray) -> NDArray:
+        """Raw radius ``ρ'`` with ``g(ρ') = target`` (g increasing on [0, raw_rho_limit))."""
+        lim = self.raw_rho_limit
+        finite = np.isfinite(target)
+        t = np.where(finite, target, 0.0)
+        if np.isfinite(lim):
+            hi_val = lim * (1.0 - 1e-12)
+            reach = float(self._g(np.array(hi_val)))
+        else:
+            hi_val = max(1.0, float(t.max(initial=0.0)))
+            while float(self._g(np.array(hi_val))) < t.max(initial=0.0):
+                hi_val *= 2.0
+            reach = float("inf")
+        lo = np.zeros_like(t)
+        hi = np.full_like(t, hi_val)
+        # Start from the Harris inverse (exact for k2 = 0), clipped into the bracket.
+        with np.errstate(invalid="ignore", divide="ignore"):
+            start = t / np.sqrt(1.0 + self.gamma * t * t)
+        rho = np.where(np.isfinite(start) & (start > 0) & (start < hi), start, 0.5 * hi)
+        for _ in range(200):
+            f = self._g(rho) - t
+            lo = np.where(f < 0, rho, lo)
+            hi = np.where(f > 0, rho, hi)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                new = rho - f / self._dg(rho)
+            bad = ~(np.isfinite(new) & (new >= lo) & (new <= hi))
+            new = np.where(bad, 0.5 * (lo + hi), new)
+            done = np.all(np.abs(new - rho) <= 1e-15 + 1e-14 * np.abs(rho))
+            rho = new
+            if done:
+                break
+        rho[~finite | (t >= reach)] = np.nan
+        return rho
+
+    def validity_problem(self) -> str | None:
+        """None when every raw pixel centre has a corrected position, else a one-line reason."""
+        rho_m = self.harris.max_raw_rho()
+        if rho_m < self.raw_rho_limit:
+            return None
+        return (
+            f"lens gamma {self.gamma:g}, k2 {self.k2:g} is not valid on a {self.width}x"
+            f"{self.height} frame: raw radius {self.raw_rho_limit:.4f} < the farthest raw "
+            f"pixel's {rho_m:.4f} (1 - gamma u - k2 u^2 must stay positive and 1 + k2 u^2 > 0 "
+            "for u = rho'^2 up to the corners)"
+        )
+
+
+def best_harris_fit(lens: SimLens, step_px: int = 8) -> dict:
+    """How far the best one-parameter Harris model lands from ``lens``, in raw pixels.
+
+    Fits ``γ`` and a free scale ``s`` of the corrected image (a scale is absorbed by any later
+    projective transform) so that ``Harris_γ.raw_from_corrected(c + s (x - c))`` reproduces the
+    raw position of every corrected point ``x = lens.corrected_from_raw(x')`` on a raw grid
+    ``step_px`` apart (plus the four corners), least squares over the grid.
+
+    Returns:
+        ``{"gamma", "scale", "rms_px", "max_px", "corner_px"}``: the fitted γ and ``s``, the RMS
+        and largest raw-pixel residual over the grid, and the largest at the four corners.
+    """
+    from scipy.optimize import least_squares
+
+    w, h = lens.width, lens.height
+    xs, ys = np.meshgrid(np.arange(0, w, step_px, float), np.arange(0, h, step_px, float))
+    corners = np.array([[0, 0], [w - 1, 0], [0, h - 1], [w - 1, h - 1]], float)
+    raw = np.concatenate([np.column_stack([xs.ravel(), ys.ravel()]), corners])
+    corr = lens.corrected_from_raw(raw)
+    c = lens.c
+
+    def residual(p, pts=raw, cor=corr):
+        model = HarrisModel(float(p[0]), w, h)
+        return (model.raw_from_corrected(c + p[1] * (cor - c)) - pts).ravel()
+
+    def safe(p):
+        r = residual(p)
+        return np.where(np.isfinite(r), r, 1e3)
+
+    fit = least_squares(safe, x0=[lens.gamma, 1.0], method="lm", xtol=1e-14, ftol=1e-14)
+    r = residual(fit.x).reshape(-1, 2)
+    d = np.linalg.norm(r, axis=1)
+    return {
+        "gamma": float(fit.x[0]),
+        "scale": float(fit.x[1]),
+        "rms_px": float(np.sqrt(np.mean(d * d))),
+        "max_px": float(d.max()),
+        "corner_px": float(d[-4:].max()),
+    }
+
+
+@dataclass(frozen=True)
 class SequenceGeometry:
     """Everything that decides where a raw pixel of frame ``k`` lands on the ground / base map.
 
     Attributes:
         width, height: raw frame size, px.
-        gamma: Harris γ of the lens (raw = HarrisModel.raw_from_corrected(ideal pinhole)).
+        gamma: Harris γ of the lens (raw = lens.raw_from_corrected(ideal pinhole)).
         focal_px: pinhole focal length of the corrected (ideal) image, px.
         readout_s: rolling-shutter readout time from row 0 to row ``height``, s (0 = global shutter).
         frame_times: ``(K,)`` start time of each frame's exposure, s.
@@ -151,6 +331,8 @@ class SequenceGeometry:
         scene_gsd: metres per scene pixel.
         scene_size, base_size: ``(width, height)`` of the scene and base images, px.
         base_from_scene: ``(3, 3)`` homography from scene pixels to base pixels.
+        lens_k2: the lens's fourth-order term beyond Harris (:class:`SimLens`; 0 = exactly
+            Harris).
     """
 
     width: int
@@ -165,10 +347,12 @@ class SequenceGeometry:
     scene_size: tuple[int, int]
     base_size: tuple[int, int]
     base_from_scene: NDArray
+    lens_k2: float = 0.0
 
     @property
-    def harris(self) -> HarrisModel:
-        return HarrisModel(self.gamma, self.width, self.height)
+    def lens(self) -> SimLens:
+        """The camera's lens (Harris γ plus ``lens_k2``)."""
+        return SimLens(self.gamma, self.lens_k2, self.width, self.height)
 
     @property
     def n_frames(self) -> int:
@@ -178,13 +362,15 @@ class SequenceGeometry:
     def principal_point(self) -> NDArray[np.float64]:
         return np.array([(self.width - 1) / 2.0, (self.height - 1) / 2.0])
 
-    def row_time(self, k: int, raw_y: NDArray) -> NDArray[np.float64]:
-        """Exposure time (s) of raw row ``raw_y`` (float) in frame ``k``."""
+    def row_time(self, k, raw_y: NDArray) -> NDArray[np.float64]:
+        """Exposure time (s) of raw row ``raw_y`` (float) in frame ``k`` (an int, or one per
+        row)."""
         return self.frame_times[k] + self.readout_s * np.asarray(raw_y, np.float64) / self.height
 
     # -- frame -> ground --------------------------------------------------------------------
-    def ground_from_raw(self, k: int, xy: ArrayLike) -> NDArray[np.float64]:
-        """``(N, 2)`` raw pixels of frame ``k`` -> ``(N, 2)`` ground ``(X, Y)`` metres.
+    def ground_from_raw(self, k, xy: ArrayLike) -> NDArray[np.float64]:
+        """``(N, 2)`` raw pixels of frame ``k`` -> ``(N, 2)`` ground ``(X, Y)`` metres (``k`` an
+        int, or an ``(N,)`` int array: one frame per point).
 
         No bounds check (points outside the frame are extrapolated); NaN where the ray misses
         the ground or the distortion is undefined.
@@ -195,7 +381,7 @@ class SequenceGeometry:
 
     def _rays(self, k: int, raw: NDArray) -> tuple[NDArray, NDArray]:
         """Camera centres ``(N, 3)`` and world ray directions ``(N, 3)`` of raw pixels."""
-        corr = self.harris.corrected_from_raw(raw)
+        corr = self.lens.corrected_from_raw(raw)
         t = self.row_time(k, raw[:, 1])
         c = self.pose.position(t)
         r = self.pose.rotation(t)
@@ -260,7 +446,7 @@ class SequenceGeometry:
         cs = self.pose.position(t)
         rs = self.pose.rotation(t)
         pp = self.principal_point
-        harris = self.harris
+        lens = self.lens
         out = np.empty((h, w, 2), np.float32)
         grid = pixel_grid(w, 1).astype(np.float64)[0]  # (W, 2)
         for y0 in range(0, h, rows_per_chunk):
@@ -268,7 +454,7 @@ class SequenceGeometry:
             n = y1 - y0
             raw = np.repeat(grid[None], n, axis=0)
             raw[..., 1] = rows[y0:y1, None]
-            corr = harris.corrected_from_raw(raw.reshape(-1, 2)).reshape(n, w, 2)
+            corr = lens.corrected_from_raw(raw.reshape(-1, 2)).reshape(n, w, 2)
             dc = (corr - pp) / self.focal_px  # (n, W, 2); the third component is 1
             r = rs[y0:y1, None, :, :]  # (n, 1, 3, 3): one rotation per row
             d = r[..., 0] * dc[..., 0:1] + r[..., 1] * dc[..., 1:2] + r[..., 2]
@@ -280,15 +466,16 @@ class SequenceGeometry:
         return out
 
     # -- ground -> frame --------------------------------------------------------------------
-    def raw_from_ground(self, k: int, XY: ArrayLike) -> NDArray[np.float64]:
-        """``(N, 2)`` ground ``(X, Y)`` metres -> ``(N, 2)`` raw pixels of frame ``k``.
+    def raw_from_ground(self, k, XY: ArrayLike) -> NDArray[np.float64]:
+        """``(N, 2)`` ground ``(X, Y)`` metres -> ``(N, 2)`` raw pixels of frame ``k`` (an int,
+        or an ``(N,)`` int array: one frame per point, solved in one batch).
 
         Solves for the raw pixel whose row's exposure time projects the ground point onto it
         (rolling shutter). No frame-bounds check; NaN behind the camera or without convergence.
         """
         g = as_points(XY, "ground points")
         P = np.column_stack([g, -self.terrain.height(g[:, 0], g[:, 1])])
-        harris = self.harris
+        lens = self.lens
         pp = self.principal_point
         t = np.full(len(g), self.frame_times[k] + 0.5 * self.readout_s)
         raw = np.full((len(g), 2), np.nan)
@@ -301,7 +488,7 @@ class SequenceGeometry:
                 corr = np.column_stack(
                     [self.focal_px * pc[:, 0] / z + pp[0], self.focal_px * pc[:, 1] / z + pp[1]]
                 )
-            new = harris.raw_from_corrected(corr)
+            new = lens.raw_from_corrected(corr)
             if self.readout_s == 0:
                 raw = new
                 break
@@ -315,12 +502,12 @@ class SequenceGeometry:
         return raw
 
     # -- scene / base pixels ----------------------------------------------------------------
-    def scene_from_raw(self, k: int, xy: ArrayLike) -> NDArray[np.float64]:
-        """Raw pixels -> scene pixels (no bounds check)."""
+    def scene_from_raw(self, k, xy: ArrayLike) -> NDArray[np.float64]:
+        """Raw pixels -> scene pixels (no bounds check; ``k`` as for :meth:`ground_from_raw`)."""
         return self.ground_from_raw(k, xy) / self.scene_gsd
 
-    def raw_from_scene(self, k: int, xy: ArrayLike) -> NDArray[np.float64]:
-        """Scene pixels -> raw pixels (no bounds check)."""
+    def raw_from_scene(self, k, xy: ArrayLike) -> NDArray[np.float64]:
+        """Scene pixels -> raw pixels (no bounds check; ``k`` as for :meth:`raw_from_ground`)."""
         return self.raw_from_ground(k, as_points(xy) * self.scene_gsd)
 
     def in_frame(self, xy: NDArray) -> NDArray[np.bool_]:
@@ -380,6 +567,7 @@ class SequenceGeometry:
             "scene_size": list(self.scene_size),
             "base_size": list(self.base_size),
             "base_from_scene": np.asarray(self.base_from_scene).tolist(),
+            "lens_k2": self.lens_k2,
         }
 
     @classmethod
@@ -397,6 +585,7 @@ class SequenceGeometry:
             scene_size=tuple(int(v) for v in d["scene_size"]),
             base_size=tuple(int(v) for v in d["base_size"]),
             base_from_scene=np.asarray(d["base_from_scene"], np.float64),
+            lens_k2=float(d.get("lens_k2", 0.0)),
         )
 
 
@@ -409,10 +598,10 @@ def apply_homography(h: NDArray, xy: NDArray) -> NDArray[np.float64]:
         return p[:, :2] / w[:, None]
 
 
-def focal_for_fov(width: int, height: int, gamma: float, fov_deg: float) -> float:
+def focal_for_fov(width: int, height: int, gamma: float, fov_deg: float, k2: float = 0.0) -> float:
     """Pinhole focal length (corrected px) giving the *raw* frame a horizontal field of view of
-    ``fov_deg`` through the Harris distortion (the paper's ~70°, table 1)."""
-    model = HarrisModel(gamma, width, height)
+    ``fov_deg`` through the lens (the paper's ~70°, table 1)."""
+    model = SimLens(gamma, k2, width, height)
     c = model.c
     edge = model.corrected_from_raw(np.array([[c[0] + width / 2.0, c[1]]]))[0]
     return float((edge[0] - c[0]) / np.tan(np.radians(fov_deg) / 2.0))

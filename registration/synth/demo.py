@@ -4,7 +4,8 @@ Location: ``$AERIALREG_CACHE_DIR/demo-v1`` if the variable is set, else
 ``platformdirs.user_cache_dir("aerialreg")/demo-v1``. The folder has the layout of
 :func:`registration.synth.simulate` plus ``COMPLETE.json`` (written last): a manifest of every
 file's size and SHA-256. A folder without the marker, with a missing, empty or changed file, or
-built with another config is rebuilt (into a temporary sibling, then swapped in).
+built with another config, truth format or renderer (``render.RENDER_VERSION``) is rebuilt (into
+a temporary sibling, then swapped in).
 """
 
 from __future__ import annotations
@@ -17,7 +18,9 @@ import shutil
 import tempfile
 from pathlib import Path
 
-from registration.synth.sequence import Progress, SimConfig, simulate
+from registration.synth.config import SimConfig
+from registration.synth.render import RENDER_VERSION
+from registration.synth.sequence import TRUTH_VERSION, Progress, simulate
 
 DEMO_NAME = "demo-v1"
 MARKER = "COMPLETE.json"
@@ -60,13 +63,17 @@ def _config_dict() -> dict:
     return json.loads(json.dumps(dataclasses.asdict(DEMO_CONFIG)))
 
 
+def _versions() -> dict:
+    return {"truth": TRUTH_VERSION, "render": RENDER_VERSION}
+
+
 def is_complete(root: Path) -> bool:
     """True when ``root`` holds a finished demo whose files match the marker's manifest."""
     marker = root / MARKER
     try:
         data = json.loads(marker.read_text())
         files = data["files"]
-        if data.get("config") != _config_dict():
+        if data.get("config") != _config_dict() or data.get("versions") != _versions():
             return False
         expected = {f"frames/{k:06d}.png" for k in range(DEMO_CONFIG.n_frames)} | {
             "base.png",
@@ -97,7 +104,7 @@ def demo_sequence(progress: Progress | None = None, *, rebuild: bool = False) ->
     tmp = Path(tempfile.mkdtemp(prefix=f".{DEMO_NAME}.build-", dir=root.parent))
     try:
         simulate(tmp, DEMO_CONFIG, progress=progress)
-        marker = {"config": _config_dict(), "files": _manifest(tmp)}
+        marker = {"config": _config_dict(), "versions": _versions(), "files": _manifest(tmp)}
         (tmp / (MARKER + ".tmp")).write_text(json.dumps(marker, indent=1))
         os.replace(tmp / (MARKER + ".tmp"), tmp / MARKER)
         # Swap the finished folder in; a concurrent builder may have won the race.
