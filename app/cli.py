@@ -15,7 +15,16 @@ import sys
 from collections.abc import Sequence
 
 # Subcommand modules in app/commands/, in the order --help lists them.
-COMMANDS = ("app", "simulate", "undistort", "calibrate", "register", "evaluate", "bench")
+COMMANDS = (
+    "app",
+    "simulate",
+    "undistort",
+    "calibrate",
+    "register",
+    "evaluate",
+    "export",
+    "bench",
+)
 
 
 class UsageError(Exception):

@@ -327,6 +327,7 @@ def coarse_register(
     *,
     base_features: CoarseFeatures | None = None,
     rng: np.random.Generator | int | None = 0,
+    base_valid: NDArray[np.bool_] | None = None,
 ) -> CoarseResult:
     """Coarse inter-sensor registration of the reference frame (paper 4.3.1).
 
@@ -338,6 +339,7 @@ def coarse_register(
             without location gating.
         config: a :class:`registration.config.PipelineConfig`.
         base_features: coarse SIFT of the base, when already computed.
+        base_valid: ``(Hb, Wb)`` bool, where the base has data; no keypoint is taken elsewhere.
     """
     t0 = time.perf_counter()
     cfg: CoarseConfig = config.coarse
@@ -346,7 +348,7 @@ def coarse_register(
     view = frame_view(frame_raw, gamma, config.match_in)
     frame_feats = coarse_features(view.grey, cfg, view=view)
     if base_features is None:
-        base_features = coarse_features(features.to_grey(base), cfg)
+        base_features = coarse_features(features.to_grey(base), cfg, mask=base_valid)
     gate = None
     seed_corr = seed_base = None
     if seed is not None:
@@ -428,12 +430,19 @@ def _fit_fine(
 
 
 def fine_register_reference(
-    frame_raw: NDArray, base: NDArray, gamma: float, coarse: CoarseResult, config
+    frame_raw: NDArray,
+    base: NDArray,
+    gamma: float,
+    coarse: CoarseResult,
+    config,
+    *,
+    base_valid: NDArray[np.bool_] | None = None,
 ) -> FineResult:
     """Fine inter-sensor registration of the reference frame (paper 4.3.2).
 
     The template grid of the corrected frame is matched in the base map around where the coarse
-    projective puts it; REQCON fits the polyprojective starting from the coarse model.
+    projective puts it; REQCON fits the polyprojective starting from the coarse model. With
+    ``base_valid`` (``(Hb, Wb)`` bool), no match window may touch the base's no-data.
     """
     t0 = time.perf_counter()
     if not coarse:
@@ -441,7 +450,7 @@ def fine_register_reference(
     cfg: FineConfig = config.fine
     model = coarse.base_from_corrected
     view = frame_view(frame_raw, gamma, config.match_in)
-    cps = _template_points(view, features.to_grey(base), model, cfg.template)
+    cps = _template_points(view, features.to_grey(base), model, cfg.template, ref_valid=base_valid)
     return _fit_fine(cps, model, cfg.degree, cfg.reqcon, t0, frame_domain(frame_raw, gamma))
 
 

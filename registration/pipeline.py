@@ -67,7 +67,11 @@ def previous_in_order(k: int, reference_frame: int) -> int:
     return k - 1 if k > reference_frame else k + 1
 
 
-def _metadata(frames, base, base_path, gamma, seed, reference_frame, config, preset) -> dict:
+def _metadata(
+    frames, base, base_path, gamma, seed, reference_frame, config, preset, base_georef=None
+) -> dict:
+    if base_georef is not None and not isinstance(base_georef, dict):
+        base_georef = base_georef.to_dict()
     return {
         "format": FORMAT,
         "version": VERSION,
@@ -81,6 +85,7 @@ def _metadata(frames, base, base_path, gamma, seed, reference_frame, config, pre
         "seed": None if seed is None else [float(v) for v in seed],
         "preset": preset,
         "config": config_to_dict(config),
+        "base_georef": base_georef,
     }
 
 
@@ -223,6 +228,8 @@ def register_sequence(
     progress: Progress | None = None,
     cancel: threading.Event | None = None,
     reference: tuple[CoarseResult, FineResult] | None = None,
+    base_georef=None,
+    base_valid: NDArray[np.bool_] | None = None,
 ) -> RegistrationResult:
     """Register every frame of ``frames`` to ``base`` and write the result folder ``out_dir``.
 
@@ -238,6 +245,11 @@ def register_sequence(
         cancel: when set, the run stops after the frame in progress (finished frames are kept).
         reference: coarse and fine results for the reference frame computed beforehand (the
             app's seed step), used instead of recomputing them.
+        base_georef: the base map's :class:`registration.georef.GeoReference` (or its
+            ``to_dict()``), recorded in ``result.json`` as ``base_georef`` so that the result
+            maps to map coordinates (``result.frame_to_map``); None for a plain image.
+        base_valid: ``(Hb, Wb)`` bool, False where the base map has no data
+            (:func:`registration.io.read_base_map`); no control point is taken there.
 
     Returns:
         The result, as :func:`registration.load` would open it.
@@ -249,7 +261,13 @@ def register_sequence(
     """
     out_dir = Path(out_dir)
     validate_inputs(frames, base, gamma, seed, reference_frame)
-    meta = _metadata(frames, base, base_path, gamma, seed, reference_frame, config, preset)
+    if base_valid is not None and np.shape(base_valid) != base.shape[:2]:
+        raise ValueError(
+            f"base_valid has shape {np.shape(base_valid)}, the base map {base.shape[:2]}"
+        )
+    meta = _metadata(
+        frames, base, base_path, gamma, seed, reference_frame, config, preset, base_georef
+    )
     _prepare_out(out_dir, meta, resume)
     writer = _Writer(out_dir)
     n = len(frames)
@@ -258,7 +276,9 @@ def register_sequence(
     if progress:
         progress(n_done, n)
 
-    joint = _reference_step(frames, base, gamma, seed, reference_frame, config, writer, reference)
+    joint = _reference_step(
+        frames, base, gamma, seed, reference_frame, config, writer, reference, base_valid
+    )
     n_done = sum(writer.done(k) for k in order)
     if progress:
         progress(n_done, n)
@@ -283,7 +303,9 @@ def register_sequence(
     return result
 
 
-def _reference_step(frames, base, gamma, seed, ref, config, writer, reference) -> JointBase:
+def _reference_step(
+    frames, base, gamma, seed, ref, config, writer, reference, base_valid=None
+) -> JointBase:
     """Register the reference frame (or load it when resuming) and build the joint base."""
     out_dir = writer.out_dir
     frame = frames.get(ref)
@@ -304,9 +326,11 @@ def _reference_step(frames, base, gamma, seed, ref, config, writer, reference) -
     if reference is not None:
         coarse, fine = reference
     else:
-        coarse = coarse_register(frame, base, gamma, seed, config, rng=config.random_seed + ref)
+        coarse = coarse_register(
+            frame, base, gamma, seed, config, rng=config.random_seed + ref, base_valid=base_valid
+        )
         fine = (
-            fine_register_reference(frame, base, gamma, coarse, config)
+            fine_register_reference(frame, base, gamma, coarse, config, base_valid=base_valid)
             if coarse
             else FineResult(False, coarse.reason, None, *_empty_points())
         )
