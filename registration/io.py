@@ -351,6 +351,16 @@ def stretch_to_uint8(
     return np.clip(out + 0.5, 0, 255).astype(np.uint8), (lo, hi)
 
 
+def temp_path_beside(path: str | os.PathLike) -> Path:
+    """A new empty temporary file in ``path``'s folder with its suffix (for writers that need a
+    file name, e.g. GDAL): write it, then ``os.replace`` it onto ``path``."""
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=p.parent, prefix=f".{p.stem}.", suffix=p.suffix)
+    os.close(fd)
+    return Path(tmp)
+
+
 def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:
     """Write ``data`` to ``path`` so that readers see the old file or the new one, never a part."""
     p = Path(path)

@@ -20,14 +20,8 @@ import registration
 from app.cli import main as cli_main
 from registration.config import get_preset
 from registration.coords import frame_outline
-from registration.export import (
-    QGIS_POINTS_HEADER,
-    ExportOptions,
-    _Mosaic,
-    export_result,
-    read_points_file,
-    write_points_file,
-)
+from registration.export import ExportOptions, _Mosaic, export_result
+from registration.gis_vector import QGIS_POINTS_HEADER, read_points_file, write_points_file
 from registration.global_registration import coarse_register, fine_register_reference
 from registration.io import open_frames, read_base_map, read_image
 from registration.synth import SimConfig, load_truth, simulate
@@ -438,6 +432,26 @@ def test_median_mosaic_ignores_a_passing_car():
     np.testing.assert_array_equal(image[:, :10], expected)
 
 
+def test_median_mosaic_equals_numpy_median_of_the_frames_with_data():
+    rng = np.random.default_rng(1)
+    images = [rng.integers(0, 255, (30, 28, 3), dtype=np.uint8) for _ in range(7)]
+    masks = [rng.random((30, 28)) < 0.6 for _ in range(7)]
+    mosaic = _Mosaic((0, 0, 28, 30), "median")
+    for image, mask in zip(images, masks, strict=True):
+        mosaic.add(image, mask, (0, 0, 28, 30))
+    got, valid = mosaic.result()
+    stack = np.stack(
+        [
+            np.where(m[..., None], i.astype(float), np.nan)
+            for i, m in zip(images, masks, strict=True)
+        ]
+    )
+    have = np.isfinite(stack[..., 0]).any(axis=0)
+    assert (valid == have).all() and not have.all()
+    want = np.floor(np.nanmedian(stack[:, have], axis=0) + 0.5)
+    np.testing.assert_array_equal(got[have], want)
+
+
 def test_export_can_be_cancelled_after_a_frame(result, sim, tmp_path):
     import threading
 
@@ -540,3 +554,12 @@ def test_real_orthophoto_end_to_end(tmp_path):
     summary = export_result(res, tmp_path / "exp", ["mosaic", "points"])
     with rasterio.open(summary["files"]["mosaic"][0]) as ds:
         assert ds.crs.to_epsg() == 32643 and ds.res == pytest.approx((0.5, 0.5))
+
+
+def test_export_benchmark_runs_end_to_end(capsys):
+    assert cli_main(["bench", "export", "--size", "480x360", "--frames", "2", "--json"]) == 0
+    figures = json.loads(capsys.readouterr().out)["export"]
+    ratios = figures["per_frame_ratio"]
+    assert ratios["cv2.imwrite PNG (baseline)"] == pytest.approx(1.0)
+    assert all(v > 0 for v in ratios.values()) and figures["n_frames"] == 2
+    assert figures["export_total_s"] > 0 and "| per frame |" in figures["markdown"]
