@@ -138,6 +138,8 @@ class ExportOptions:
             raise ValueError(f"video_scale must be in (0, 4], got {self.video_scale}")
         if self.step < 1:
             raise ValueError(f"step must be at least 1, got {self.step}")
+        if self.vector_crs is not None:
+            parse_crs(self.vector_crs)  # ValueError naming it, before anything is written
 
 
 # --------------------------------------------------------------------------------------------
@@ -558,8 +560,8 @@ def _export_rasters(result, frames, out, raster, render_ks, options, summary, ti
     times = summary["time_s"]
     for f in ("render", *raster):
         times[f] = 0.0
-    mosaic = _Mosaic(seq, options.mosaic) if "mosaic" in raster else None
     mosaic_ks = set(_spread(ok, options.mosaic_frames) if options.mosaic == "median" else ok)
+    mosaic = _Mosaic(seq, options.mosaic, len(mosaic_ks)) if "mosaic" in raster else None
     todo = set(render_ks)
     files = summary["files"]
     video = "mp4" in raster
@@ -686,13 +688,14 @@ class _Mosaic:
 
     STRIP = 256
 
-    def __init__(self, seq, method: str) -> None:
+    def __init__(self, seq, method: str, max_frames: int = 65535) -> None:
         self.seq, self.method = seq, method
         w, h = seq[2], seq[3]
         self.crops: list[tuple[NDArray, NDArray, tuple]] = []
         if method == "mean":
-            self.total = np.zeros((h, w, 3), np.float32)
-            self.count = np.zeros((h, w), np.uint32)
+            # The narrowest integer sums that cannot overflow: exact, and cheap to add.
+            self.total = np.zeros((h, w, 3), np.uint16 if max_frames <= 257 else np.uint32)
+            self.count = np.zeros((h, w), np.uint16 if max_frames <= 65535 else np.uint32)
 
     def add(self, img: NDArray, mask: NDArray, box) -> None:
         if self.method == "median":
@@ -700,14 +703,13 @@ class _Mosaic:
             return
         x, y = box[0] - self.seq[0], box[1] - self.seq[1]
         hh, ww = mask.shape
-        total = self.total[y : y + hh, x : x + ww]
-        np.add(total, img, out=total, where=mask[..., None])
+        self.total[y : y + hh, x : x + ww] += img * mask[..., None]
         self.count[y : y + hh, x : x + ww] += mask
 
     def result(self) -> tuple[NDArray[np.uint8], NDArray[np.bool_]]:
         if self.method == "mean":
-            n = np.maximum(self.count, 1)[..., None]
-            image = np.clip(self.total / n + 0.5, 0, 255).astype(np.uint8)
+            n = np.maximum(self.count, 1).astype(np.float32)[..., None]
+            image = (self.total.astype(np.float32) / n + 0.5).astype(np.uint8)
             return image, self.count > 0
         w, h = self.seq[2], self.seq[3]
         image = np.zeros((h, w, 3), np.uint8)

@@ -151,7 +151,7 @@ class GeoReference:
         """Map coordinates of this georeference -> coordinates in ``crs`` (``"EPSG:4326"``, ...).
 
         Axis order is always (x, y) = (easting, northing) or (longitude, latitude), whatever
-        the CRS's official axis order (pyproj ``always_xy``).
+        the CRS's official axis order (pyproj ``always_xy``). NaN rows stay NaN.
         """
         return _transform(self._require_crs(), parse_crs(crs), xy_map)
 
@@ -195,9 +195,13 @@ def _transform(src, dst, xy: ArrayLike) -> NDArray[np.float64]:
     from pyproj import Transformer
 
     p = as_points(xy, "xy")
-    tr = Transformer.from_crs(src, dst, always_xy=True)
-    x, y = tr.transform(p[:, 0], p[:, 1])
-    return np.c_[np.asarray(x, float), np.asarray(y, float)]
+    out = np.full_like(p, np.nan)
+    ok = np.isfinite(p).all(axis=1)  # NaN stays NaN (pyproj would give inf)
+    if ok.any():
+        tr = Transformer.from_crs(src, dst, always_xy=True)
+        x, y = tr.transform(p[ok, 0], p[ok, 1])
+        out[ok] = np.c_[np.asarray(x, float), np.asarray(y, float)]
+    return out
 
 
 # --------------------------------------------------------------------------------------------

@@ -292,13 +292,7 @@ def _sql_value(v):
 
 
 def _to_vector_crs(georef: GeoReference, map_xy: NDArray, vector_crs) -> NDArray:
-    if vector_crs is None:
-        return map_xy
-    out = np.full_like(map_xy, np.nan)
-    ok = np.isfinite(map_xy).all(axis=1)
-    if ok.any():
-        out[ok] = georef.to_crs(map_xy[ok], vector_crs)
-    return out
+    return map_xy if vector_crs is None else georef.to_crs(map_xy, vector_crs)
 
 
 def control_point_layer(result, georef: GeoReference, vector_crs=None) -> Layer:
@@ -311,7 +305,7 @@ def control_point_layer(result, georef: GeoReference, vector_crs=None) -> Layer:
         if cps is None:
             continue
         src, dst, kept, residuals = cps
-        source = result._npz(k).get("source")
+        source = result._npz(k).get("source")  # where each point matched (no public accessor)
         raw = result.harris.raw_from_corrected(src)
         xy = _to_vector_crs(georef, georef.map_from_base(dst), vector_crs)
         for i in np.flatnonzero(np.isfinite(xy).all(axis=1) & np.isfinite(raw).all(axis=1)):

@@ -239,7 +239,7 @@ class RegistrationResult:
         """
         georef = self._require_georef()
         out = georef.map_from_base(self.frame_to_base(k, xy, stage))
-        return out if to_crs is None else _nan_safe(georef.to_crs, out, to_crs)
+        return out if to_crs is None else georef.to_crs(out, to_crs)
 
     def map_to_frame(
         self, k: int, xy: ArrayLike, stage: str = "local", *, from_crs=None
@@ -251,19 +251,8 @@ class RegistrationResult:
             ValueError: the base map is not georeferenced.
         """
         georef = self._require_georef()
-        pts = as_points(xy, "xy")
-        if from_crs is not None:
-            pts = _nan_safe(georef.from_crs, pts, from_crs)
+        pts = as_points(xy, "xy") if from_crs is None else georef.from_crs(xy, from_crs)
         return self.base_to_frame(k, georef.base_from_map(pts), stage)
-
-
-def _nan_safe(fn, pts: NDArray, crs) -> NDArray[np.float64]:
-    """``fn(pts, crs)`` on the finite rows only (pyproj returns inf for NaN input)."""
-    out = np.full_like(pts, np.nan)
-    ok = np.isfinite(pts).all(axis=1)
-    if ok.any():
-        out[ok] = fn(pts[ok], crs)
-    return out
 
 
 def _check_stage(stage: str) -> None:

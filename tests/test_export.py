@@ -432,11 +432,12 @@ def test_median_mosaic_ignores_a_passing_car():
     np.testing.assert_array_equal(image[:, :10], expected)
 
 
-def test_median_mosaic_equals_numpy_median_of_the_frames_with_data():
+@pytest.mark.parametrize("method", ["median", "mean"])
+def test_mosaic_equals_numpy_over_the_frames_with_data(method):
     rng = np.random.default_rng(1)
     images = [rng.integers(0, 255, (30, 28, 3), dtype=np.uint8) for _ in range(7)]
     masks = [rng.random((30, 28)) < 0.6 for _ in range(7)]
-    mosaic = _Mosaic((0, 0, 28, 30), "median")
+    mosaic = _Mosaic((0, 0, 28, 30), method, max_frames=7)
     for image, mask in zip(images, masks, strict=True):
         mosaic.add(image, mask, (0, 0, 28, 30))
     got, valid = mosaic.result()
@@ -448,7 +449,8 @@ def test_median_mosaic_equals_numpy_median_of_the_frames_with_data():
     )
     have = np.isfinite(stack[..., 0]).any(axis=0)
     assert (valid == have).all() and not have.all()
-    want = np.floor(np.nanmedian(stack[:, have], axis=0) + 0.5)
+    combine = np.nanmedian if method == "median" else np.nanmean
+    want = np.floor(combine(stack[:, have], axis=0) + 0.5)
     np.testing.assert_array_equal(got[have], want)
 
 

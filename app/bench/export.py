@@ -132,7 +132,7 @@ def run(args) -> dict:
     mosaic_rows = {}
     for method in ("median", "mean"):
         t0 = time.perf_counter()
-        mosaic = _Mosaic(seq, method)
+        mosaic = _Mosaic(seq, method, len(rendered))
         for img, mask, box in rendered:
             mosaic.add(img, mask, box)
         image, valid = mosaic.result()
