@@ -567,13 +567,13 @@ def _export_rasters(result, frames, out, raster, render_ks, options, summary, ti
     video = "mp4" in raster
 
     def frame_images() -> Iterator[NDArray]:
-        for k in range(result.n_frames):
+        for k, frame in _frames_in_order(frames, result.n_frames, todo):
             if cancel is not None and cancel.is_set():
                 raise _Cancelled
             canvas = np.zeros((seq[3], seq[2], 3), np.uint8) if video else None
-            if k in todo:
+            if frame is not None:
                 t0 = time.perf_counter()
-                img, mask, box = _render_frame(result, frames.get(k), k, stage, bsize, options.step)
+                img, mask, box = _render_frame(result, frame, k, stage, bsize, options.step)
                 times["render"] += time.perf_counter() - t0
                 if img is not None:
                     if video:
@@ -618,6 +618,17 @@ def _export_rasters(result, frames, out, raster, render_ks, options, summary, ti
         tick()
     for f in times:
         times[f] = round(times[f], 4)
+
+
+def _frames_in_order(frames, n: int, todo: set[int]) -> Iterator[tuple[int, NDArray | None]]:
+    """``(k, frame)`` for k = 0..n-1, the frame None when not in ``todo``. A video is decoded
+    sequentially (seeking per frame is slow) unless only a few frames are needed."""
+    if hasattr(frames, "iter") and 4 * len(todo) >= n:
+        for k, frame in frames.iter(0):
+            yield k, (frame if k in todo else None)
+        return
+    for k in range(n):
+        yield k, (frames.get(k) if k in todo else None)
 
 
 def _render_frame(result, frame, k, stage, base_size, step):

@@ -59,7 +59,8 @@ class GeoReference:
     Attributes:
         transform: ``(a, b, c, d, e, f)``, GDAL's pixel-corner convention (module docstring).
         crs_wkt: the CRS as WKT, or None when unknown (a world file without a ``.prj``); map
-            coordinates then still work, other CRSs do not.
+            coordinates then still work, other CRSs do not. Any form :func:`parse_crs` takes
+            (``"EPSG:32643"``, a ``pyproj.CRS``) is accepted and stored as WKT.
     """
 
     transform: Affine6
@@ -73,6 +74,9 @@ class GeoReference:
         if abs(a * e - b * d) < 1e-300:
             raise ValueError(f"the affine transform {t} is singular (zero pixel area)")
         object.__setattr__(self, "transform", t)
+        crs = self.crs_wkt
+        if crs is not None and not (isinstance(crs, str) and "[" in crs):
+            object.__setattr__(self, "crs_wkt", parse_crs(crs).to_wkt())
 
     # -- construction ------------------------------------------------------------------------
     @classmethod

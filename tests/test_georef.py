@@ -138,6 +138,8 @@ def test_georeference_dict_crop_and_scale():
         half.map_from_base([[-0.5, -0.5]]), georef.map_from_base([[-0.5, -0.5]])
     )
     np.testing.assert_allclose(half.map_from_base([[0, 0]]), georef.map_from_base([[0.5, 0.5]]))
+    assert GeoReference(ROTATED, "EPSG:32633") == georef  # stored as WKT
+    assert GeoReference(ROTATED, 32633).epsg == 32633
     with pytest.raises(ValueError, match="singular"):
         GeoReference((0, 0, 1, 0, 0, 1))
 
