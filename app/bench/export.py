@@ -60,6 +60,16 @@ def _frame_writers(tmp: Path, georef):
 
 
 def run(args) -> dict:
+    import shutil
+
+    tmp = Path(tempfile.mkdtemp(prefix="aerialreg-bench-export-"))
+    try:
+        return _run(args, tmp)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)  # GeoTIFFs of 25 Mpx frames add up
+
+
+def _run(args, tmp: Path) -> dict:
     from pyproj import CRS
 
     from registration.config import get_preset
@@ -76,7 +86,6 @@ def run(args) -> dict:
     from registration.synth import SimConfig, load_truth, simulate
 
     w, h = args.size_wh
-    tmp = Path(tempfile.mkdtemp(prefix="aerialreg-bench-export-"))
     cfg = SimConfig(frame_size=(w, h), n_frames=args.frames, seed=args.seed, video=False)
     simulate(tmp / "sim", cfg, scene=args.scene, base=args.base)
     truth = load_truth(tmp / "sim")
