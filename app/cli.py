@@ -18,7 +18,16 @@ from collections.abc import Sequence
 from pathlib import Path
 
 # Subcommand modules in app/commands/, in the order --help lists them.
-COMMANDS = ("app", "simulate", "undistort", "calibrate", "register", "evaluate", "bench")
+COMMANDS = (
+    "app",
+    "simulate",
+    "undistort",
+    "calibrate",
+    "register",
+    "evaluate",
+    "export",
+    "bench",
+)
 
 
 class UsageError(ValueError):

@@ -13,7 +13,9 @@ Pure library: no GUI, no printing. Conventions (fixed, see ``conventions.md`` of
 Stage modules: ``distortion`` (section 3), ``models`` and ``robust`` (geometric models, RANSAC,
 REQCON), ``features`` (control points), ``global_registration`` (section 4), ``local`` (section 5),
 ``evaluation`` (section 6), ``synth`` (ground-truth simulator), ``result`` (result folders),
-``warp`` (the one remap primitive), ``config`` (presets).
+``warp`` (the one remap primitive), ``config`` (presets), ``georef`` (map coordinates of a
+georeferenced base), ``export`` and ``gis_vector`` (GeoTIFF, mosaic, video, QGIS and GeoJSON /
+GeoPackage files).
 """
 
 from __future__ import annotations

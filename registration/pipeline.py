@@ -146,6 +146,8 @@ def register_sequence(
     progress: Progress | None = None,
     cancel: threading.Event | None = None,
     reference: tuple[CoarseResult, FineResult] | None = None,
+    base_georef=None,
+    base_valid: NDArray[np.bool_] | None = None,
 ) -> RegistrationResult:
     """Register every frame of ``frames`` to ``base`` and write the result folder ``out_dir``.
 
@@ -166,6 +168,11 @@ def register_sequence(
         cancel: when set, the run stops after the frame in progress (finished frames are kept).
         reference: coarse and fine results for the reference frame computed beforehand (the
             app's seed step), used instead of recomputing them.
+        base_georef: the base map's :class:`registration.georef.GeoReference` (or its
+            ``to_dict()``), recorded in ``result.json`` as ``base_georef`` so that the result
+            maps to map coordinates (``result.frame_to_map``); None for a plain image.
+        base_valid: ``(Hb, Wb)`` bool, False where the base map has no data
+            (:func:`registration.io.read_base_map`); no control point is taken there.
 
     Returns:
         The result, as :func:`registration.load` would open it.
@@ -178,7 +185,16 @@ def register_sequence(
     """
     out_dir = Path(out_dir)
     validate_inputs(frames, base, gamma, seed, reference_frame)
-    meta = make_metadata(frames, base, base_path, gamma, seed, reference_frame, config, preset)
+    if base_valid is not None and np.shape(base_valid) != base.shape[:2]:
+        raise ValueError(
+            f"base_valid has shape {np.shape(base_valid)}, the base map {base.shape[:2]}"
+        )
+    if base_georef is not None and not isinstance(base_georef, dict):
+        base_georef = base_georef.to_dict()
+    meta = make_metadata(
+        frames, base, base_path, gamma, seed, reference_frame, config, preset,
+        extra={"base_georef": base_georef},
+    )  # fmt: skip
     with ResultWriter.create(out_dir, meta, frames=frames, resume=resume, force=force) as writer:
         n = len(frames)
         order = processing_order(n, reference_frame)

@@ -9,6 +9,11 @@ The interface (fixed by ``conventions.md``)::
 
 ``stage`` is ``"global"`` or ``"local"``. NaN for points of failed frames or outside what the
 result covers; never raises for a valid ``k``.
+
+For a georeferenced base (``result.json`` key ``base_georef``) the same in map coordinates::
+
+    result.frame_to_map(k, xy, stage="local", to_crs=None)     # raw px -> map (base's CRS)
+    result.map_to_frame(k, xy, stage="local", from_crs=None)   # map -> raw px
 """
 
 from __future__ import annotations
@@ -44,6 +49,7 @@ except ImportError:  # not POSIX: no lock (documented in README "Reliability")
     fcntl = None
 
 log = logging.getLogger(__name__)
+from registration.georef import GeoReference
 
 STAGES = ("global", "local")
 
@@ -144,6 +150,8 @@ class RegistrationResult:
         self.config = meta.get("config", {})
         self.preset = meta.get("preset")
         self.mid_base_path = self.out_dir / MID_BASE
+        # The base map's georeference (None for a plain image base): base px <-> map.
+        self.georef = GeoReference.from_dict(meta.get("base_georef"))
         self._models: dict[int, object] = {}
         self._arrays: dict[int, dict] = {}
         self.reload()
@@ -305,6 +313,42 @@ class RegistrationResult:
         from registration.local import local_base_to_frame
 
         return local_base_to_frame(lambda b: self._global_base_to_frame(k, b), field, pts)
+
+    # -- map coordinates (georeferenced base) --------------------------------------------------
+    def _require_georef(self):
+        if self.georef is None:
+            raise ValueError(
+                f"the base map of {self.out_dir} is not georeferenced: no map coordinates "
+                "(register with a GeoTIFF or a world-file base, or export with --georef)"
+            )
+        return self.georef
+
+    def frame_to_map(
+        self, k: int, xy: ArrayLike, stage: str = "local", *, to_crs=None
+    ) -> NDArray[np.float64]:
+        """``(N, 2)`` raw pixels of frame ``k`` -> ``(N, 2)`` map coordinates in the base's CRS
+        (``to_crs``: in that CRS instead, e.g. ``"EPSG:4326"`` gives (longitude, latitude)).
+        NaN where :meth:`frame_to_base` is NaN.
+
+        Raises:
+            ValueError: the base map is not georeferenced.
+        """
+        georef = self._require_georef()
+        out = georef.map_from_base(self.frame_to_base(k, xy, stage))
+        return out if to_crs is None else georef.to_crs(out, to_crs)
+
+    def map_to_frame(
+        self, k: int, xy: ArrayLike, stage: str = "local", *, from_crs=None
+    ) -> NDArray[np.float64]:
+        """``(N, 2)`` map coordinates (the base's CRS, or ``from_crs``) -> ``(N, 2)`` raw pixels
+        of frame ``k``; NaN where :meth:`base_to_frame` is NaN.
+
+        Raises:
+            ValueError: the base map is not georeferenced.
+        """
+        georef = self._require_georef()
+        pts = as_points(xy, "xy") if from_crs is None else georef.from_crs(xy, from_crs)
+        return self.base_to_frame(k, georef.base_from_map(pts), stage)
 
 
 def _check_stage(stage: str) -> None:

@@ -10,7 +10,7 @@ from app.cli import UsageError, emit_json, parse_size
 
 NAME = "bench"
 HELP = "Measure speed and accuracy against in-run baselines and print the figures (markdown or --json)."
-SUITES = ("distortion", "simulate", "register", "srif", "app")
+SUITES = ("distortion", "simulate", "register", "srif", "export", "app")
 MAX_FRAMES = 1000
 
 

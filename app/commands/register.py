@@ -19,7 +19,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--base",
         required=True,
-        help="base map image (orthorectified), in whose pixels results live",
+        help="base map (orthorectified): a GeoTIFF (georeference, no-data and palette read from "
+        "it), or a PNG/JPEG, optionally with a world file (.pgw/.jgw/.wld) and .prj",
+    )
+    p.add_argument(
+        "--base-crs",
+        metavar="CRS",
+        help="CRS of the base map (e.g. EPSG:32643) when its files do not say it (a world file "
+        "without .prj), or to override the file's",
+    )
+    p.add_argument(
+        "--base-nodata",
+        default="auto",
+        metavar="auto|file|VALUE",
+        help="base map no-data: 'auto' (default: the file's no-data/alpha/mask plus a black "
+        "collar touching the border), 'file' (only the file's), or a pixel value",
     )
     p.add_argument(
         "--frames",
@@ -106,7 +120,7 @@ def run(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
     from registration.config import get_preset
-    from registration.io import open_frames, read_image
+    from registration.io import open_frames, read_base_map
     from registration.pipeline import register_sequence, validate_inputs
     from registration.result import check_out_dir
 
@@ -118,7 +132,16 @@ def run(args: argparse.Namespace) -> int:
         config = replace(config, run_local=False)
     # A file, another tool's folder or a result without --resume/--force: refused before any work.
     check_out_dir(Path(args.out), resume=args.resume, force=args.force)
-    base = read_image(args.base)
+    nodata = args.base_nodata
+    if nodata not in ("auto", "file"):
+        try:
+            nodata = float(nodata)
+        except ValueError:
+            raise UsageError(
+                f"--base-nodata must be 'auto', 'file' or a number, got {nodata!r}"
+            ) from None
+    base_map = read_base_map(args.base, crs=args.base_crs, nodata=nodata)
+    base = base_map.image
     frames = open_frames(args.frames)
     validate_inputs(frames, base, args.gamma, seed, args.reference_frame)
     t0 = time.perf_counter()
@@ -145,6 +168,8 @@ def run(args: argparse.Namespace) -> int:
             resume=args.resume,
             force=args.force,
             progress=progress,
+            base_georef=base_map.georef,
+            base_valid=base_map.valid_or_none,
         )
     finally:
         if bar is not None:
@@ -173,6 +198,8 @@ def run(args: argparse.Namespace) -> int:
         "gamma": result.gamma,
         "time_s": round(elapsed, 3),
         "written": written,
+        "base_georeferenced": base_map.georef is not None,
+        "base_notes": base_map.notes,
     }
     if args.json:
         emit_json(summary)
