@@ -147,7 +147,6 @@ def register_sequence(
     cancel: threading.Event | None = None,
     reference: tuple[CoarseResult, FineResult] | None = None,
     base_georef=None,
-    base_valid: NDArray[np.bool_] | None = None,
 ) -> RegistrationResult:
     """Register every frame of ``frames`` to ``base`` and write the result folder ``out_dir``.
 
@@ -159,8 +158,8 @@ def register_sequence(
         seed: one corresponding point ``(fx, fy, bx, by)`` (raw reference-frame px, base px),
             or a list of two (they fix heading and scale); None searches all headings and
             scales.
-        base_valid: ``(Hb, Wb)`` bool, where the base map has content (no control points
-            elsewhere); None = everywhere.
+        base_valid: ``(Hb, Wb)`` bool, False where the base map has no data
+            (:func:`registration.io.read_base_map`); no control point is taken there.
         reference_frame: the frame registered inter-sensor (paper: the first).
         resume: continue a result folder made with the same inputs and configuration.
         force: delete the result already in ``out_dir`` and start over.
@@ -171,8 +170,6 @@ def register_sequence(
         base_georef: the base map's :class:`registration.georef.GeoReference` (or its
             ``to_dict()``), recorded in ``result.json`` as ``base_georef`` so that the result
             maps to map coordinates (``result.frame_to_map``); None for a plain image.
-        base_valid: ``(Hb, Wb)`` bool, False where the base map has no data
-            (:func:`registration.io.read_base_map`); no control point is taken there.
 
     Returns:
         The result, as :func:`registration.load` would open it.

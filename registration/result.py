@@ -32,6 +32,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from registration.coords import as_points, image_size
 from registration.distortion import HarrisModel
+from registration.georef import GeoReference
 from registration.io import (
     SAMPLE_BYTES,
     encode_npz,
@@ -49,7 +50,6 @@ except ImportError:  # not POSIX: no lock (documented in README "Reliability")
     fcntl = None
 
 log = logging.getLogger(__name__)
-from registration.georef import GeoReference
 
 STAGES = ("global", "local")
 
