@@ -36,6 +36,7 @@ from numpy.typing import NDArray
 
 from registration import features, heading
 from registration.coords import frame_outline, image_size, rescale
+from registration.correlation import CorrelationConfig, agreement, refine_by_correlation
 from registration.distortion import HarrisModel, undistort_image
 from registration.features import Keypoints, SiftConfig
 from registration.heading import HeadingConfig, SimilarityPrior
@@ -87,6 +88,10 @@ class CoarseConfig:
             that gives both images the same ground resolution once the scale is estimated
             (only when it differs from the frame's by more than 1.5x).
         models: candidate models, chosen on the final inliers by BIC (paper: projective only).
+        correlation: beyond the paper: rounds of gradient-magnitude template correlation at
+            reduced scale that refine the result (and, with a seed, rescue a failed SIFT step
+            from the seed's heading and scale): :mod:`registration.correlation`. None by
+            default (the paper).
         min_inliers_unseeded: fewest inliers a registration found without a seed needs (12).
         decisive_ratio: without a seed, the best candidate must have at least this many times
             the inliers of any candidate that disagrees with it (1.5), else the step reports
@@ -107,6 +112,7 @@ class CoarseConfig:
     match_base_scale: bool = False
     models: tuple[str, ...] = ("projective",)
     prefilter_slope: float = 0.0
+    correlation: CorrelationConfig = field(default_factory=CorrelationConfig)
     min_inliers_unseeded: int = 12
     decisive_ratio: float = 1.5
     seed_check_px: float = 40.0
@@ -158,6 +164,7 @@ class CoarseResult:
     gate_outline_base: NDArray[np.float64] | None = None
     model_kind: str = "projective"
     ambiguity: float | None = None
+    correlation_inliers: int = 0
 
     @property
     def n_matches(self) -> int:
@@ -326,7 +333,7 @@ def _ransac_config(config: CoarseConfig, **changes) -> RansacConfig:
     return dataclasses.replace(config.ransac, **changes)
 
 
-def _select_model(src, dst, kinds: Sequence[str], current: Projective, domain) -> tuple:
+def _select_model(src, dst, kinds: Sequence[str], current: Projective, probes) -> tuple:
     """The model among ``kinds`` that predicts held-out parts of the pairs best
     (:func:`registration.robust.simplest_supported`, spatial cross-validation): a projective's
     two perspective terms are kept only where the points determine them, since undetermined
@@ -340,7 +347,7 @@ def _select_model(src, dst, kinds: Sequence[str], current: Projective, domain) -
     if not fits:
         return current, "projective"
     kind, model = simplest_supported(
-        fits, src, dst, domain=domain, min_coverage={"projective": 0.5}
+        fits, src, dst, probes=probes, min_coverage={"projective": 0.5}
     )
     return (model if kind == "projective" else model.as_projective()), kind
 
@@ -659,15 +666,76 @@ def coarse_register(
         if abs(math.log(s_b / base_c.scale)) > math.log(1.5):
             base_c = cbase.features(s_b)
             priors, matches, attr = _priors(seeds, harris, frame, base_c, cfg, w, h)
-    domain = rescale(harris.corrected_from_raw(frame_outline(w, h, per_edge=4)), s_f)
-    attempts = [_attempt(p, frame, base_c, matches, cfg, rng, bool(seeds), domain) for p in priors]
+    t = (np.arange(10) + 0.5) / 10
+    gx, gy = np.meshgrid(t * w - 0.5, t * h - 0.5)
+    domain = rescale(harris.corrected_from_raw(np.c_[gx.ravel(), gy.ravel()]), s_f)
+    attempts = []
+    for i, prior in enumerate(priors):
+        attempts.append(_attempt(prior, frame, base_c, matches, cfg, rng, bool(seeds), domain))
+        best = max(a.score for a in attempts)
+        # Without a seed, stop once a registration stands out clearly from the candidates
+        # left (their Hough votes bound how many matches they could gather).
+        if i + 1 < len(priors) and best >= max(
+            2 * cfg.min_inliers_unseeded, 2 * cfg.decisive_ratio * priors[i + 1].votes
+        ):
+            break
     result = _decide(attempts, priors, seeds, frame, base_c, cfg, w, h)
     result.n_keypoints_frame = len(frame.keypoints)
     result.n_keypoints_base = len(base_c.keypoints)
+    if cfg.correlation.rounds and (result.success or (seeds and priors)):
+        _correlate(result, view, cbase, priors, seeds, s_f, cfg, rng, domain, base_c.scale)
     if seeds and result.success:
         _check_seed(result, seeds, harris, cfg, priors[0] if priors else None)
     result.time_s = time.perf_counter() - t0
     return result
+
+
+# The correlation rounds' model replaces the SIFT one only when this many times as many
+# templates agree with it.
+_CORRELATION_GAIN = 1.25
+
+
+def _correlate(result, view, cbase, priors, seeds, s_f, cfg, rng, probes, s_b) -> None:
+    """Refine the result by the correlation rounds, started from the SIFT model and, with a
+    seed, from the seed's similarity too; the start whose last round fits more template
+    matches wins. A seeded result that SIFT could not find is rescued when a round succeeds."""
+    starts = []
+    if result.success:
+        starts.append((result.base_from_corrected, result.model_kind))
+    if seeds and priors:
+        full = priors[0].rescaled(1.0 / s_f, 1.0 / s_b)
+        starts.append((full.similarity.as_projective(), "similarity"))
+
+    def select(src, dst, model):
+        small = rescale(src, s_f), rescale(dst, s_f)
+        chosen, kind = _select_model(*small, cfg.models, model.rescaled(s_f, s_f), probes)
+        return chosen.rescaled(1.0 / s_f, 1.0 / s_f), kind
+
+    best = None
+    for model, kind in starts:
+        out = refine_by_correlation(
+            view.grey, view.to_corrected, view.from_corrected, cbase.grey, cbase.valid, model,
+            cfg.correlation, select, rng, kind,
+        )  # fmt: skip
+        if out.rounds and (best is None or out.inliers > best.inliers):
+            best = out
+    if best is None:
+        return
+    if result.success:
+        # The SIFT model stays unless the images agree clearly better with the refined one
+        # (another date or sensor can pull correlation by a few pixels where SIFT was right).
+        args = (view.grey, view.to_corrected, view.from_corrected, cbase.grey, cbase.valid)
+        before = agreement(*args, result.base_from_corrected, cfg.correlation)
+        after = agreement(*args, best.model, cfg.correlation)
+        result.correlation_inliers = after
+        if not after > _CORRELATION_GAIN * before:
+            return
+    result.base_from_corrected = best.model
+    result.model_kind = best.kind
+    result.correlation_inliers = best.inliers
+    if not result.success:
+        result.success, result.reason = True, ""
+        result.gate = result.gate or "seed"
 
 
 def _priors(seeds, harris, frame, base_c, cfg, w, h):

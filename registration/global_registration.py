@@ -40,9 +40,10 @@ from registration.coarse import (
 )
 from registration.coords import bbox_of, frame_outline, image_size, rescale
 from registration.distortion import HarrisModel
-from registration.features import ControlPoints, GriddedSiftConfig, Keypoints, TemplateConfig
+from registration.features import ControlPoints, GriddedSiftConfig, Keypoints
 from registration.models import Affine, PolyProjective, Projective, Similarity
 from registration.robust import FitResult, ReqconConfig, reqcon, simplest_supported
+from registration.templates import TemplateConfig, template_control_points
 
 __all__ = [
     "CoarseBase",
@@ -174,6 +175,7 @@ def _fit_fine(
     t0: float,
     domain: NDArray | None = None,
     check_support: bool = False,
+    probes: NDArray | None = None,
 ) -> FineResult:
     """REQCON on the control points from ``initial``; with ``check_support``, the projective is
     kept where the points do not support the polyprojective (:func:`_fall_back_if_unsupported`).
@@ -228,7 +230,7 @@ def _fit_fine(
         sigma_px=float(fit.sigma_px),
     )
     if fit and check_support and degree > 1 and domain is not None:
-        _fall_back_if_unsupported(result, degree, domain)
+        _fall_back_if_unsupported(result, degree, domain, probes)
     result.time_s = time.perf_counter() - t0
     return result
 
@@ -245,7 +247,9 @@ _FALLBACKS = (("similarity", Similarity), ("affine", Affine), ("projective", Pro
 FINE_MIN_COVERAGE = {"projective": 0.5, "polyprojective": 0.8}
 
 
-def _fall_back_if_unsupported(result: FineResult, degree: int, domain: NDArray) -> None:
+def _fall_back_if_unsupported(
+    result: FineResult, degree: int, domain: NDArray, probes: NDArray | None
+) -> None:
     """Keep the model (similarity, affine, projective or the polyprojective) that predicts
     held-out parts of the kept control points best (spatial cross-validation,
     :func:`registration.robust.simplest_supported`): points covering only part of the frame (a
@@ -263,7 +267,9 @@ def _fall_back_if_unsupported(result: FineResult, degree: int, domain: NDArray) 
         if m:
             fits.append((name, m))
     fits.append(("polyprojective", poly))
-    kind, model = simplest_supported(fits, src, dst, domain=domain, min_coverage=FINE_MIN_COVERAGE)
+    kind, model = simplest_supported(
+        fits, src, dst, domain=domain, probes=probes, min_coverage=FINE_MIN_COVERAGE
+    )
     result.model_kind = kind
     if kind == "polyprojective":
         result.model_reason = (
@@ -306,9 +312,11 @@ def fine_register_reference(
     model = coarse.base_from_corrected
     view = frame_view(frame_raw, gamma, config.match_in)
     cps = _template_points(view, features.to_grey(base), model, cfg.template, ref_valid=base_valid)
+    w, h = image_size(frame_raw)
     return _fit_fine(
-        cps, model, cfg.degree, cfg.reqcon, t0, frame_domain(frame_raw, gamma), cfg.check_support
-    )
+        cps, model, cfg.degree, cfg.reqcon, t0, frame_domain(frame_raw, gamma), cfg.check_support,
+        cell_centres(w, h, gamma),
+    )  # fmt: skip
 
 
 def frame_domain(frame_raw: NDArray, gamma: float, n: int = 9) -> NDArray[np.float64]:
@@ -319,13 +327,23 @@ def frame_domain(frame_raw: NDArray, gamma: float, n: int = 9) -> NDArray[np.flo
     return HarrisModel(gamma, w, h).corrected_from_raw(np.c_[gx.ravel(), gy.ravel()])
 
 
+def cell_centres(width: int, height: int, gamma: float, cells: int = 10) -> NDArray[np.float64]:
+    """Centres of a ``cells`` x ``cells`` grid of equal cells over the raw frame, in corrected
+    pixels: the probes of :func:`registration.robust.hull_coverage` (how much of the frame
+    control points span)."""
+    t = (np.arange(cells) + 0.5) / cells
+    gx, gy = np.meshgrid(t * width - 0.5, t * height - 0.5)
+    return HarrisModel(gamma, width, height).corrected_from_raw(np.c_[gx.ravel(), gy.ravel()])
+
+
 def _template_points(
     view: FrameView, reference, base_from_corrected, template_cfg, *, ref_valid=None, fallback=None
 ):
     """Template control points of the view against a base-pixel reference (and a fallback
-    reference, see :func:`features.template_control_points`); ``src`` corrected px."""
+    reference, see :func:`registration.templates.template_control_points`); ``src`` corrected
+    px."""
     model = base_from_corrected
-    cps = features.template_control_points(
+    cps = template_control_points(
         view.grey,
         reference,
         lambda xy: model.apply(view.to_corrected(xy)),

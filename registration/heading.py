@@ -383,7 +383,7 @@ def priors_without_seed(
             continue
         used.append(key)
         sim, idx = _trimmed_similarity(p, q, idx)
-        if sim is None:
+        if sim is None or not abs(math.log(max(sim.scale, 1e-300))) < config.max_log_scale:
             continue
         anchor = p[idx].mean(axis=0)
         spread = float(np.median(np.hypot(*(sim.apply(p[idx]) - q[idx]).T)))

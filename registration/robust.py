@@ -272,13 +272,35 @@ def _draw_samples(gen: np.random.Generator, idx_all: NDArray, k: int, b: int) ->
     return idx_all[out]
 
 
+def _score(mats: NDArray, hs: NDArray, d: NDArray, thr: float) -> tuple[NDArray, NDArray]:
+    """Inlier counts and summed inlier residuals of ``(b, 3, 3)`` matrices on the pairs
+    ``hs`` (homogeneous source, ``(n, 3)``) -> ``d`` (``(n, 2)``)."""
+    proj = hs @ mats.transpose(0, 2, 1)  # (b, n, 3)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = np.hypot(proj[..., 0] / proj[..., 2] - d[:, 0], proj[..., 1] / proj[..., 2] - d[:, 1])
+    r = np.where(np.isfinite(r) & (proj[..., 2] > 0), r, np.inf)
+    inl = r < thr
+    return inl.sum(axis=1), np.where(inl, r, 0.0).sum(axis=1)
+
+
+# Above this many pairs, hypotheses are first scored on a fixed random subset of this size and
+# only each batch's best few on all pairs (preemptive scoring): the inlier share of a subset
+# estimates the whole set's closely enough to rank hypotheses, at a fraction of the cost.
+_SUBSET = 256
+_FULLY_SCORED = 4
+
+
 def _search_batched(s, d, fs, fd, idx_all, model_type, k_random, config, gen):
     """The same search with ``model_type.minimal_batch`` fitting many samples at once (closed
-    forms for the linear models, a batched DLT for the projective) and scoring them together;
-    the best sample is then fitted again with ``estimate`` so that the result is the model the
-    serial search would return for it."""
+    forms for the linear models, a batched DLT for the projective) and scoring them together
+    (preemptively on a subset when there are many pairs); the best sample is then fitted again
+    with ``estimate`` so that the result is the model the serial search would return for it."""
     n = len(s)
-    hs = np.c_[s, np.ones(n)]
+    hs_all = np.c_[s[idx_all], np.ones(len(idx_all))]
+    d_all = d[idx_all]
+    sub = None
+    if len(idx_all) > 2 * _SUBSET:
+        sub = np.sort(gen.choice(len(idx_all), _SUBSET, replace=False))
     best_count, best_cost, best_sample = -1, math.inf, None
     history: list[float] = []
     limit = float(config.max_iterations)
@@ -296,15 +318,11 @@ def _search_batched(s, d, fs, fd, idx_all, model_type, k_random, config, gen):
         if not ok.any():
             continue
         mats, samples = mats[ok], samples[ok]
-        proj = np.einsum("bij,nj->bni", mats, hs)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            r = np.hypot(
-                proj[..., 0] / proj[..., 2] - d[:, 0], proj[..., 1] / proj[..., 2] - d[:, 1]
-            )
-        r = np.where(np.isfinite(r) & (proj[..., 2] > 0), r, np.inf)
-        inl = r < thr
-        counts = inl.sum(axis=1)
-        costs = np.where(inl, r, 0.0).sum(axis=1)
+        if sub is not None:
+            pre, _ = _score(mats, hs_all[sub], d_all[sub], thr)
+            top = np.argsort(-pre, kind="stable")[:_FULLY_SCORED]
+            mats, samples = mats[top], samples[top]
+        counts, costs = _score(mats, hs_all, d_all, thr)
         # Best of the batch: most inliers, then the smaller cost, then the earlier sample.
         j = int(np.lexsort((np.arange(len(counts)), costs, -counts))[0])
         if counts[j] > best_count or (counts[j] == best_count and costs[j] < best_cost):
@@ -583,24 +601,24 @@ def cross_validated_error(
     return float(np.mean(held))
 
 
-def hull_coverage(src: ArrayLike, domain: ArrayLike, cells: int = 10) -> float:
-    """Share of the ``domain``'s bounding box (e.g. the frame) inside the convex hull of
-    ``src``, counted on the centres of a ``cells`` x ``cells`` grid: how much of the frame the
-    points span (1 = all of it)."""
-    import scipy.spatial
+def hull_coverage(src: ArrayLike, probes: ArrayLike) -> float:
+    """Share of the ``probes`` (e.g. the centres of a grid of cells over the frame) inside the
+    convex hull of ``src``: how much of the frame the points span (1 = all of it)."""
+    import cv2
 
-    s, d = as_points(src, "src"), as_points(domain, "domain")
+    s, dom = as_points(src, "src"), as_points(probes, "probes")
+    s = s[np.isfinite(s).all(axis=1)]
     if len(s) < 3:
         return 0.0
-    lo, hi = d.min(axis=0), d.max(axis=0)
-    t = (np.arange(cells) + 0.5) / cells
-    gx, gy = np.meshgrid(lo[0] + t * (hi[0] - lo[0]), lo[1] + t * (hi[1] - lo[1]))
-    dom = np.c_[gx.ravel(), gy.ravel()]
-    try:
-        tri = scipy.spatial.Delaunay(s)
-    except scipy.spatial.QhullError:
+    hull = cv2.convexHull(s.astype(np.float32)).reshape(-1, 2).astype(np.float64)
+    if len(hull) < 3:
         return 0.0
-    return float(np.mean(tri.find_simplex(dom) >= 0))
+    # Inside a convex polygon: on the same side of every edge.
+    edge = np.roll(hull, -1, axis=0) - hull
+    rel = dom[:, None, :] - hull[None, :, :]
+    cross = edge[None, :, 0] * rel[..., 1] - edge[None, :, 1] * rel[..., 0]
+    inside = (cross >= 0).all(axis=1) | (cross <= 0).all(axis=1)
+    return float(np.mean(inside))
 
 
 def simplest_supported(
@@ -609,6 +627,7 @@ def simplest_supported(
     dst: ArrayLike,
     *,
     domain: ArrayLike | None = None,
+    probes: ArrayLike | None = None,
     min_coverage: dict[str, float] | None = None,
     margin: float = 0.05,
 ) -> tuple[str, Any]:
@@ -616,13 +635,14 @@ def simplest_supported(
     fitted to ``src -> dst``) with the smallest spatially cross-validated error
     (:func:`cross_validated_error`); a richer model must beat a simpler one by more than
     ``margin`` (relative) to be kept. Cross-validation tests extrapolation within the points'
-    extent only; beyond it a richer model's extra terms are unchecked, so with a ``domain``
-    (where the model will be used, e.g. a grid over the frame) a model named in
-    ``min_coverage`` is a candidate only when the points span at least that share of the
-    domain (:func:`hull_coverage`). The first model is always a candidate."""
+    extent only; beyond it a richer model's extra terms are unchecked, so with ``probes`` (the
+    centres of a grid of cells over where the model will be used, the frame) a model named in
+    ``min_coverage`` is a candidate only when the points span at least that share of them
+    (:func:`hull_coverage`). The first model is always a candidate. ``domain``: where a
+    polyprojective must stay defined."""
     if not fits:
         raise ValueError("simplest_supported needs at least one fitted model")
-    coverage = 1.0 if domain is None else hull_coverage(src, domain)
+    coverage = 1.0 if probes is None else hull_coverage(src, probes)
     need = min_coverage or {}
     best_name, best_model = fits[0]
     best_err = cross_validated_error(best_model, src, dst, domain=domain)

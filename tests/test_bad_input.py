@@ -553,7 +553,7 @@ def test_missing_mid_base_image_redoes_the_reference_frame(sims, registered, tmp
         (["--gamma", "nan"], "--gamma must be a finite number"),
         (["--gamma", "abc"], "argument --gamma: invalid float value: 'abc'"),
         (["--seed", "1,2,3"], "--seed must be four numbers"),
-        (["--seed", "nan,10,10,10"], "seed frame point (nan, 10.0) lies outside the 480x360 frame"),
+        (["--seed", "nan,10,10,10"], "--seed must be four finite numbers, got 'nan,10,10,10'"),
         (["--seed", "10,10,-5,10"], "seed base point (-5.0, 10.0) lies outside"),
         (["--reference-frame", "99"], "reference frame 99 out of range: the sequence has 6 frames"),
         (["--reference-frame", "-1"], "reference frame -1 out of range"),

@@ -1,0 +1,232 @@
+"""Correlation rounds of the coarse step (beyond the paper): the coarse model refined by
+templates of gradient magnitude at reduced scale, with large search ranges.
+
+SIFT descriptors across another date, season and sensor often disagree (on the OrthoLoC UAV
+photo against an official orthophoto of another date, one right ratio-test match in 65 at full
+resolution), while the edges of streets, kerbs and buildings stay where they were. Starting from
+the coarse model (or only from the heading and scale of a seed), each round warps the base into
+the frame's geometry at a reduced scale, correlates a dense grid of templates of the two images'
+gradient magnitude over a wide search range (:mod:`registration.templates`), and fits the model
+the matches support (RANSAC, then the choice among similarity, affine and projective by spatial
+cross-validation); later rounds use a finer scale and a narrower range. Measured on that
+OrthoLoC pair from the seed's similarity alone: 52 px mean error with intensity correlation,
+2.7 px with gradient magnitude after four rounds.
+
+All models are ``base_from_corrected`` (corrected-frame pixels to base pixels).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from registration.coords import image_size, rescale
+from registration.features import downscale
+from registration.models import Projective
+from registration.robust import RansacConfig, ransac
+from registration.templates import TemplateConfig, gradient_magnitude, template_control_points
+
+__all__ = ["CorrelationConfig", "CorrelationResult", "agreement", "refine_by_correlation"]
+
+
+@dataclass(frozen=True)
+class CorrelationConfig:
+    """Correlation rounds (all beyond the paper; none in the ``paper`` preset).
+
+    Attributes:
+        rounds: ``(side_px, search_px)`` per round: the frame is resampled so that its longer
+            side has ``side_px`` pixels (never above full resolution), and ``search_px`` is
+            the search range's side in pixels at that scale. Empty = no correlation rounds.
+        template: the templates (side, spacing in pixels at the round's scale, minimum
+            score), correlated on the images' gradient magnitude; its ``search_px`` is set per
+            round.
+        ransac: RANSAC on the matches, pixels at the round's scale.
+        min_inliers: fewest RANSAC inliers a round needs to replace the model.
+    """
+
+    rounds: tuple[tuple[float, int], ...] = ()
+    template: TemplateConfig = field(
+        default_factory=lambda: TemplateConfig(
+            template_px=31,
+            spacing_px=12,
+            search_px=40,
+            min_score=0.3,
+            dither_iterations=0,
+            edge_template_px=0,
+            min_template_std=3.0,
+            signal="intensity",
+        )  # fmt: skip
+    )
+    ransac: RansacConfig = field(
+        default_factory=lambda: RansacConfig(threshold_px=1.5, max_iterations=5000, refine="lm")
+    )
+    min_inliers: int = 12
+
+    def __post_init__(self) -> None:
+        for side, search in self.rounds:
+            if not (side >= 32 and search >= 2):
+                raise ValueError(
+                    f"CorrelationConfig.rounds need side_px >= 32 and search_px >= 2, got "
+                    f"({side}, {search})"
+                )
+        if self.min_inliers < 4:
+            raise ValueError(f"CorrelationConfig.min_inliers must be >= 4, got {self.min_inliers}")
+
+
+@dataclass
+class CorrelationResult:
+    """Outcome of :func:`refine_by_correlation`.
+
+    Attributes:
+        model: the refined ``base_from_corrected`` projective (the start when no round
+            succeeded).
+        kind: the kind of model the last accepted round kept.
+        inliers: RANSAC inliers of the last accepted round (0 = none accepted).
+        rounds: rounds accepted.
+        frame_xy, base_xy: the last accepted round's inlier matches, full-scale corrected frame
+            px and base px.
+    """
+
+    model: Projective
+    kind: str
+    inliers: int = 0
+    rounds: int = 0
+    frame_xy: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2)))
+    base_xy: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 2)))
+
+
+def refine_by_correlation(
+    frame_grey: NDArray[np.uint8],
+    to_corrected: Callable[[NDArray], NDArray],
+    from_corrected: Callable[[NDArray], NDArray],
+    base: NDArray,
+    base_valid: NDArray | None,
+    start: Projective,
+    config: CorrelationConfig,
+    select: Callable[[NDArray, NDArray, Projective], tuple[Projective, str]],
+    rng: np.random.Generator,
+    kind: str = "projective",
+) -> CorrelationResult:
+    """Refine ``start`` by the rounds of ``config`` (module doc).
+
+    Args:
+        frame_grey: the image control points are found in (raw or corrected frame), ``(H, W)``.
+        to_corrected, from_corrected: its pixels <-> corrected pixels (``(N, 2)``).
+        base: base map (grey or colour).
+        base_valid: ``(Hb, Wb)`` bool, where the base has content (None = everywhere).
+        start: ``base_from_corrected`` to start from.
+        config: the rounds.
+        select: ``(frame_xy, base_xy, projective) -> (model, kind)``, the model choice on a
+            round's inliers (full-scale pixels).
+        rng: random generator of RANSAC.
+        kind: the kind of ``start``.
+    """
+    out = CorrelationResult(start, kind)
+    # Gradient magnitude at full resolution, then area-averaged per round: the density of fine
+    # edges (lane markings, kerbs, cars, roof texture) survives the reduction, which the
+    # gradient of the reduced image loses (on the OrthoLoC pair: 2.7 px against 42 px).
+    grey = gradient_magnitude(frame_grey)
+    base_grey = gradient_magnitude(base)
+    w, h = image_size(grey)
+    for side, search in config.rounds:
+        s = min(1.0, side / max(w, h))
+        scale = _model_scale(out.model, to_corrected, w, h)
+        s_b = min(1.0, s / scale) if np.isfinite(scale) and scale > 0 else s
+        found = _one_round(grey, to_corrected, from_corrected, base_grey, base_valid, out.model,
+                           s, s_b, search, config, rng)  # fmt: skip
+        if found is None:
+            continue
+        src, dst, model = found
+        out = CorrelationResult(model, "projective", len(src), out.rounds + 1, src, dst)
+    if out.rounds:
+        # The model choice on the last round's matches only: during the rounds a projective
+        # follows a strongly tilted frame's perspective, which the next round's windows need.
+        out.model, out.kind = select(out.frame_xy, out.base_xy, out.model)
+    return out
+
+
+def _model_scale(model, to_corrected, w: int, h: int) -> float:
+    """Base px per frame px of ``model`` at the frame's centre."""
+    c = to_corrected(np.array([[(w - 1) / 2, (h - 1) / 2], [(w - 1) / 2 + 10, (h - 1) / 2]]))
+    b = model.apply(c)
+    return float(np.hypot(*(b[1] - b[0])) / max(np.hypot(*(c[1] - c[0])), 1e-9))
+
+
+def _one_round(grey, to_corrected, from_corrected, base_grey, base_valid, model, s, s_b, search,
+               config, rng):  # fmt: skip
+    """One round at frame scale ``s`` and base scale ``s_b``: ``(frame_xy, base_xy, model)`` of
+    the RANSAC inliers (full-scale), or None."""
+    small = downscale(grey, s)
+    base_small = downscale(base_grey, s_b)
+    valid_small = None
+    if base_valid is not None:
+        valid_small = downscale(np.asarray(base_valid, np.uint8) * 255, s_b) > 250
+
+    def base_from_small(xy: NDArray) -> NDArray:
+        return rescale(model.apply(to_corrected(rescale(xy, 1.0 / s))), s_b)
+
+    def small_from_base(xy: NDArray) -> NDArray:
+        return rescale(from_corrected(model.inverse(rescale(xy, 1.0 / s_b))), s)
+
+    tcfg = dataclasses.replace(config.template, search_px=int(search))
+    cps = template_control_points(
+        small, base_small, base_from_small, small_from_base, tcfg, ref_valid=valid_small
+    )
+    if len(cps) < config.min_inliers:
+        return None
+    # RANSAC in corrected pixels (at the round's scale): a raw frame's lens distortion is not
+    # projective.
+    src_small = rescale(to_corrected(rescale(cps.src, 1.0 / s)), s)
+    fit = ransac(src_small, cps.dst, Projective, config.ransac, rng)
+    if not fit or fit.n_inliers < config.min_inliers:
+        return None
+    src = rescale(src_small[fit.inliers], 1.0 / s)
+    dst = rescale(cps.dst[fit.inliers], 1.0 / s_b)
+    refit = Projective.estimate(src, dst, initial=fit.model.rescaled(1.0 / s, 1.0 / s_b),
+                                optimizer="lm")  # fmt: skip
+    return (src, dst, refit) if refit else None
+
+
+def agreement(
+    frame_grey: NDArray[np.uint8],
+    to_corrected: Callable[[NDArray], NDArray],
+    from_corrected: Callable[[NDArray], NDArray],
+    base: NDArray,
+    base_valid: NDArray | None,
+    model: Projective,
+    config: CorrelationConfig,
+) -> int:
+    """How many templates of the last round's grid find their gradient-magnitude match within
+    ``config.ransac.threshold_px`` (pixels at that round's scale) of where ``model`` puts them:
+    an image-based check of a model, independent of the SIFT matches it may come from."""
+    if not config.rounds:
+        return 0
+    grey, base_grey = gradient_magnitude(frame_grey), gradient_magnitude(base)
+    w, h = image_size(grey)
+    side, search = config.rounds[-1]
+    s = min(1.0, side / max(w, h))
+    scale = _model_scale(model, to_corrected, w, h)
+    s_b = min(1.0, s / scale) if np.isfinite(scale) and scale > 0 else s
+    small, base_small = downscale(grey, s), downscale(base_grey, s_b)
+    valid_small = None
+    if base_valid is not None:
+        valid_small = downscale(np.asarray(base_valid, np.uint8) * 255, s_b) > 250
+
+    def base_from_small(xy: NDArray) -> NDArray:
+        return rescale(model.apply(to_corrected(rescale(xy, 1.0 / s))), s_b)
+
+    def small_from_base(xy: NDArray) -> NDArray:
+        return rescale(from_corrected(model.inverse(rescale(xy, 1.0 / s_b))), s)
+
+    tcfg = dataclasses.replace(config.template, search_px=int(search))
+    cps = template_control_points(
+        small, base_small, base_from_small, small_from_base, tcfg, ref_valid=valid_small
+    )
+    if not len(cps):
+        return 0
+    pred = base_from_small(cps.src)
+    return int(np.count_nonzero(np.hypot(*(pred - cps.dst).T) <= config.ransac.threshold_px))

@@ -1,0 +1,249 @@
+"""Tests for registration.templates: the template grid, normalised cross-correlation with a
+sub-pixel and dithered peak, the structure anchor, the second reference, and the gradient
+signal, against known warps of synthetic and real images."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from registration.features import ControlPoints, Reference
+from registration.templates import (
+    TemplateConfig,
+    subpixel_peak,
+    template_control_points,
+    template_grid,
+)
+from tests.test_features import (
+    bent_warp,
+    coarse_model,
+    fourier_shift,
+    real_grey,
+    texture,
+    warp_into,
+)
+
+
+def _template_recovery(ref: np.ndarray, frame_size) -> ControlPoints:
+    ref_size = (ref.shape[1], ref.shape[0])
+    truth = bent_warp(ref_size, frame_size)
+    frame = warp_into(ref, truth, *frame_size)
+    coarse, coarse_inv = coarse_model(ref_size, frame_size)
+    # The coarse model is several px off the truth.
+    grid = template_grid(*frame_size).astype(float)
+    assert np.median(np.linalg.norm(coarse(grid) - truth(grid), axis=1)) > 2.5
+    cp = template_control_points(frame, ref, coarse, coarse_inv, TemplateConfig())
+    err = np.linalg.norm(cp.dst - truth(cp.src), axis=1)
+    assert len(cp) > 0.8 * len(grid)
+    assert np.median(err) < 0.2, f"median error {np.median(err):.3f} px"
+    assert (cp.score >= 0.5).all()
+    return cp
+
+
+def test_subpixel_peak_recovers_fractional_shift():
+    rng = np.random.default_rng(7)
+    img = cv2.GaussianBlur(rng.normal(size=(160, 160)).astype(np.float32), (0, 0), 2.0)
+    for dx, dy in [(0.3, -0.45), (-0.2, 0.15), (0.49, 0.0)]:
+        shifted = fourier_shift(img, dx, dy)
+        tpl = img[43:118, 43:118]  # 75 x 75 around (80, 80)
+        window = shifted[33:128, 33:128]  # +-10 px search
+        res = cv2.matchTemplate(window, tpl, cv2.TM_CCOEFF_NORMED)
+        _, _, _, (px, py) = cv2.minMaxLoc(res)
+        for method in ("quadratic", "parabolic"):
+            off = (
+                np.array([px, py])
+                - 10
+                + subpixel_peak(res[py - 1 : py + 2, px - 1 : px + 2], method)[0]
+            )
+            np.testing.assert_allclose(off, [dx, dy], atol=0.1, err_msg=method)
+    # An exact quadratic surface is recovered exactly.
+    u = np.arange(-1, 2)
+    x, y = np.meshgrid(u, u)
+    surface = -((x - 0.3) ** 2) - 2 * (y + 0.2) ** 2 + 0.5 * (x - 0.3) * (y + 0.2)
+    np.testing.assert_allclose(subpixel_peak(surface, "quadratic")[0], [0.3, -0.2], atol=1e-9)
+    assert subpixel_peak(surface, "none")[0].tolist() == [0.0, 0.0]
+
+
+def test_template_control_points_recover_known_warp_texture():
+    _template_recovery(texture(700, 560, seed=2), (460, 340))
+
+
+def test_template_control_points_recover_known_warp_real():
+    ref = real_grey("songdo-vision-drone", "images", "00972.jpg", scale=0.25)  # 960x540
+    _template_recovery(ref, (560, 360))
+
+
+def test_template_direct_correlation_paper_mode():
+    # Without the reference warp (paper 4.3.2) a pure translation is recovered exactly.
+    ref = texture(400, 320, seed=3)
+    shift = np.array([40 + 3.4, 40 - 2.7])
+    frame = warp_into(ref, lambda xy: xy + shift, 300, 240)
+    guess = np.array([41.0, 41.0])  # the coarse model, 3-4 px off
+    for cfg in (TemplateConfig(warp_reference=False), TemplateConfig.paper()):
+        cp = template_control_points(frame, ref, lambda xy: xy + guess, lambda xy: xy - guess, cfg)
+        assert len(cp) == len(template_grid(300, 240, cfg))
+        assert np.median(np.linalg.norm(cp.dst - (cp.src + shift), axis=1)) < 0.1
+
+
+def test_dithered_correlation_reduces_subpixel_bias():
+    ref = real_grey("songdo-vision-drone", "images", "00972.jpg", scale=0.25)
+    shift = np.array([3.3, -2.6])  # fractional: the plain peak fit is biased here
+    frame = warp_into(ref, lambda xy: xy + shift + 100, 560, 340)
+    model = lambda xy: xy + 100.0  # noqa: E731
+    errs = []
+    for n in (0, 1):
+        cp = template_control_points(frame, ref, model, None, TemplateConfig(dither_iterations=n))
+        errs.append(np.percentile(np.linalg.norm(cp.dst - (cp.src + shift + 100), axis=1), 90))
+    assert errs[1] < 0.15 and errs[1] < 0.7 * errs[0], errs
+
+
+def test_template_grid_and_jitter():
+    cfg = TemplateConfig()
+    grid = template_grid(400, 300, cfg)
+    assert len(grid) == 7 * 5
+    assert (np.diff(np.unique(grid[:, 0])) == 50).all()
+    assert grid[:, 0].min() >= 37 and grid[:, 0].max() <= 400 - 38
+    d = TemplateConfig(jitter_px=12.5, jitter_seed=4)
+    g1, g2 = template_grid(400, 300, d), template_grid(400, 300, d)
+    np.testing.assert_array_equal(g1, g2)  # reproducible
+    assert np.abs(g1 - grid).max() <= 12 and (g1 != grid).any()
+    assert (g1 >= 37).all() and (g1[:, 0] <= 362).all() and (g1[:, 1] <= 262).all()
+    assert (template_grid(400, 300, TemplateConfig(jitter_px=12.5, jitter_seed=5)) != g1).any()
+    assert len(template_grid(60, 300, cfg)) == 0  # narrower than one template
+
+
+def test_jittered_templates_still_recover_warp():
+    ref = texture(700, 560, seed=2)
+    ref_size, frame_size = (700, 560), (460, 340)
+    truth = bent_warp(ref_size, frame_size)
+    frame = warp_into(ref, truth, *frame_size)
+    coarse, coarse_inv = coarse_model(ref_size, frame_size)
+    cfg = TemplateConfig(jitter_px=12.5, anchor="centre")
+    cp = template_control_points(frame, ref, coarse, coarse_inv, cfg)
+    grid = template_grid(*frame_size, cfg)
+    assert {tuple(p) for p in cp.src.astype(int)} <= {tuple(p) for p in grid}
+    assert np.median(np.linalg.norm(cp.dst - truth(cp.src), axis=1)) < 0.2
+
+
+def test_structure_anchor_follows_the_texture_and_reduces_error():
+    ref = real_grey("songdo-vision-drone", "images", "00972.jpg", scale=0.25)
+    ref_size, frame_size = (ref.shape[1], ref.shape[0]), (560, 360)
+    truth = bent_warp(ref_size, frame_size)
+    frame = warp_into(ref, truth, *frame_size)
+    coarse, coarse_inv = coarse_model(ref_size, frame_size)
+    med = {}
+    for anchor in ("centre", "structure"):
+        cp = template_control_points(frame, ref, coarse, coarse_inv, TemplateConfig(anchor=anchor))
+        med[anchor] = np.median(np.linalg.norm(cp.dst - truth(cp.src), axis=1))
+        on_grid = np.isin(cp.src, template_grid(*frame_size)).all()
+        assert on_grid == (anchor == "centre")
+    assert med["structure"] < 0.9 * med["centre"], med
+    # A frame textured only right of x = 200: templates straddling it anchor right of centre.
+    tex = texture(400, 200, seed=8)
+    tex[:, :200] = 128
+    model = lambda xy: xy + 0.0  # noqa: E731
+    cp = template_control_points(tex, tex, model, model, TemplateConfig())
+    centres = template_grid(400, 200)
+    nearest = centres[np.argmin(np.linalg.norm(cp.src[:, None] - centres[None], axis=2), axis=1)]
+    straddling = nearest[:, 0] - 37 < 200  # template's left part is flat
+    assert straddling.sum() >= 2
+    assert (cp.src[straddling, 0] - nearest[straddling, 0] > 5).all()
+    np.testing.assert_allclose(cp.dst, cp.src, atol=0.05)
+
+
+def test_texture_check_skips_flat_templates():
+    ref = texture(500, 400, seed=4)
+    ref[:, 250:] = 120  # flat right half (asphalt, roof)
+    ref[:, 250:] += np.random.default_rng(1).integers(
+        0, 2, (400, 250), dtype=np.uint8
+    )  # faint noise
+    frame = ref[40:360, 40:460].copy()
+    model, inverse = (lambda xy: xy + 40.0), (lambda xy: xy - 40.0)
+    cp = template_control_points(frame, ref, model, inverse, TemplateConfig())
+    assert len(cp) > 0
+    # Every kept template lies (with its 75 px extent) at least partly on the textured half.
+    assert (cp.src[:, 0] + 40 - 37 < 250).all()
+    np.testing.assert_allclose(cp.dst, cp.src + 40.0, atol=0.1)
+    loose = template_control_points(
+        frame, ref, model, inverse, TemplateConfig(min_template_std=0, min_score=-1)
+    )
+    assert len(loose) > len(cp)
+
+
+def test_template_empty_and_flat_inputs_give_empty_control_points():
+    flat = np.full((300, 400), 77, np.uint8)
+    ref = texture(400, 300)
+    ident = lambda xy: xy  # noqa: E731
+    for frame, reference in [(flat, ref), (ref, flat), (flat, flat), (ref[:50, :50], ref)]:
+        cp = template_control_points(frame, reference, ident, ident, TemplateConfig())
+        assert isinstance(cp, ControlPoints) and len(cp) == 0
+        assert cp.src.shape == (0, 2) and cp.dst.shape == (0, 2)
+    # A model sending everything outside the reference, or to NaN.
+    far = lambda xy: xy + 10_000.0  # noqa: E731
+    assert len(template_control_points(ref, ref, far, None, TemplateConfig())) == 0
+    nan = lambda xy: np.full_like(xy, np.nan)  # noqa: E731
+    assert len(template_control_points(ref, ref, nan, None, TemplateConfig())) == 0
+    with pytest.raises(ValueError, match="ref_from_frame"):
+        template_control_points(ref, ref, lambda xy: xy[:, :1], None, TemplateConfig())
+    with pytest.raises(ValueError, match="subpixel"):
+        TemplateConfig(subpixel="cubic")
+    with pytest.raises(ValueError, match="anchor"):
+        TemplateConfig(anchor="corner")
+
+
+def test_templates_fall_back_to_a_second_reference_where_the_first_has_no_content():
+    """Templates whose search window touches the first reference's empty part are searched in the
+    fallback; each point names its reference and its dst is in that reference's pixels."""
+    frame = texture(480, 360, seed=21)
+    t_ref, t_fb = np.array([30.4, -12.7]), np.array([-8.2, 5.6])
+    ref = warp_into(frame, lambda xy: xy - t_ref, 560, 420)  # ref(x) = frame(x - t_ref)
+    fb = warp_into(frame, lambda xy: xy - t_fb, 500, 380)
+    ref_valid = np.ones(ref.shape, bool)
+    ref_valid[:, 300:] = False  # no content right of x = 300 (frame x ~ 270)
+    ref[~ref_valid] = 0
+    cfg = TemplateConfig(spacing_px=40, template_px=41, search_px=10, dither_iterations=1)
+    cps = template_control_points(
+        frame,
+        ref,
+        lambda xy: xy + t_ref + 1.5,  # the model is 1.5 px off; the search corrects it
+        None,
+        cfg,
+        ref_valid=ref_valid,
+        fallback=Reference(fb, lambda xy: xy + t_fb - 1.0),
+    )
+    from_ref, from_fb = cps.source == 0, cps.source == 1
+    assert from_ref.sum() >= 20 and from_fb.sum() >= 20
+    # Where the first reference has content it is used; the fallback only beyond it.
+    assert (cps.src[from_ref, 0] + t_ref[0] + cfg.half_template + cfg.search_radius < 300 + 2).all()
+    assert (cps.src[from_fb, 0] + t_ref[0] + cfg.half_template + cfg.search_radius > 300 - 2).all()
+    np.testing.assert_allclose(
+        cps.dst[from_ref] - cps.src[from_ref], np.tile(t_ref, (from_ref.sum(), 1)), atol=0.15
+    )
+    np.testing.assert_allclose(
+        cps.dst[from_fb] - cps.src[from_fb], np.tile(t_fb, (from_fb.sum(), 1)), atol=0.15
+    )
+    # Without a fallback those templates are simply not matched.
+    alone = template_control_points(
+        frame, ref, lambda xy: xy + t_ref + 1.5, None, cfg, ref_valid=ref_valid
+    )
+    assert (alone.source == 0).all() and len(alone) == from_ref.sum()
+    with pytest.raises(ValueError, match="fallback reference needs warp_reference=True"):
+        template_control_points(
+            frame,
+            ref,
+            lambda xy: xy + t_ref,
+            None,
+            TemplateConfig(warp_reference=False),
+            fallback=Reference(fb, lambda xy: xy + t_fb),
+        )
+
+
+def test_min_templates_shrinks_the_spacing_for_small_frames():
+    cfg = TemplateConfig(spacing_px=100, template_px=75, min_templates=200)
+    big = template_grid(2560, 1920, cfg)
+    assert len(big) == 25 * 19  # the spacing holds enough templates: unchanged
+    small = template_grid(640, 480, cfg)
+    assert len(small) >= 200 and len(template_grid(640, 480, TemplateConfig(spacing_px=100))) < 40
+    step = np.diff(np.unique(small[:, 0]))
+    assert (step == step[0]).all() and step[0] < 100
