@@ -91,6 +91,26 @@ class Project:
     def uploads_dir(self) -> Path:
         return self.folder / "uploads"
 
+    def prune_uploads(self, keep: list[str]) -> list[Path]:
+        """Delete uploaded files that none of ``keep`` (the open inputs' paths) refers to;
+        returns the deleted paths."""
+        folder = self.uploads_dir
+        if not folder.is_dir():
+            return []
+        kept = set()
+        for k in keep:
+            try:
+                kept.add(Path(k).resolve())
+            except (OSError, RuntimeError):
+                continue
+        removed = []
+        for f in folder.iterdir():
+            # Dot files are uploads being written (write_atomic's temporaries).
+            if f.is_file() and not f.name.startswith(".") and f.resolve() not in kept:
+                f.unlink(missing_ok=True)
+                removed.append(f)
+        return removed
+
     def load(self) -> dict[str, Any]:
         """The saved session, or ``{}`` for a new project.
 
@@ -125,44 +145,6 @@ class Project:
         path = self.folder / name
         write_atomic(path, data)
         return path
-
-
-def resolve_allowed(path_text: str, allowed: list[Path]) -> Path:
-    """Resolve a user-typed path (symlinks too) and check it lies inside an allowed folder.
-
-    Glob patterns are checked through their fixed leading part (the folder before the first
-    wildcard).
-
-    Raises:
-        ValueError: naming the path when it is empty or outside every allowed folder.
-        FileNotFoundError: naming the path when nothing exists there (globs: the folder).
-    """
-    text = path_text.strip()
-    if not text:
-        raise ValueError("empty path")
-    p = Path(text).expanduser()
-    is_glob = any(ch in text for ch in "*?[")
-    if is_glob:
-        parts = p.parts
-        fixed = []
-        for part in parts:
-            if any(ch in part for ch in "*?["):
-                break
-            fixed.append(part)
-        anchor = Path(*fixed) if fixed else Path(".")
-        resolved_anchor = anchor.resolve()
-        check = resolved_anchor
-        result = resolved_anchor.joinpath(*parts[len(fixed) :])
-    else:
-        check = result = p.resolve()
-    roots = [Path(a).expanduser().resolve() for a in allowed]
-    if not any(check == r or r in check.parents for r in roots):
-        raise ValueError(
-            f"path {text!r} is outside the allowed folders ({', '.join(str(r) for r in roots)})"
-        )
-    if not check.exists():
-        raise FileNotFoundError(f"no such file or folder: {text!r}")
-    return result
 
 
 REFERENCE_FILE = "reference.npz"

@@ -29,8 +29,9 @@ from typing import Any
 import numpy as np
 import viser
 
-from app import scene2d
-from app.project import Project, default_project_dir, resolve_allowed
+from app import scene2d, security
+from app.project import Project, default_project_dir
+from app.security import escape_md, resolve_allowed
 from app.state import MODES, AppState
 from app.worker import JobRunner, LatestWorker
 
@@ -146,6 +147,9 @@ class App:
         server.gui.configure_theme(
             control_width="large", show_share_button=False, show_logo=False, dark_mode=False
         )
+        # Hiding the share button is not enough: any client can still ask for the tunnel.
+        security.refuse_share_tunnel(server)
+        security.install_upload_limit(server, self.max_upload_bytes, self._upload_refused)
         # Dock the panel beside the canvas so it never covers the images.
         server.gui.main_panel.dock_right()
         from viser import _messages
@@ -209,10 +213,18 @@ class App:
             self.inputs_md = gui.add_markdown("")
         self._update_inputs_md()
 
+    def allowed_roots(self) -> list[Path]:
+        """Folders the browser may open files from: the ones given at start (--allow-dir, the
+        inputs' folders) and the current project (its uploads)."""
+        roots = list(self.allowed_dirs)
+        if self.project.folder not in roots:
+            roots.append(self.project.folder)
+        return roots
+
     def _update_inputs_md(self) -> None:
-        allowed = ", ".join(f"`{p}`" for p in self.allowed_dirs) or "(none)"
+        allowed = ", ".join(escape_md(p) for p in self.allowed_roots())
         self.inputs_md.content = (
-            f"Project: `{self.project.folder}`  \nPaths may lie under: {allowed}  \n"
+            f"Project: {escape_md(self.project.folder)}  \nPaths may lie under: {allowed}  \n"
             f"Uploads up to {_size(self.max_upload_bytes)}."
         )
 
@@ -249,8 +261,8 @@ class App:
     def open_paths_from_gui(self, client) -> None:
         """The "Open paths" button: check both paths against the allowed folders, then open."""
         try:
-            frames = resolve_allowed(self.frames_text.value, self.allowed_dirs)
-            base = resolve_allowed(self.base_text.value, self.allowed_dirs)
+            frames = resolve_allowed(self.frames_text.value, self.allowed_roots())
+            base = resolve_allowed(self.base_text.value, self.allowed_roots())
         except (ValueError, FileNotFoundError) as exc:
             self.notify(client, "Path refused", str(exc), color="red")
             return
@@ -265,8 +277,22 @@ class App:
         self.set_mode(self.state.mode)
         self.notify(client, "Inputs opened", f"{frames}\n{base}", color="green")
 
+    def _upload_refused(self, client_id: int, name: str, size: int) -> None:
+        """The upload guard refused a transfer while it arrived (security.install_upload_limit)."""
+        client = self.server.get_clients().get(client_id)
+        self.notify(
+            client,
+            "Upload refused",
+            f"{name} is {_size(size)}; the limit is {_size(self.max_upload_bytes)} "
+            "(--max-upload-mb)",
+            color="red",
+        )
+
     def handle_upload(self, kind: str, uploaded, client) -> None:
-        """Save an uploaded file under the project (size-checked) and open it."""
+        """Save an uploaded file under the project (size-checked) and open it.
+
+        The other input is taken from its text box, checked against the allowed folders like a
+        typed path (an upload must not open an unchecked path)."""
         name = Path(getattr(uploaded, "name", "") or "upload").name
         content = getattr(uploaded, "content", b"") or b""
         if len(content) > self.max_upload_bytes:
@@ -290,15 +316,19 @@ class App:
             self.frames_text.value = str(path)
         else:
             self.base_text.value = str(path)
-        if self.frames_text.value and self.base_text.value:
-            self.worker.submit(
-                "open",
-                lambda: self._open_and_report(self.frames_text.value, self.base_text.value, client),
-            )
-        else:
+        other = self.base_text.value if kind == "frames" else self.frames_text.value
+        if not other:
             self.notify(
                 client, "Uploaded", f"{name} saved; now choose the other input", color="blue"
             )
+            return
+        try:
+            other_path = str(resolve_allowed(other, self.allowed_roots()))
+        except (ValueError, FileNotFoundError) as exc:
+            self.notify(client, "Path refused", str(exc), color="red")
+            return
+        frames, base = (str(path), other_path) if kind == "frames" else (other_path, str(path))
+        self.worker.submit("open", lambda: self._open_and_report(frames, base, client))
 
     def open_inputs(self, frames: str, base: str, client) -> None:
         """Open inputs (raises on unusable ones) and reset everything that depends on them."""
@@ -330,6 +360,8 @@ class App:
             st.revision += 1
         self.frames_text.value = inputs.frames_path
         self.base_text.value = inputs.base_path
+        # Uploads no input refers to any more are removed (they can be hundreds of MB).
+        self.project.prune_uploads([inputs.frames_path, inputs.base_path])
         self._update_inputs_md()
         for tab in self.tabs.values():
             tab.on_inputs()
@@ -489,6 +521,19 @@ def _size(n: float) -> str:
     raise AssertionError("unreachable")
 
 
+def bound_address(host: str, port: int) -> str:
+    """What the server listens on, as printed at start: the address actually bound, and for a
+    wildcard bind which URL to open on this machine."""
+    if host in ("0.0.0.0", "", "::"):
+        shown = "[::]" if host == "::" else "0.0.0.0"
+        return (
+            f"listening on all interfaces ({shown}:{port}); open http://127.0.0.1:{port} here "
+            f"or http://<this machine's address>:{port} from another machine"
+        )
+    name = f"[{host}]" if ":" in host else host
+    return f"serving http://{name}:{port}"
+
+
 def serve(
     *,
     frames: str | None,
@@ -512,14 +557,15 @@ def serve(
             raise FileNotFoundError(f"--allow-dir is not a folder: {p}")
     folder = Path(project_dir) if project_dir else default_project_dir(frames, base)
     project = Project(folder)
-    allowed = [Path.cwd(), project.folder]
+    # The current folder is not allowed implicitly: the browser may open only what was named.
+    allowed = [project.folder]
     for p in (frames, base):
         if p:
             allowed.append(Path(p).expanduser().resolve().parent)
     allowed += [Path(p) for p in allow_dirs or []]
     # viser prints its own banner on stdout; keep stdout for machine-readable output.
     with contextlib.redirect_stdout(sys.stderr):
-        server = viser.ViserServer(host=host, port=port, verbose=False)
+        server = security.make_server(host=host, port=port, verbose=False)
     app = App(
         server,
         project,
@@ -534,9 +580,8 @@ def serve(
     except BaseException:
         app.stop()
         raise
-    shown_host = "127.0.0.1" if host in ("0.0.0.0", "") else host
     sys.stderr.write(
-        f"aerialreg app: serving http://{shown_host}:{server.get_port()}  (project {project.folder})\n"
+        f"aerialreg app: {bound_address(host, server.get_port())}  (project {project.folder})\n"
     )
     sys.stderr.flush()
     if ready is not None:

@@ -8,7 +8,6 @@ project and what was handed to viser are checked.
 from __future__ import annotations
 
 import json
-import os
 import threading
 import time
 from pathlib import Path
@@ -19,7 +18,8 @@ import pytest
 viser = pytest.importorskip("viser")
 
 from app import scene2d  # noqa: E402
-from app.project import Project, resolve_allowed, write_atomic  # noqa: E402
+from app.project import Project, write_atomic  # noqa: E402
+from app.security import make_server  # noqa: E402
 from app.server import App  # noqa: E402
 from app.state import AppState  # noqa: E402
 from app.worker import LatestWorker  # noqa: E402
@@ -40,7 +40,7 @@ def small_seq(tmp_path_factory) -> Path:
 
 
 def start_app(project_dir: Path, seq: Path | None, **kw) -> App:
-    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    server = make_server("127.0.0.1", 0, verbose=False)
     app = App(
         server,
         Project(project_dir),
@@ -154,28 +154,6 @@ def test_write_atomic_leaves_no_temporary(tmp_path):
     write_atomic(tmp_path / "a.json", '{"x": 1}')
     assert json.loads((tmp_path / "a.json").read_text()) == {"x": 1}
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json"]
-
-
-def test_resolve_allowed_rejects_outside_and_symlink_escape(tmp_path):
-    inside = tmp_path / "inside"
-    outside = tmp_path / "outside"
-    inside.mkdir()
-    outside.mkdir()
-    (inside / "f.png").write_bytes(b"x")
-    (outside / "secret.png").write_bytes(b"x")
-    os.symlink(outside / "secret.png", inside / "link.png")
-    assert resolve_allowed(str(inside / "f.png"), [inside]) == (inside / "f.png").resolve()
-    assert resolve_allowed(str(inside / "*.png"), [inside]).parent == inside.resolve()
-    with pytest.raises(ValueError, match="outside the allowed folders"):
-        resolve_allowed(str(outside / "secret.png"), [inside])
-    with pytest.raises(ValueError, match="outside the allowed folders"):
-        resolve_allowed(str(inside / "link.png"), [inside])
-    with pytest.raises(ValueError, match="outside the allowed folders"):
-        resolve_allowed(str(inside / ".." / "outside" / "secret.png"), [inside])
-    with pytest.raises(FileNotFoundError, match="no such file"):
-        resolve_allowed(str(inside / "missing.png"), [inside])
-    with pytest.raises(ValueError, match="empty path"):
-        resolve_allowed("  ", [inside])
 
 
 def test_viz_blend_checkerboard_colorize_exact():
@@ -533,3 +511,43 @@ def test_sequence_cancel_resume_play_and_flicker(tmp_path, small_seq, make_app):
         seen.add(bool(handle.visible))
         time.sleep(0.05)
     assert seen == {True, False}
+
+
+def test_upload_does_not_open_an_unchecked_path(tmp_path, small_seq, make_app):
+    app = make_app(tmp_path / "proj", small_seq)
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    (outside / "f.png").write_bytes((small_seq / "base.png").read_bytes())
+    app.frames_text.value = str(outside / "*.png")
+
+    class Upload:
+        name = "base.png"
+        content = (small_seq / "base.png").read_bytes()
+
+    app.handle_upload("base", Upload(), None)
+    app.worker.wait_idle()
+    assert "Path refused" in app.errors[-1] and "outside the allowed folders" in app.errors[-1]
+    assert app.inputs.frames_path == str(small_seq / "frames")
+
+
+def test_serve_allows_only_named_folders(tmp_path, small_seq, monkeypatch):
+    from app.server import serve
+
+    monkeypatch.chdir(tmp_path)
+    app = serve(
+        frames=str(small_seq / "frames"),
+        base=str(small_seq / "base.png"),
+        project_dir=str(tmp_path / "proj"),
+        port=0,
+        block=False,
+    )
+    try:
+        roots = app.allowed_roots()
+        assert Path.cwd().resolve() not in roots and small_seq.resolve() in roots
+        assert app.server.origin_policy is not None  # handshakes are checked
+        app.frames_text.value = str(tmp_path / "x.png")
+        (tmp_path / "x.png").write_bytes(b"x")
+        app.open_paths_from_gui(None)
+        assert "outside the allowed folders" in app.errors[-1]
+    finally:
+        app.stop()

@@ -33,6 +33,7 @@ viser = pytest.importorskip("viser")
 playwright_api = pytest.importorskip("playwright.sync_api")
 
 from app.project import Project  # noqa: E402
+from app.security import make_server  # noqa: E402
 from app.server import App  # noqa: E402
 from registration.distortion import HarrisModel  # noqa: E402
 from tests.test_app import small_seq  # noqa: E402,F401  (session fixture: 4 frames 640x480)
@@ -87,7 +88,7 @@ def live_app(tmp_path, small_seq):  # noqa: F811
     apps = []
 
     def start(**kw) -> App:
-        server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+        server = make_server("127.0.0.1", 0, verbose=False)
         app = App(
             server,
             Project(tmp_path / "proj"),
@@ -410,17 +411,23 @@ def test_two_tabs_moving_sliders_stay_consistent(browser, live_app):
     assert app.shown["Calibrate"][1] == pytest.approx(g)
 
 
-def test_bad_path_and_oversized_upload_notify(browser, live_app, tmp_path):
+def test_escaping_glob_and_oversized_upload_refused(browser, live_app, tmp_path, small_seq):  # noqa: F811
+    # tmp_path is allowed; tmp_path/../secret is not. The glob's fixed part lies inside.
+    secret = tmp_path.parent / f"{tmp_path.name}-secret"
+    secret.mkdir()
+    (secret / "s.png").write_bytes((small_seq / "base.png").read_bytes())
+    (tmp_path / "d").mkdir()
     app = live_app(max_upload_mb=0.01)
     page = Page(browser, app.server.get_port())
     page.page.get_by_text("Inputs", exact=True).first.click()
     time.sleep(0.5)
     frames_box = page.number_input("Frames (video, folder, glob)")
-    frames_box.fill("/etc/passwd")
+    frames_box.fill(f"{tmp_path}/*/../../{secret.name}/*.png")
     frames_box.press("Enter")
     page.button("Open paths").click()
     page.page.wait_for_selector("text=Path refused", timeout=15000)
     assert "outside the allowed folders" in page.page.inner_text("body")
+    assert app.inputs.frames_path == str(small_seq / "frames")
     big = tmp_path / "big.mp4"
     big.write_bytes(b"\0" * 50_000)
     page.page.locator("input[type=file]").first.set_input_files(str(big))
@@ -430,6 +437,39 @@ def test_bad_path_and_oversized_upload_notify(browser, live_app, tmp_path):
     page.close_notifications()
     page.set_number("γ (exact)", 0.3)
     wait_until(lambda: app.state.gamma == pytest.approx(0.3), what="the app still responding")
+
+
+JS_OPEN_WS = """([url, proto]) => new Promise((resolve) => {
+  const ws = new WebSocket(url, [proto]);
+  ws.onopen = () => { ws.close(); resolve('open'); };
+  ws.onerror = () => resolve('error');
+  setTimeout(() => resolve('timeout'), 10000);
+})"""
+
+
+def test_page_from_another_local_origin_cannot_connect(browser, live_app, tmp_path):
+    import functools
+    import threading
+    from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
+
+    app = live_app()
+    port = app.server.get_port()
+    url, proto = f"ws://127.0.0.1:{port}", f"viser-v{viser.__version__}"
+    (tmp_path / "index.html").write_text("<html><body>another local app</body></html>")
+    handler = functools.partial(SimpleHTTPRequestHandler, directory=str(tmp_path))
+    other = ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    threading.Thread(target=other.serve_forever, daemon=True).start()
+    try:
+        page = browser.new_page()
+        page.goto(f"http://127.0.0.1:{other.server_address[1]}/")
+        assert page.evaluate(JS_OPEN_WS, [url, proto]) == "error"
+        page.close()
+    finally:
+        other.shutdown()
+    assert any("differs from the served address" in r for r in app.server.origin_policy.refused)
+    # The app's own page connects (its Origin is the served address).
+    own = Page(browser, port)
+    assert own.page.evaluate(JS_OPEN_WS, [url, proto]) == "open"
 
 
 def _free_port() -> int:
