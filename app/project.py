@@ -46,22 +46,44 @@ def write_atomic(path: Path, data: bytes | str) -> None:
         raise
 
 
+UPLOADS = "uploads"
+
+
+def input_identity(path: str | None) -> str:
+    """What identifies an input for choosing its project: its resolved path, or for a file
+    uploaded into a project (``<project>/uploads/<kind>-<content hash>-<name>``) its file name,
+    which carries the content's hash and survives the file moving between projects."""
+    if not path:
+        return "-"
+    p = Path(path).expanduser()
+    if p.parent.name == UPLOADS and (p.parent.parent / PROJECT_FILE).exists():
+        return f"upload:{p.name}"
+    return str(p.resolve())
+
+
 def default_project_dir(frames: str | None, base: str | None, data_dir: Path | None = None) -> Path:
     """Per-input project folder under the user's data dir (``platformdirs.user_data_dir``).
 
-    The folder name is a short hash of the resolved input paths, so reopening the same inputs
-    reopens the same session.
+    The folder name is a short hash of the inputs' identities (:func:`input_identity`), so
+    reopening the same inputs (or uploading the same files again) reopens the same session.
     """
     if data_dir is None:
         import platformdirs
 
         data_dir = Path(platformdirs.user_data_dir("aerialreg"))
-    key = "\n".join(
-        str(Path(p).expanduser().resolve()) if p else "-" for p in (frames, base)
-    ).encode()
+    key = "\n".join(input_identity(p) for p in (frames, base)).encode()
     stem = Path(frames).stem if frames else "demo"
+    if frames and input_identity(frames).startswith("upload:"):
+        stem = Path(frames).stem.split("-", 2)[-1]
     stem = "".join(c if c.isalnum() or c in "-_" else "_" for c in stem)[:40] or "input"
-    return data_dir / "projects" / f"{stem}-{hashlib.sha1(key).hexdigest()[:10]}"
+    return Path(data_dir) / "projects" / f"{stem}-{hashlib.sha1(key).hexdigest()[:10]}"
+
+
+def upload_name(kind: str, filename: str, content: bytes) -> str:
+    """The stored name of an upload: kind, a hash of its content, the sanitised file name."""
+    safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in Path(filename).name)
+    safe = safe.lstrip(".") or "upload"
+    return f"{kind}-{hashlib.sha1(content).hexdigest()[:10]}-{safe}"
 
 
 class Project:
@@ -89,7 +111,18 @@ class Project:
 
     @property
     def uploads_dir(self) -> Path:
-        return self.folder / "uploads"
+        return self.folder / UPLOADS
+
+    def adopt_upload(self, path: str) -> str:
+        """Move a file uploaded into another project's uploads into this one's; returns the
+        (possibly new) path. Other paths are returned unchanged."""
+        p = Path(path)
+        if not input_identity(path).startswith("upload:") or p.parent == self.uploads_dir:
+            return path
+        target = self.uploads_dir / p.name
+        self.uploads_dir.mkdir(parents=True, exist_ok=True)
+        os.replace(p, target)
+        return str(target)
 
     def prune_uploads(self, keep: list[str]) -> list[Path]:
         """Delete uploaded files that none of ``keep`` (the open inputs' paths) refers to;
