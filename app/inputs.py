@@ -39,8 +39,10 @@ class Inputs:
         self._lock = threading.Lock()
         self._decoding: dict[int, threading.Event] = {}
         self._wanted: list[int] = []
+        self._sides: tuple[int, ...] = ()
         self._wake = threading.Condition(self._lock)
         self._stop = False
+        self.read_ahead = True
         self._thread = threading.Thread(
             target=self._read_ahead, name="inputs-prefetch", daemon=True
         )
@@ -101,14 +103,24 @@ class Inputs:
                 self._base_previews[max_side] = img
         return img
 
+    def clear(self) -> None:
+        """Forget every decoded frame and preview (benchmarks measure cold decoding)."""
+        with self._lock:
+            self._cache.clear()
+            self._previews.clear()
+
     def cached(self, k: int) -> bool:
         with self._lock:
             return k in self._cache
 
-    def prefetch(self, frames: list[int]) -> None:
-        """Decode ``frames`` (in order) in the background unless cached; replaces earlier wishes."""
+    def prefetch(self, frames: list[int], preview_sides: tuple[int, ...] = ()) -> None:
+        """Decode ``frames`` (in order) in the background, with their previews of
+        ``preview_sides``, unless cached; replaces earlier wishes."""
+        if not self.read_ahead:
+            return
         with self._wake:
             self._wanted = [k for k in frames if 0 <= k < self.n_frames]
+            self._sides = tuple(preview_sides)
             self._wake.notify_all()
 
     def _read_ahead(self) -> None:
@@ -118,9 +130,12 @@ class Inputs:
                 if self._stop:
                     return
                 k = self._wanted.pop(0)
-                if k in self._cache or k in self._decoding:
+                sides = self._sides
+                if k in self._decoding:
                     continue
             try:
                 self.frame(k)
+                for side in sides:
+                    self.preview(k, side)
             except Exception:  # a broken frame is reported when it is shown, not here
                 log.debug("read-ahead of frame %d failed", k, exc_info=True)

@@ -421,11 +421,12 @@ class ImagePlane:
         key: str,
         rgba: NDArray,
         *,
-        box: tuple[int, int, int, int] | None = None,
+        box: tuple[float, float, float, float] | None = None,
         dz: float = OVERLAY_DZ / 2,
     ) -> None:
         """An image (RGB -> JPEG, RGBA -> PNG) in front of this plane: over the whole plane, or
-        over the pixel box ``(x0, y0, x1, y1)`` (``x1``, ``y1`` exclusive)."""
+        over the box ``(x0, y0, x1, y1)`` whose edges are in corner coordinates (pixel ``i``
+        spans ``[i, i + 1)``; a pixel box with ``x1``, ``y1`` exclusive)."""
         x0, y0, x1, y1 = box if box is not None else (0, 0, self.geom.width, self.geom.height)
         s = self.geom.scale
         centre = self.geom.world_from_pixel(

@@ -27,6 +27,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import sys
+import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -60,6 +61,7 @@ NEXT = {
 }
 PANEL_WIDTH_PX = 480
 ZOOM_STEP = 0.1
+SAVE_DELAY_S = 0.5
 """Relative zoom change after which screen-sized markers are redrawn."""
 
 
@@ -120,6 +122,8 @@ class App:
         self._uploaded: dict[str, str] = {}  # this sitting's uploads not yet opened: kind -> path
         self._zoom_applied: float | None = None
         self._last_progress = 0.0
+        self._save_lock = threading.Lock()
+        self._save_timer: threading.Timer | None = None
 
     # ------------------------------------------------------------------ setup
     def start(self) -> None:
@@ -618,14 +622,35 @@ class App:
         self.notify(None, f"{key} failed", f"{type(exc).__name__}: {exc}", color="red")
 
     # ------------------------------------------------------------------ persistence
-    def save(self) -> None:
-        """Write the session to project.json atomically (call after every decision)."""
+    def save(self, *, soon: bool = False) -> None:
+        """Write the session to project.json atomically (call after every decision).
+
+        ``soon``: within :data:`SAVE_DELAY_S`, once for a burst of calls (the scrubber's frame
+        changes; each write is fsync'ed, which costs more than drawing a frame)."""
+        if soon:
+            with self._save_lock:
+                if self._save_timer is None:
+                    self._save_timer = threading.Timer(SAVE_DELAY_S, self._save_now)
+                    self._save_timer.daemon = True
+                    self._save_timer.start()
+            return
+        self._save_now()
+
+    def _save_now(self) -> None:
+        with self._save_lock:
+            if self._save_timer is not None:
+                self._save_timer.cancel()
+                self._save_timer = None
         with self.state.lock:
             session = self.state.to_session()
             self.project.save(session)
 
     def stop(self) -> None:
         """Cancel the running job, stop timers and the worker, then the server."""
+        with self._save_lock:
+            pending = self._save_timer is not None
+        if pending:
+            self._save_now()
         self.jobs.request_cancel()
         self.jobs.join(30)
         for view in self.views.values():

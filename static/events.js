@@ -26,18 +26,36 @@
   };
   if (window.__aerialregPlotClicks) return;
   window.__aerialregPlotClicks = true;
+  const chartOf = (target) => {
+    const over = target.closest && target.closest(".u-over");
+    const chart = over && over.closest(".uplot");
+    const title = chart && chart.querySelector(".u-title");
+    return title && title.textContent.startsWith("Per-frame") ? chart : null;
+  };
+  const legendX = (chart) => {
+    const value = chart.querySelector(".u-legend .u-series:first-child .u-value");
+    return value ? parseFloat(value.textContent) : NaN;
+  };
+  // The frame under the pointer as last shown by the legend: a data update (the app redraws
+  // the chart as frames change) blanks the legend until the pointer moves again.
+  let hovered = null;
+  document.addEventListener(
+    "mousemove",
+    (e) => {
+      const chart = chartOf(e.target);
+      const x = chart ? legendX(chart) : NaN;
+      if (chart && Number.isFinite(x)) hovered = { x: x, t: Date.now() };
+    },
+    true,
+  );
   document.addEventListener(
     "click",
     (e) => {
-      const over = e.target.closest && e.target.closest(".u-over");
-      if (!over) return;
-      const chart = over.closest(".uplot");
+      const chart = chartOf(e.target);
       if (!chart) return;
-      const title = chart.querySelector(".u-title");
-      if (!title || !title.textContent.startsWith("Per-frame")) return;
-      const value = chart.querySelector(".u-legend .u-series:first-child .u-value");
-      if (!value) return;
-      const x = parseFloat(value.textContent);
+      let x = legendX(chart);
+      // (The chart element itself may have been rebuilt by a data update since the hover.)
+      if (!Number.isFinite(x) && hovered && Date.now() - hovered.t < 3000) x = hovered.x;
       if (Number.isFinite(x)) window.aerialreg.send("plot-frame", Math.round(x));
     },
     true,

@@ -205,8 +205,13 @@ class Page:
             self.page.screenshot(path=str(SHOTS / f"{name}.png"))
 
 
-def zoom_to(app: App, geom, xy, span_px: float = 200.0) -> None:
-    """Point every client's camera at pixel ``xy`` of a plane, ``span_px`` image px across."""
+JS_CANVAS_CENTRE = """() => { const r = window.__viserMutable.canvas.getBoundingClientRect();
+  return [r.left + r.width / 2, r.top + r.height / 2]; }"""
+
+
+def zoom_to(app: App, geom, xy, span_px: float = 200.0, page=None, node=None) -> None:
+    """Point every client's camera at pixel ``xy`` of a plane, ``span_px`` image px across;
+    with ``page`` and the plane's ``node``, wait until that browser shows ``xy`` at the centre."""
     from app import scene2d
 
     centre = geom.world_from_pixel(np.asarray(xy, float))
@@ -214,7 +219,18 @@ def zoom_to(app: App, geom, xy, span_px: float = 200.0) -> None:
     pose = scene2d.fit_camera([region])
     for client in app.server.get_clients().values():
         app.apply_camera(client, pose)
-    time.sleep(1.5)  # camera message, then a software-WebGL render
+    if page is not None and node is not None:
+        seen = []
+
+        def there():
+            seen[:] = [page.screen_of(node, geom, xy), page.page.evaluate(JS_CANVAS_CENTRE)]
+            return np.hypot(*(np.subtract(seen[0], seen[1]))) < 2.0
+
+        try:
+            wait_until(there, what="the browser's camera at the zoomed pose")
+        except AssertionError as exc:
+            raise AssertionError(f"{exc}: target on screen, canvas centre = {seen}") from None
+    time.sleep(1.0)  # a software-WebGL render
 
 
 def background_points(page, node, geom, gap=0.04):
@@ -316,6 +332,7 @@ def screen_of_node(page: Page, node: str, lx: float, ly: float) -> tuple[float, 
     return tuple(page.page.evaluate(JS_SCREEN_OF, [node, lx, ly]))
 
 
+@pytest.mark.slow
 def test_seed_click_drag_and_disable_worst(browser, live_app, small_seq):  # noqa: F811
     import re
 
@@ -338,10 +355,10 @@ def test_seed_click_drag_and_disable_worst(browser, live_app, small_seq):  # noq
     corrected_target = HarrisModel(truth.gamma, w, h).corrected_from_raw(raw_target[None])[0]
     base_target = truth.frame_to_base(0, raw_target[None])[0]
     # Zoomed in so that one CSS pixel is a fraction of an image pixel, as an analyst would.
-    zoom_to(app, fgeom, corrected_target)
+    zoom_to(app, fgeom, corrected_target, page=page, node="/seed/frame")
     page.click_pixel("/seed/frame", fgeom, corrected_target)
     wait_until(lambda: app.state.seed_frame is not None, what="the frame click")
-    zoom_to(app, bgeom, base_target)
+    zoom_to(app, bgeom, base_target, page=page, node="/seed/base")
     page.click_pixel("/seed/base", bgeom, base_target)
     wait_until(lambda: app.state.seed is not None, what="the map click")
     got = HarrisModel(truth.gamma, w, h).corrected_from_raw([app.state.seed_frame])[0]
@@ -422,6 +439,7 @@ def registered_app(live_app, small_seq):  # noqa: F811
     return app, truth, bxy
 
 
+@pytest.mark.slow
 def test_scrub_plot_click_and_table2(browser, registered_app):
     app, truth, bxy = registered_app
     seq = app.views["Sequence"]
@@ -432,8 +450,7 @@ def test_scrub_plot_click_and_table2(browser, registered_app):
     time.sleep(1.5)
     before = page.pixels(pts)
     page.set_number("Frame", 3)
-    wait_until(lambda: app.state.seq_frame == 3, what="the scrubber")
-    app.worker.wait_idle()
+    wait_until(lambda: app.shown["Sequence"][0] == 3, what="the scrubber to show frame 3")
     wait_until(
         lambda: np.abs(page.pixels(pts) - before)[:, :3].mean() > 2.0, what="a changed image"
     )
@@ -445,16 +462,23 @@ def test_scrub_plot_click_and_table2(browser, registered_app):
     over = chart.locator(".u-over")
     box = over.bounding_box()
     legend = chart.locator(".u-legend .u-series").first.locator(".u-value")
-    for fx in np.linspace(0.02, 0.98, 40):
+
+    def legend_at(fx: float) -> str:
+        # The legend follows the pointer after a render: wait until it settles.
         page.page.mouse.move(box["x"] + fx * box["width"], box["y"] + box["height"] / 2)
-        time.sleep(0.05)
-        if legend.inner_text().strip() == "1":
-            break
-    assert legend.inner_text().strip() == "1"
+        last, t0 = None, time.monotonic()
+        while time.monotonic() - t0 < 5:
+            time.sleep(0.1)
+            now = legend.inner_text().strip()
+            if now == last:
+                return now
+            last = now
+        return last
+
+    fx = next((f for f in np.linspace(0.02, 0.98, 25) if legend_at(f) == "1"), None)
+    assert fx is not None, "no pointer position over the chart shows frame 1"
     page.page.mouse.click(box["x"] + fx * box["width"], box["y"] + box["height"] / 2)
-    wait_until(lambda: app.state.seq_frame == 1, what="the chart click to show frame 1")
-    app.worker.wait_idle()
-    assert app.shown["Sequence"][0] == 1
+    wait_until(lambda: app.shown["Sequence"][0] == 1, what="the chart click to show frame 1")
     page.shot("sequence")
     # Evaluate: two marks and a proposal; the unconfirmed proposal is not in Table 2.
     page.view_button("Evaluate").click()
@@ -512,6 +536,7 @@ JS_OVERFLOW = """() => {
 }"""
 
 
+@pytest.mark.slow
 def test_each_view_at_1440x900_is_drawn_and_nothing_overflows(browser, registered_app):
     import cv2
 
@@ -696,6 +721,7 @@ def _serve(project: Path, seq: Path, port: int) -> subprocess.Popen:
     raise AssertionError("server did not start")
 
 
+@pytest.mark.slow
 def test_kill_mid_sequence_and_restart_keeps_frames(browser, tmp_path_factory):
     from registration.synth import SimConfig, load_truth, simulate
 

@@ -270,7 +270,7 @@ class CalibrateView(View):
                 return
             self.state.calib_frame = k
             self.state.revision += 1
-        self.app.save()
+        self.app.save(soon=True)
         self.request_render()
 
     def set_gamma(self, gamma: float, client=None) -> bool:
@@ -430,16 +430,19 @@ class CalibrateView(View):
 
     # ---------------------------------------------------------------- drawing (worker thread)
     def request_render(self) -> None:
-        self.submit("render", lambda: self.render(full=False))
         with self._timer_lock:
             if self._settle_timer is not None:
                 self._settle_timer.cancel()
+        self.submit("render", lambda: self.render(full=False))
+        with self._timer_lock:
             if self._stopped:
                 return
             with self.state.lock:
                 rev = self.state.revision
             self._settle_timer = threading.Timer(
-                SETTLE_S, lambda: self.submit("render", lambda: self.render(full=True, rev=rev))
+                # Its own key: a stale settle render must never replace a newer request.
+                SETTLE_S,
+                lambda: self.submit("render-full", lambda: self.render(full=True, rev=rev)),
             )
             self._settle_timer.daemon = True
             self._settle_timer.start()

@@ -218,10 +218,13 @@ class EvaluateView(View):
             if self.app.inputs is None:
                 return
             k = int(np.clip(k, 0, self.app.inputs.n_frames - 1))
+            same = k == self.state.eval_frame and self.app.shown.get(self.MODE) == (k,)
             self.state.eval_frame = k
+        if same:
+            return  # e.g. the slider's own callback after we moved it
         if int(self.panel.frame_slider.value) != k:
             self.panel.frame_slider.value = k
-        self.app.save()
+        self.app.save(soon=True)
         self._refresh_points()
         self.request_render()
 

@@ -16,6 +16,7 @@ Scrubbing is fast because the frame is warped at display resolution from a previ
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections import OrderedDict
@@ -30,12 +31,16 @@ from app.views.base import Scene, View
 from app.views.cptable import ControlPointPanel
 from registration import evaluation, pipeline
 
+log = logging.getLogger(__name__)
+
 RESIDUAL_OK = (255, 220, 0)
 RESIDUAL_REMOVED = (240, 50, 50)
 OUTLINE = (0, 200, 255)
 SELECTED = (255, 255, 255)
 FLICKER_S = 0.5
 PLAY_S = 0.4
+SETTLE_S = 0.35
+"""After this long on one frame, it is drawn again at the map preview's full resolution."""
 WARP_CACHE_FRAMES = 16
 PLOT_TITLE = "Per-frame residual RMS (px): hover for values, click a frame to show it"
 
@@ -271,8 +276,13 @@ class SequenceView(View):
         self.app.events.on("seq-frame", lambda v, client: self.set_frame(int(v)))
         # Recently shown frames at display size (a played loop then costs no warping).
         self._warp_cache: OrderedDict[tuple, tuple] = OrderedDict()
+        self._cache_lock = threading.Lock()  # the worker and the settle thread both warp
         self._threads_stop = threading.Event()
         self._flicker_on = True
+        self._settle_timer: threading.Timer | None = None
+        self._settle_lock = threading.Lock()
+        self._requested: int | None = None  # the frame last asked to be drawn
+        self._tables: OrderedDict[tuple, object] = OrderedDict()  # (k, id(result)) -> table
         self.table: controlpoints.ControlPointTable | None = None
         self.table_frame: int | None = None
         self.selected: int | None = None
@@ -282,7 +292,7 @@ class SequenceView(View):
     def on_inputs(self) -> None:
         inp = self.app.inputs
         self.scene.layout(inp.base_size)
-        self._warp_cache.clear()
+        self.clear_cache()
         self.table = None
         with self.state.lock:
             st = self.state
@@ -326,8 +336,14 @@ class SequenceView(View):
             result = None
         with self.state.lock:
             self.state.result = result
-        self._warp_cache.clear()
+        self.clear_cache()
         self.table = None
+
+    def clear_cache(self) -> None:
+        """Forget the frames warped so far (benchmarks measure the cold path)."""
+        with self._cache_lock:
+            self._warp_cache.clear()
+        self._tables.clear()
 
     def result(self):
         with self.state.lock:
@@ -338,13 +354,14 @@ class SequenceView(View):
             if self.app.inputs is None:
                 return
             k = int(np.clip(k, 0, self.app.inputs.n_frames - 1))
-            if k == self.state.seq_frame and self.app.shown.get(self.MODE, (None,))[0] == k:
-                return
+            if k == self.state.seq_frame and self._requested == k:
+                return  # e.g. the scrubber's own callback after we moved it
             self.state.seq_frame = k
+            self._requested = k
             self.state.revision += 1
         if int(self.panel.scrub.value) != k:
             self.panel.scrub.value = k  # runs set_frame again, which then returns early
-        self.app.save()
+        self.app.save(soon=True)
         self.request_render()
 
     def _view_changed(self) -> None:
@@ -359,6 +376,9 @@ class SequenceView(View):
 
     def shutdown(self) -> None:
         self._threads_stop.set()
+        with self._settle_lock:
+            if self._settle_timer is not None:
+                self._settle_timer.cancel()
 
     def _ticker(self) -> None:
         """Play and flicker clocks (post render requests; never draw themselves)."""
@@ -666,7 +686,34 @@ class SequenceView(View):
 
     # ---------------------------------------------------------------- drawing (worker)
     def request_render(self) -> None:
-        self.submit("render", self.render)
+        """Render the frame now at scrubbing resolution, then (once the scrubber rests) at the
+        map preview's full resolution."""
+        with self._settle_lock:
+            if self._settle_timer is not None:
+                self._settle_timer.cancel()
+        self.submit("render", lambda: self.render(full=False))
+        with self._settle_lock:
+            if self._threads_stop.is_set():
+                return
+            with self.state.lock:
+                rev = self.state.revision
+            self._settle_timer = threading.Timer(SETTLE_S, lambda: self._settle(rev))
+            self._settle_timer.daemon = True
+            self._settle_timer.start()
+
+    def _settle(self, rev: int) -> None:
+        """The scrubber rests: warp the frame at full resolution here, on the timer's thread, so
+        that the worker stays free for the next scrub; then let the worker draw it."""
+        with self.state.lock:
+            if rev != self.state.revision:
+                return
+            k, stage = self.state.seq_frame, self.state.stage
+        try:
+            self.registered(k, stage, 2 * self.app.display_max)
+        except Exception:  # drawn (and reported) by the worker's render instead
+            log.debug("settle warp of frame %d failed", k, exc_info=True)
+        # Its own key: a stale settle render must never replace a newer scrub's request.
+        self.submit("render-full", lambda: self.render(full=True, rev=rev))
 
     def frame_border_in_base(self, k: int, stage: str) -> np.ndarray:
         """The raw frame's border mapped into base pixels, ``(M, 2)`` (finite points only)."""
@@ -676,58 +723,74 @@ class SequenceView(View):
         b = r.frame_to_base(k, frame_outline(*r.frame_size), stage)
         return b[np.isfinite(b).all(axis=1)]
 
-    def registered(self, k: int, stage: str):
-        """Frame ``k`` warped into the map at display resolution: ``(rgb, valid, box)`` with
-        ``box`` = the footprint ``(x0, y0, x1, y1)`` in base preview pixels, or None."""
+    def registered(self, k: int, stage: str, side: int | None = None):
+        """Frame ``k`` warped into a preview of the map whose longer side is ``side`` px
+        (default: the map shown, twice the display size): ``(rgb, valid, box)`` with ``box`` =
+        the frame's footprint ``(x0, y0, x1, y1)`` in full base pixels (edges, floats), or None.
+
+        Only the footprint is rendered, from a preview of the frame of about its size there
+        (decoded ahead by the read-ahead), so a new frame costs a small warp."""
         from registration.coords import rescale
         from registration.render import render_registered
+        from registration.warp import warp_image
 
         r = self.result()
         if r is None or not r.is_ok(k):
             return None
-        key = (k, stage, id(r))
-        if key in self._warp_cache:
-            self._warp_cache.move_to_end(key)
-            return self._warp_cache[key]
+        side = side or 2 * self.app.display_max
+        key = (k, stage, side, id(r))
+        with self._cache_lock:
+            if key in self._warp_cache:
+                self._warp_cache.move_to_end(key)
+                return self._warp_cache[key]
         inp = self.app.inputs
-        base_rgb = inp.base_preview(2 * self.app.display_max)
-        hp, wp = base_rgb.shape[:2]
-        f_base = inp.base_size[0] / wp  # full base px per preview px
+        hp, wp = inp.base_preview(side).shape[:2]
+        f = (inp.base_size[0] / wp, inp.base_size[1] / hp)  # full base px per preview px
         border = self.frame_border_in_base(k, stage)
         if not len(border):
             return None
-        lo = rescale(border.min(axis=0, keepdims=True), 1.0 / f_base)[0]
-        hi = rescale(border.max(axis=0, keepdims=True), 1.0 / f_base)[0]
+        lo = rescale(border.min(axis=0, keepdims=True), (1.0 / f[0], 1.0 / f[1]))[0]
+        hi = rescale(border.max(axis=0, keepdims=True), (1.0 / f[0], 1.0 / f[1]))[0]
         pad = 4  # preview px: bilinear support and the local field's small shifts
         x0, y0 = (int(max(0, np.floor(v) - pad)) for v in lo)
         x1 = int(min(wp, np.ceil(hi[0]) + pad + 1))
         y1 = int(min(hp, np.ceil(hi[1]) + pad + 1))
         if x1 <= x0 or y1 <= y0:
             return None
-        # Warp from a preview of the frame at about the display's resolution: the full frame
-        # would be decoded and resampled for pixels the display cannot show.
-        frame = inp.preview(k, max(self.app.display_max, int(np.ceil(max(x1 - x0, y1 - y0) * 1.2))))
-        f_frame = frame.shape[1] / r.frame_size[0]  # preview px per raw px
+        frame = inp.preview(k, self.frame_preview_side(x1 - x0, y1 - y0))
+        f_frame = (frame.shape[1] / r.frame_size[0], frame.shape[0] / r.frame_size[1])
 
         def frame_from_base(xy):
-            raw = r.base_to_frame(k, rescale(xy, f_base), stage)
+            raw = r.base_to_frame(k, rescale(xy, f), stage)
             return rescale(raw, f_frame)
 
-        crop, mask = render_registered(
-            scene2d.to_rgb(frame),
-            frame_from_base,
-            (x1 - x0, y1 - y0),
-            origin=(x0, y0),
-            step=8,
-            return_mask=True,
-        )
-        out = (crop, mask, (x0, y0, x1, y1))
-        self._warp_cache[key] = out
-        while len(self._warp_cache) > WARP_CACHE_FRAMES:
-            self._warp_cache.popitem(last=False)
+        rgb = scene2d.to_rgb(frame)
+        if side >= 2 * self.app.display_max:
+            crop, mask = render_registered(
+                rgb, frame_from_base, (x1 - x0, y1 - y0), origin=(x0, y0), step=8, return_mask=True
+            )
+        else:
+            # Scrubbing: the mapping on a 16 px lattice and no exact evaluation of the frame's
+            # border band (up to 16 preview px of the border stay empty until the settle render).
+            crop, mask = warp_image(
+                rgb, frame_from_base, x1 - x0, y1 - y0, origin=(x0, y0), step=16
+            )
+        # Corner coordinates scale linearly: preview edge x0 is full-base edge x0 * f.
+        box = (x0 * f[0], y0 * f[1], x1 * f[0], y1 * f[1])
+        out = (crop, mask, box)
+        with self._cache_lock:
+            self._warp_cache[key] = out
+            while len(self._warp_cache) > WARP_CACHE_FRAMES:
+                self._warp_cache.popitem(last=False)
         return out
 
-    def render(self) -> None:
+    def frame_preview_side(self, width: int, height: int) -> int:
+        """Longer side of the frame preview to warp into a ``width x height`` footprint: a
+        little more than the footprint (in steps of 256 px, so the read-ahead can guess it)."""
+        need = int(np.ceil(max(width, height) * 1.2 / 256.0)) * 256
+        return max(need, 512)
+
+    def render(self, full: bool = False, rev: int | None = None) -> None:
         from registration import viz
 
         inp = self.app.inputs
@@ -736,25 +799,39 @@ class SequenceView(View):
         with self.state.lock:
             st = self.state
             k, stage, overlay = st.seq_frame, st.stage, st.overlay
-            alpha = st.opacity
-        base_rgb = inp.base_preview(2 * self.app.display_max)
-        reg = self.registered(k, stage)
-        f_base = inp.base_size[0] / base_rgb.shape[1]
+            alpha, cur = st.opacity, st.revision
+        if rev is not None and rev != cur:
+            return  # the scrubber moved on: this settle render is stale
+        fine_side = 2 * self.app.display_max
+        r0 = self.result()
+        have_fine = r0 is not None and (k, stage, fine_side, id(r0)) in self._warp_cache
+        side = fine_side if (full or have_fine) else self.app.display_max
+        if (
+            full
+            and self.app.shown.get(self.MODE, (None,) * 5)[:2] == (k, stage)
+            and self.app.shown[self.MODE][4] == side
+        ):
+            return  # already shown at full resolution
+        base_rgb = inp.base_preview(fine_side)
+        reg = self.registered(k, stage, side)
+        under_rgb = inp.base_preview(side)
         with self.app.server.atomic():
             self.scene.show_base(base_rgb)
             if reg is None:
                 self.scene.show_registered(None, None)
             else:
-                crop, mask, (x0, y0, x1, y1) = reg
-                under = base_rgb[y0:y1, x0:x1]
+                crop, mask, box = reg
+                hp, wp = under_rgb.shape[:2]
+                f = (self.app.inputs.base_size[0] / wp, self.app.inputs.base_size[1] / hp)
+                x0, y0 = int(round(box[0] / f[0])), int(round(box[1] / f[1]))
+                under = under_rgb[y0 : y0 + crop.shape[0], x0 : x0 + crop.shape[1]]
                 if overlay == "checkerboard":
-                    tile = max(8, base_rgb.shape[1] // 16)
+                    tile = max(8, under_rgb.shape[1] // 16)
                     img = viz.checkerboard(crop, under, tile=tile, mask=mask)
                 elif overlay == "flicker":
                     img = viz.blend(crop, under, 1.0, mask=mask)
                 else:
                     img = viz.blend(crop, under, alpha, mask=mask)
-                box = tuple(int(round(v * f_base)) for v in (x0, y0, x1, y1))
                 self.scene.show_registered(
                     img, box, visible=overlay != "flicker" or self._flicker_on
                 )
@@ -766,12 +843,20 @@ class SequenceView(View):
             self._draw_field(k)
         self.draw_plot()
         self._update_frame_md(k)
-        self.app.shown[self.MODE] = (k, stage, overlay, reg is not None)
-        inp.prefetch([k + 1, k - 1, k + 2])
+        self.app.shown[self.MODE] = (k, stage, overlay, reg is not None, side)
+        if not full:
+            footprint = (0, 0) if reg is None else (reg[0].shape[1], reg[0].shape[0])
+            guess = self.frame_preview_side(*footprint) if reg is not None else self.app.display_max
+            inp.prefetch([k + 1, k - 1, k + 2], preview_sides=(guess,))
 
     def _frame_table(self, k: int) -> None:
         if self.table_frame != k or self.table is None:
-            self.table = self.control_point_table(k)
+            key = (k, id(self.result()))
+            if key not in self._tables:
+                self._tables[key] = self.control_point_table(k)
+                while len(self._tables) > WARP_CACHE_FRAMES:
+                    self._tables.popitem(last=False)
+            self.table = self._tables[key]
             self.table_frame = k
             self.selected = None
             self.panel.cps.offset = 0
