@@ -96,8 +96,21 @@ class EventChannel:
         self.dispatch(str(event.target.value), event.client)
 
 
-def install(server, channel: EventChannel) -> None:
-    """Load ``static/`` into every client: camera behaviour, styles, the event channel."""
-    run_javascript(server, read_asset("camera.js"))
-    run_javascript(server, css_loader_js(read_asset("app.css")))
-    run_javascript(server, read_asset("events.js").replace("__CHANNEL__", channel.uuid))
+def install(server, channel: EventChannel) -> list[str]:
+    """Load ``static/`` into every client: camera behaviour, styles, the event channel.
+
+    Returns the assets that could not be read (the app works without them, less comfortably:
+    see the module docstring); each is logged."""
+    missing = []
+    scripts = {
+        "camera.js": lambda text: text,
+        "app.css": css_loader_js,
+        "events.js": lambda text: text.replace("__CHANNEL__", channel.uuid),
+    }
+    for name, make in scripts.items():
+        try:
+            run_javascript(server, make(read_asset(name)))
+        except FileNotFoundError as exc:
+            log.warning("%s", exc)
+            missing.append(name)
+    return missing

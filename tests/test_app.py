@@ -810,3 +810,28 @@ def test_serve_allows_only_named_folders(tmp_path, small_seq, monkeypatch):
         assert "outside the allowed folders" in app.errors[-1]
     finally:
         app.stop()
+
+
+def test_transform_choice_reaches_the_run(tmp_path, small_seq, make_app):
+    """Projective instead of polyprojective, local field off: the fit and the run use them."""
+    from registration.synth import load_truth
+
+    truth = load_truth(small_seq)
+    app = make_app(tmp_path / "proj", small_seq)
+    app.views["Calibrate"].set_gamma(truth.gamma)
+    app.set_mode("Seed")
+    seed = app.views["Seed"]
+    seed.panel.transform.value = "projective"
+    seed.panel.local.value = False
+    assert app.state.degree == 1 and not app.state.run_local
+    seed_at_truth(app, truth)
+    assert app.state.reference.fine.base_from_corrected.degree == 1, app.errors
+    assert "(projective)" in seed.panel.cps.summary.content
+    app.set_mode("Sequence")
+    assert app.views["Sequence"].run()
+    app.jobs.join(300)
+    app.worker.wait_idle()
+    r = app.state.result
+    assert all(r.model(k).degree == 1 for k in range(r.n_frames)), app.errors
+    assert all(r.field(k) is None for k in range(r.n_frames))
+    assert "projective, local field off" in app.views["Sequence"].panel.run_md.content
