@@ -835,3 +835,19 @@ def test_transform_choice_reaches_the_run(tmp_path, small_seq, make_app):
     assert all(r.model(k).degree == 1 for k in range(r.n_frames)), app.errors
     assert all(r.field(k) is None for k in range(r.n_frames))
     assert "projective, local field off" in app.views["Sequence"].panel.run_md.content
+
+
+def test_reference_fit_and_edits_survive_a_restart(fitted, make_app, small_seq, tmp_path):
+    app, truth, bxy = fitted
+    seed = app.views["Seed"]
+    seed.disable_worst()
+    app.worker.wait_idle()
+    rms, n_enabled = seed.table.rms, seed.table.n_enabled
+    app.stop()
+    app2 = make_app(tmp_path / "proj", small_seq)
+    app2.worker.wait_idle()
+    ref = app2.state.current_reference()
+    assert ref is not None and ref.fine, app2.errors
+    t = app2.views["Seed"].table
+    assert t.n_enabled == n_enabled and t.rms == pytest.approx(rms, rel=1e-6)
+    assert app2.state.steps()["reference registered"] and app2.state.steps()["seeded"]
