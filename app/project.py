@@ -46,22 +46,44 @@ def write_atomic(path: Path, data: bytes | str) -> None:
         raise
 
 
+UPLOADS = "uploads"
+
+
+def input_identity(path: str | None) -> str:
+    """What identifies an input for choosing its project: its resolved path, or for a file
+    uploaded into a project (``<project>/uploads/<kind>-<content hash>-<name>``) its file name,
+    which carries the content's hash and survives the file moving between projects."""
+    if not path:
+        return "-"
+    p = Path(path).expanduser()
+    if p.parent.name == UPLOADS and (p.parent.parent / PROJECT_FILE).exists():
+        return f"upload:{p.name}"
+    return str(p.resolve())
+
+
 def default_project_dir(frames: str | None, base: str | None, data_dir: Path | None = None) -> Path:
     """Per-input project folder under the user's data dir (``platformdirs.user_data_dir``).
 
-    The folder name is a short hash of the resolved input paths, so reopening the same inputs
-    reopens the same session.
+    The folder name is a short hash of the inputs' identities (:func:`input_identity`), so
+    reopening the same inputs (or uploading the same files again) reopens the same session.
     """
     if data_dir is None:
         import platformdirs
 
         data_dir = Path(platformdirs.user_data_dir("aerialreg"))
-    key = "\n".join(
-        str(Path(p).expanduser().resolve()) if p else "-" for p in (frames, base)
-    ).encode()
+    key = "\n".join(input_identity(p) for p in (frames, base)).encode()
     stem = Path(frames).stem if frames else "demo"
+    if frames and input_identity(frames).startswith("upload:"):
+        stem = Path(frames).stem.split("-", 2)[-1]
     stem = "".join(c if c.isalnum() or c in "-_" else "_" for c in stem)[:40] or "input"
-    return data_dir / "projects" / f"{stem}-{hashlib.sha1(key).hexdigest()[:10]}"
+    return Path(data_dir) / "projects" / f"{stem}-{hashlib.sha1(key).hexdigest()[:10]}"
+
+
+def upload_name(kind: str, filename: str, content: bytes) -> str:
+    """The stored name of an upload: kind, a hash of its content, the sanitised file name."""
+    safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in Path(filename).name)
+    safe = safe.lstrip(".") or "upload"
+    return f"{kind}-{hashlib.sha1(content).hexdigest()[:10]}-{safe}"
 
 
 class Project:
@@ -89,7 +111,38 @@ class Project:
 
     @property
     def uploads_dir(self) -> Path:
-        return self.folder / "uploads"
+        return self.folder / UPLOADS
+
+    def adopt_upload(self, path: str) -> str:
+        """Move a file uploaded into another project's uploads into this one's; returns the
+        (possibly new) path. Other paths are returned unchanged."""
+        p = Path(path)
+        if not input_identity(path).startswith("upload:") or p.parent == self.uploads_dir:
+            return path
+        target = self.uploads_dir / p.name
+        self.uploads_dir.mkdir(parents=True, exist_ok=True)
+        os.replace(p, target)
+        return str(target)
+
+    def prune_uploads(self, keep: list[str]) -> list[Path]:
+        """Delete uploaded files that none of ``keep`` (the open inputs' paths) refers to;
+        returns the deleted paths."""
+        folder = self.uploads_dir
+        if not folder.is_dir():
+            return []
+        kept = set()
+        for k in keep:
+            try:
+                kept.add(Path(k).resolve())
+            except (OSError, RuntimeError):
+                continue
+        removed = []
+        for f in folder.iterdir():
+            # Dot files are uploads being written (write_atomic's temporaries).
+            if f.is_file() and not f.name.startswith(".") and f.resolve() not in kept:
+                f.unlink(missing_ok=True)
+                removed.append(f)
+        return removed
 
     def load(self) -> dict[str, Any]:
         """The saved session, or ``{}`` for a new project.
@@ -125,44 +178,6 @@ class Project:
         path = self.folder / name
         write_atomic(path, data)
         return path
-
-
-def resolve_allowed(path_text: str, allowed: list[Path]) -> Path:
-    """Resolve a user-typed path (symlinks too) and check it lies inside an allowed folder.
-
-    Glob patterns are checked through their fixed leading part (the folder before the first
-    wildcard).
-
-    Raises:
-        ValueError: naming the path when it is empty or outside every allowed folder.
-        FileNotFoundError: naming the path when nothing exists there (globs: the folder).
-    """
-    text = path_text.strip()
-    if not text:
-        raise ValueError("empty path")
-    p = Path(text).expanduser()
-    is_glob = any(ch in text for ch in "*?[")
-    if is_glob:
-        parts = p.parts
-        fixed = []
-        for part in parts:
-            if any(ch in part for ch in "*?["):
-                break
-            fixed.append(part)
-        anchor = Path(*fixed) if fixed else Path(".")
-        resolved_anchor = anchor.resolve()
-        check = resolved_anchor
-        result = resolved_anchor.joinpath(*parts[len(fixed) :])
-    else:
-        check = result = p.resolve()
-    roots = [Path(a).expanduser().resolve() for a in allowed]
-    if not any(check == r or r in check.parents for r in roots):
-        raise ValueError(
-            f"path {text!r} is outside the allowed folders ({', '.join(str(r) for r in roots)})"
-        )
-    if not check.exists():
-        raise FileNotFoundError(f"no such file or folder: {text!r}")
-    return result
 
 
 REFERENCE_FILE = "reference.npz"

@@ -9,6 +9,10 @@ so pixel ``(x, y)`` lies at continuous ``(x + 0.5, y + 0.5)`` from the image cor
 Everything here except :class:`ImagePlane`'s drawing methods is plain numpy, testable without a
 server. A plane can show a downscaled preview: it keeps the full-resolution size for geometry,
 so overlays in full-resolution pixels stay registered whatever preview is on screen.
+
+Markers and dots keep a fixed size on screen: the app tells each plane how many image pixels one
+screen pixel covers (:meth:`ImagePlane.set_zoom`, from the browser's camera), and the plane
+resizes them; lines are drawn with screen-pixel thickness. Overlays are clipped to the image.
 """
 
 from __future__ import annotations
@@ -134,6 +138,97 @@ def cross_segments(center: ArrayLike, size: float) -> tuple[NDArray, NDArray]:
     return a, b
 
 
+def x_segments(center: ArrayLike, size: float) -> tuple[NDArray, NDArray]:
+    """An ``x`` marker of half-size ``size`` pixels (two segments)."""
+    x, y = np.asarray(center, dtype=np.float64).reshape(2)
+    a = np.array([[x - size, y - size], [x - size, y + size]])
+    b = np.array([[x + size, y + size], [x + size, y - size]])
+    return a, b
+
+
+def square_segments(center: ArrayLike, size: float) -> tuple[NDArray, NDArray]:
+    """A square outline of half-size ``size`` pixels (four segments)."""
+    x, y = np.asarray(center, dtype=np.float64).reshape(2)
+    c = np.array(
+        [[x - size, y - size], [x + size, y - size], [x + size, y + size], [x - size, y + size]]
+    )
+    return c, np.roll(c, -1, axis=0)
+
+
+MARKER_SHAPES = {
+    "cross": cross_segments,
+    "x": x_segments,
+    "square": square_segments,
+    "circle": lambda c, r: circle_segments(c, r, 20),
+}
+"""Marker shapes (``(center, half_size) -> (starts, ends)``) for :meth:`ImagePlane.markers`."""
+
+
+def clip_segments(
+    a: ArrayLike, b: ArrayLike, width: float, height: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
+    """Clip segments ``a -> b`` (``(N, 2)`` pixels) to the image ``[-0.5, W-0.5] x [-0.5, H-0.5]``.
+
+    Liang-Barsky. Returns the clipped starts and ends and the ``(N,)`` mask of segments that keep
+    a part inside (non-finite segments are dropped).
+    """
+    a = np.asarray(a, dtype=np.float64).reshape(-1, 2)
+    b = np.asarray(b, dtype=np.float64).reshape(-1, 2)
+    d = b - a
+    t0 = np.zeros(len(a))
+    t1 = np.ones(len(a))
+    keep = np.isfinite(a).all(axis=1) & np.isfinite(b).all(axis=1)
+    lo, hi = -0.5, np.array([width - 0.5, height - 0.5])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for axis in (0, 1):
+            for p, q in ((-d[:, axis], a[:, axis] - lo), (d[:, axis], hi[axis] - a[:, axis])):
+                parallel = p == 0
+                keep &= ~(parallel & (q < 0))
+                r = q / p
+                entering = ~parallel & (p < 0)
+                leaving = ~parallel & (p > 0)
+                t0 = np.where(entering, np.maximum(t0, r), t0)
+                t1 = np.where(leaving, np.minimum(t1, r), t1)
+    keep &= t0 <= t1
+    return a + t0[:, None] * d, a + t1[:, None] * d, keep
+
+
+def inside(xy: ArrayLike, width: float, height: float) -> NDArray[np.bool_]:
+    """``(N,)`` mask of finite pixels ``xy`` on a ``width x height`` image."""
+    p = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    with np.errstate(invalid="ignore"):
+        return (
+            (p[:, 0] >= -0.5)
+            & (p[:, 0] <= width - 0.5)
+            & (p[:, 1] >= -0.5)
+            & (p[:, 1] <= height - 0.5)
+        )
+
+
+def world_per_screen_px(camera_z: float, fov_rad: float, viewport_height_px: int) -> float:
+    """World units one screen pixel covers on the plane z = 0 for a top-down camera at height
+    ``|camera_z|`` with vertical field of view ``fov_rad``."""
+    return (
+        2.0 * abs(float(camera_z)) * float(np.tan(fov_rad / 2.0)) / max(int(viewport_height_px), 1)
+    )
+
+
+def auto_vector_scale(lengths: ArrayLike, plane_width: float, fraction: float = 0.03) -> float:
+    """Exaggeration for residual vectors so that the 90th-percentile vector is drawn
+    ``fraction`` of the plane's width long (1 when there are none), rounded to 1-2-5 steps."""
+    v = np.asarray(lengths, dtype=np.float64)
+    v = v[np.isfinite(v) & (v > 0)]
+    if not len(v):
+        return 1.0
+    raw = fraction * plane_width / float(np.percentile(v, 90))
+    raw = float(np.clip(raw, 1.0, 10000.0))
+    exp = 10 ** np.floor(np.log10(raw))
+    for m in (1, 2, 5, 10):
+        if raw <= m * exp * 1.5:
+            return float(m * exp)
+    return float(10 * exp)
+
+
 def preview(image: NDArray, max_side: int) -> NDArray:
     """Downscale ``image`` (INTER_AREA) so its longer side is at most ``max_side`` pixels."""
     h, w = image.shape[:2]
@@ -161,12 +256,18 @@ class Overlays:
 
 
 class ImagePlane:
-    """One image plane in the scene with its overlays (call only from the worker / under lock)."""
+    """One image plane in the scene with its overlays (call only from the worker / under lock).
+
+    Overlays are keyed; drawing a key again replaces it. ``px_per_screen`` (image pixels per
+    screen pixel, :meth:`set_zoom`) sizes markers and dots in screen pixels.
+    """
 
     def __init__(self, scene, name: str, geom: PlaneGeometry, *, jpeg_quality: int = 85) -> None:
         self.scene, self.name, self.geom, self.quality = scene, name, geom, jpeg_quality
         self.handle = None
         self._overlays: dict[str, object] = {}
+        self._sized: dict[str, tuple] = {}  # key -> how to redraw at another zoom
+        self.px_per_screen = max(geom.width, geom.height) / 800.0
 
     def show(self, rgb: NDArray, *, fmt: str = "jpeg") -> None:
         """Show an RGB(A) uint8 image (any resolution; stretched over the full-size plane)."""
@@ -188,6 +289,12 @@ class ImagePlane:
                 self.handle.format = fmt
             self.handle.image = rgb
 
+    def remove_image(self) -> None:
+        self.clear_overlays()
+        if self.handle is not None:
+            self.handle.remove()
+            self.handle = None
+
     def segments(
         self,
         key: str,
@@ -198,16 +305,23 @@ class ImagePlane:
         width: float = 2.0,
         dz: float = OVERLAY_DZ,
         visible: bool = True,
+        clip: bool = True,
     ) -> None:
-        """Draw (or replace) segments ``a -> b`` in this plane's pixels; empty input hides it."""
+        """Draw (or replace) segments ``a -> b`` in this plane's pixels, clipped to the image;
+        ``width`` in screen pixels; empty input removes the key."""
         a = np.asarray(a, dtype=np.float64).reshape(-1, 2)
         b = np.asarray(b, dtype=np.float64).reshape(-1, 2)
+        col = np.asarray(color, dtype=np.uint8)
+        if clip and len(a):
+            a, b, keep = clip_segments(a, b, self.geom.width, self.geom.height)
+            a, b = a[keep], b[keep]
+            if col.ndim == 2:
+                col = col[keep]
         name = f"{self.name}_ov/{key}"
         if len(a) == 0:
             self.remove(key)
             return
         pts = segments_world(self.geom, a, b, dz)
-        col = np.asarray(color, dtype=np.uint8)
         if col.ndim == 2:  # per-segment colours -> per-vertex
             col = np.repeat(col[:, None, :], 2, axis=1)
         self._overlays[key] = self.scene.add_line_segments(
@@ -215,31 +329,114 @@ class ImagePlane:
         )
 
     def points(self, key: str, xy: ArrayLike, color, *, size_px: float = 6.0) -> None:
-        """Draw (or replace) a float32 point cloud at pixels ``xy``; size in image pixels."""
+        """Draw (or replace) dots at pixels ``xy`` (those on the image), ``size_px`` screen
+        pixels across whatever the zoom."""
         xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        col = np.asarray(color, dtype=np.uint8)
+        on = inside(xy, self.geom.width, self.geom.height)
+        xy = xy[on]
+        if col.ndim == 2:
+            col = col[on]
         if len(xy) == 0:
             self.remove(key)
             return
         pts = self.geom.world_from_pixel(xy, 2 * OVERLAY_DZ).astype(np.float32)
-        col = np.asarray(color, dtype=np.uint8)
         if col.ndim == 1:
             col = np.broadcast_to(col, (len(xy), 3)).copy()
         self._overlays[key] = self.scene.add_point_cloud(
             f"{self.name}_ov/{key}",
             pts,
             col,
-            point_size=size_px * self.geom.scale,
+            point_size=self._world_size(size_px),
             point_shape="circle",
             precision="float32",
         )
+        self._sized[key] = ("points", size_px)
 
-    def overlay_image(self, key: str, rgba: NDArray, *, dz: float = OVERLAY_DZ / 2) -> None:
-        """An image (RGB -> JPEG, RGBA -> PNG) stretched over this plane, slightly in front."""
-        w, h = self.geom.render_size
-        px, py, pz = self.geom.position
+    def markers(
+        self,
+        key: str,
+        xy: ArrayLike,
+        color,
+        *,
+        shape: str = "cross",
+        size_px: float = 10.0,
+        width: float = 2.0,
+        dz: float = 3 * OVERLAY_DZ,
+    ) -> None:
+        """Draw (or replace) ``shape`` markers (:data:`MARKER_SHAPES`) at pixels ``xy``,
+        ``size_px`` screen pixels from centre to edge whatever the zoom."""
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        col = np.asarray(color, dtype=np.uint8)
+        self._sized[key] = ("markers", xy, col, shape, size_px, width, dz)
+        self._draw_markers(key)
+
+    def _draw_markers(self, key: str) -> None:
+        _, xy, col, shape, size_px, width, dz = self._sized[key]
+        on = inside(xy, self.geom.width, self.geom.height)
+        half = size_px * self.px_per_screen
+        starts, ends, cols = [], [], []
+        for i in np.flatnonzero(on):
+            s, e = MARKER_SHAPES[shape](xy[i], half)
+            starts.append(s)
+            ends.append(e)
+            c = col[i] if col.ndim == 2 else col
+            cols.append(np.broadcast_to(c, (len(s), 3)))
+        if not starts:
+            spec = self._sized[key]
+            self.remove(key)
+            self._sized[key] = spec  # kept: the markers come back if drawn again
+            return
+        self.segments(
+            key,
+            np.concatenate(starts),
+            np.concatenate(ends),
+            np.concatenate(cols).astype(np.uint8),
+            width=width,
+            dz=dz,
+            clip=False,
+        )
+
+    def set_zoom(self, px_per_screen: float) -> None:
+        """The browser now shows ``px_per_screen`` image pixels per screen pixel: resize the
+        dots and markers."""
+        if not np.isfinite(px_per_screen) or px_per_screen <= 0:
+            return
+        self.px_per_screen = float(px_per_screen)
+        for key, spec in list(self._sized.items()):
+            if key not in self._overlays:
+                continue
+            if spec[0] == "points":
+                self._overlays[key].point_size = self._world_size(spec[1])
+            elif spec[0] == "markers":
+                self._draw_markers(key)
+
+    def _world_size(self, size_px: float) -> float:
+        # viser's point shader draws a point of size P as P * height / (z tan(fov/2)) pixels:
+        # twice its world size on screen (client ThreeAssets.tsx), hence the half.
+        return float(size_px * self.px_per_screen * self.geom.scale / 2.0)
+
+    def overlay_image(
+        self,
+        key: str,
+        rgba: NDArray,
+        *,
+        box: tuple[float, float, float, float] | None = None,
+        dz: float = OVERLAY_DZ / 2,
+    ) -> None:
+        """An image (RGB -> JPEG, RGBA -> PNG) in front of this plane: over the whole plane, or
+        over the box ``(x0, y0, x1, y1)`` whose edges are in corner coordinates (pixel ``i``
+        spans ``[i, i + 1)``; a pixel box with ``x1``, ``y1`` exclusive)."""
+        x0, y0, x1, y1 = box if box is not None else (0, 0, self.geom.width, self.geom.height)
+        s = self.geom.scale
+        centre = self.geom.world_from_pixel(
+            np.array([(x0 + x1) / 2.0 - 0.5, (y0 + y1) / 2.0 - 0.5]), dz
+        )
+        w, h = (x1 - x0) * s, (y1 - y0) * s
         fmt = "png" if rgba.shape[-1] == 4 else "jpeg"
         handle = self._overlays.get(key)
-        if handle is not None and getattr(handle, "format", None) == fmt:
+        same_place = self._sized.get(key) == ("box", (x0, y0, x1, y1))
+        if handle is not None and getattr(handle, "format", None) == fmt and same_place:
             handle.image = rgba
             handle.visible = True
             return
@@ -250,13 +447,20 @@ class ImagePlane:
             h,
             format=fmt,
             jpeg_quality=self.quality if fmt == "jpeg" else None,
-            position=(px, py, pz + dz),
+            position=tuple(centre),
             cast_shadow=False,
             receive_shadow=False,
         )
+        self._sized[key] = ("box", (x0, y0, x1, y1))
+
+    def set_visible(self, key: str, visible: bool) -> None:
+        handle = self._overlays.get(key)
+        if handle is not None:
+            handle.visible = bool(visible)
 
     def remove(self, key: str) -> None:
         handle = self._overlays.pop(key, None)
+        self._sized.pop(key, None)
         if handle is not None:
             handle.remove()
 
@@ -266,6 +470,86 @@ class ImagePlane:
 
     def has(self, key: str) -> bool:
         return key in self._overlays
+
+    def overlay(self, key: str):
+        """The viser handle drawn under ``key`` (tests and benchmarks), or None."""
+        return self._overlays.get(key)
+
+
+def ring_mesh(square: bool = False, inner: float = 0.6, n: int = 32) -> tuple[NDArray, NDArray]:
+    """A flat ring of outer radius 1 (``square``: a square frame of half-size 1) in the z = 0
+    plane: ``(vertices (V, 3), faces (F, 3))`` for ``scene.add_mesh_simple``."""
+    if square:
+        outer = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], np.float64)
+    else:
+        t = np.linspace(0, 2 * np.pi, n, endpoint=False)
+        outer = np.stack([np.cos(t), np.sin(t)], axis=1)
+    m = len(outer)
+    ring = np.concatenate([outer, inner * outer])
+    verts = np.concatenate([ring, np.zeros((2 * m, 1))], axis=1).astype(np.float32)
+    faces = []
+    for i in range(m):
+        j = (i + 1) % m
+        # Wound to face the camera (which looks along +z with image rows going down).
+        faces.append([i, m + i, j])
+        faces.append([j, m + i, m + j])
+    return verts, np.asarray(faces, np.uint32)
+
+
+class DragMarker:
+    """A grab handle at a pixel of a plane that the analyst can drag: an invisible ring (or
+    square) mesh a fixed size on screen, under the visible marker the caller draws with lines
+    (scene lighting would darken a coloured mesh). The drag itself is handled by the caller
+    (``handle.on_drag``)."""
+
+    def __init__(
+        self, scene, name: str, plane: ImagePlane, xy, color, *, square: bool, size_px: float = 13.0
+    ) -> None:
+        self.plane, self.size_px = plane, size_px
+        verts, faces = ring_mesh(square)
+        self.xy = np.asarray(xy, np.float64).reshape(2)
+        self.handle = scene.add_mesh_simple(
+            name,
+            verts,
+            faces,
+            color=tuple(int(c) for c in color),
+            side="double",
+            opacity=0.0,
+            cast_shadow=False,
+            receive_shadow=False,
+            position=tuple(plane.geom.world_from_pixel(self.xy, 4 * OVERLAY_DZ)),
+            scale=self._radius(),
+        )
+
+    def _radius(self) -> float:
+        return float(self.size_px * self.plane.px_per_screen * self.plane.geom.scale)
+
+    @property
+    def radius(self) -> float:
+        """The ring's outer radius in world units (its inner one is 0.6 of that)."""
+        return self._radius()
+
+    def move_to(self, xy) -> None:
+        self.xy = np.asarray(xy, np.float64).reshape(2)
+        self.handle.position = tuple(self.plane.geom.world_from_pixel(self.xy, 4 * OVERLAY_DZ))
+
+    def resize(self) -> None:
+        self.handle.scale = self._radius()
+
+    def remove(self) -> None:
+        self.handle.remove()
+
+
+def pixel_under_pointer(geom: PlaneGeometry, camera_position: ArrayLike, point: ArrayLike):
+    """The plane pixel under the pointer: the ray from the camera through ``point`` (a world
+    point the pointer is over, e.g. a drag event's position on its drag plane) meets the image
+    plane there. None when the ray misses the plane."""
+    o = np.asarray(camera_position, np.float64)
+    d = np.asarray(point, np.float64) - o
+    n = np.linalg.norm(d)
+    if not np.isfinite(n) or n == 0:
+        return None
+    return geom.pixel_from_ray(o, d / n)
 
 
 def fit_camera(

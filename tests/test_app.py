@@ -8,7 +8,6 @@ project and what was handed to viser are checked.
 from __future__ import annotations
 
 import json
-import os
 import threading
 import time
 from pathlib import Path
@@ -19,7 +18,8 @@ import pytest
 viser = pytest.importorskip("viser")
 
 from app import scene2d  # noqa: E402
-from app.project import Project, resolve_allowed, write_atomic  # noqa: E402
+from app.project import Project, write_atomic  # noqa: E402
+from app.security import make_server  # noqa: E402
 from app.server import App  # noqa: E402
 from app.state import AppState  # noqa: E402
 from app.worker import LatestWorker  # noqa: E402
@@ -40,7 +40,7 @@ def small_seq(tmp_path_factory) -> Path:
 
 
 def start_app(project_dir: Path, seq: Path | None, **kw) -> App:
-    server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+    server = make_server("127.0.0.1", 0, verbose=False)
     app = App(
         server,
         Project(project_dir),
@@ -156,28 +156,6 @@ def test_write_atomic_leaves_no_temporary(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json"]
 
 
-def test_resolve_allowed_rejects_outside_and_symlink_escape(tmp_path):
-    inside = tmp_path / "inside"
-    outside = tmp_path / "outside"
-    inside.mkdir()
-    outside.mkdir()
-    (inside / "f.png").write_bytes(b"x")
-    (outside / "secret.png").write_bytes(b"x")
-    os.symlink(outside / "secret.png", inside / "link.png")
-    assert resolve_allowed(str(inside / "f.png"), [inside]) == (inside / "f.png").resolve()
-    assert resolve_allowed(str(inside / "*.png"), [inside]).parent == inside.resolve()
-    with pytest.raises(ValueError, match="outside the allowed folders"):
-        resolve_allowed(str(outside / "secret.png"), [inside])
-    with pytest.raises(ValueError, match="outside the allowed folders"):
-        resolve_allowed(str(inside / "link.png"), [inside])
-    with pytest.raises(ValueError, match="outside the allowed folders"):
-        resolve_allowed(str(inside / ".." / "outside" / "secret.png"), [inside])
-    with pytest.raises(FileNotFoundError, match="no such file"):
-        resolve_allowed(str(inside / "missing.png"), [inside])
-    with pytest.raises(ValueError, match="empty path"):
-        resolve_allowed("  ", [inside])
-
-
 def test_viz_blend_checkerboard_colorize_exact():
     a = np.full((4, 4, 3), 200, np.uint8)
     b = np.full((4, 4, 3), 100, np.uint8)
@@ -206,31 +184,73 @@ def test_viz_blend_checkerboard_colorize_exact():
 # ---------------------------------------------------------------- the app in process
 
 
+def seed_at_truth(app, truth, fxy=(320.0, 240.0)):
+    """Place pair 1 at a raw frame point and its true map position (the fit runs by itself)."""
+    seed = app.views["Seed"]
+    fxy = np.asarray(fxy, float)
+    bxy = truth.frame_to_base(app.state.reference_frame, fxy[None])[0]
+    w, h = app.inputs.frame_size
+    corrected = HarrisModel(truth.gamma, w, h).corrected_from_raw(fxy[None])[0]
+    click(app, seed.scene.planes["frame"], corrected)
+    click(app, seed.scene.planes["base"], bxy)
+    app.jobs.join(120)
+    app.worker.wait_idle()
+    return bxy
+
+
+@pytest.fixture
+def fitted(tmp_path, small_seq, make_app):
+    """An app with γ set, the reference frame seeded and fitted (coarse + fine)."""
+    from registration.synth import load_truth
+
+    truth = load_truth(small_seq)
+    app = make_app(tmp_path / "proj", small_seq)
+    app.views["Calibrate"].set_gamma(truth.gamma)
+    app.set_mode("Seed")
+    bxy = seed_at_truth(app, truth)
+    ref = app.state.reference
+    assert ref is not None and ref.coarse and ref.fine, app.errors
+    return app, truth, bxy
+
+
+@pytest.fixture
+def registered(fitted):
+    """``fitted`` plus the whole sequence registered."""
+    app, truth, bxy = fitted
+    app.set_mode("Sequence")
+    assert app.views["Sequence"].run()
+    app.jobs.join(300)
+    app.worker.wait_idle()
+    r = app.state.result
+    assert r is not None and all(rec["status"] == "ok" for rec in r.records), app.errors
+    return app, truth, bxy
+
+
 def test_calibrate_gamma_lines_and_restore(tmp_path, small_seq, make_app):
     from registration.calibration import load_lines
 
     proj = tmp_path / "proj"
     app = make_app(proj, small_seq)
-    cal = app.tabs["Calibrate"]
+    cal = app.views["Calibrate"]
     assert app.shown["Calibrate"] == (0, 0.0, 640, 480)
-    cal.gamma_slider.value = 0.5
+    assert not app.state.steps()["calibrated"]
+    cal.panel.gamma_slider.value = 0.5
     app.worker.wait_idle()
-    assert app.state.gamma == 0.5 and cal.gamma_number.value == 0.5
-    assert app.shown["Calibrate"][:2] == (0, 0.5)
-    cal.gamma_number.value = 0.6123
+    assert app.state.gamma == 0.5 and cal.panel.gamma_number.value == 0.5
+    assert app.shown["Calibrate"][:2] == (0, 0.5) and app.state.steps()["calibrated"]
+    cal.panel.gamma_number.value = 0.6123
     app.worker.wait_idle()
-    assert app.state.gamma == pytest.approx(0.6123) and cal.gamma_slider.value == pytest.approx(
-        0.61
-    )
+    assert app.state.gamma == pytest.approx(0.6123)
+    assert cal.panel.gamma_slider.value == pytest.approx(0.61)
     assert json.loads((proj / "project.json").read_text())["gamma"] == pytest.approx(0.6123)
     # An invalid γ (beyond the Harris validity limit) is refused and the old one kept.
-    cal.gamma_number.value = 3.0
+    cal.panel.gamma_number.value = 3.0
     app.worker.wait_idle()
     assert app.state.gamma == pytest.approx(0.6123) and "Invalid γ" in app.errors[-1]
     # Three clicks on the corrected image make a line stored in RAW pixels.
     clicked = np.array([[60.0, 40.0], [160.0, 60.0], [250.0, 80.0]])
     for xy in clicked:
-        assert click(app, cal.image_planes["frame"], xy)[0] == "frame"
+        assert click(app, cal.scene.planes["frame"], xy)[0] == "frame"
     cal.finish_line()
     app.worker.wait_idle()
     model = HarrisModel(0.6123, 640, 480)
@@ -238,166 +258,301 @@ def test_calibrate_gamma_lines_and_restore(tmp_path, small_seq, make_app):
     assert np.allclose(model.corrected_from_raw(raw), clicked, atol=1e-6)
     saved = load_lines(proj / "LINES.json")
     assert saved.image_size == (640, 480) and np.allclose(saved.lines[0], raw)
-    assert "Overall" in cal.lines_md.content  # straightness shown
+    assert "Overall" in cal.panel.lines_md.content  # straightness shown
     # A click outside the image does nothing.
-    o, d = cal.image_planes["frame"].geom.ray_towards_pixel((-20.0, 10.0), CAMERA)
+    o, d = cal.scene.planes["frame"].geom.ray_towards_pixel((-20.0, 10.0), CAMERA)
     assert app.handle_click(o, d) is None
     app.stop()
     # Restarting on the same project restores γ and lines.
     app2 = make_app(proj, small_seq)
-    assert app2.state.gamma == pytest.approx(0.6123)
+    assert app2.state.gamma == pytest.approx(0.6123) and app2.state.steps()["calibrated"]
     assert np.allclose(np.array(app2.state.lines[0]), raw)
-    assert app2.tabs["Calibrate"].gamma_number.value == pytest.approx(0.6123)
+    assert app2.views["Calibrate"].panel.gamma_number.value == pytest.approx(0.6123)
 
 
-def test_seed_clicks_are_raw_pixels_and_replace(tmp_path, small_seq, make_app):
+def test_straightness_table_follows_gamma(tmp_path, small_seq, make_app):
+    """The per-line straightness table is recomputed for each γ shown (it never followed γ)."""
+    app = make_app(tmp_path / "proj", small_seq)
+    cal = app.views["Calibrate"]
+    # A line straight in the RAW frame is straight at γ = 0 and bent once corrected.
+    for xy in ([40.0, 60.0], [320.0, 50.0], [600.0, 60.0]):
+        click(app, cal.scene.planes["frame"], xy)
+    cal.finish_line()
+    app.worker.wait_idle()
+    at0 = cal.panel.lines_md.content
+    cal.set_gamma(0.6)
+    app.worker.wait_idle()
+    at6 = cal.panel.lines_md.content
+    per0 = cal.scores()
+    assert at0 != at6
+    expected = f"{cal.scores()[1]:.2f} px"
+    assert expected in at6, (expected, at6)
+    cal.set_gamma(0.0)
+    app.worker.wait_idle()
+    assert cal.panel.lines_md.content == at0 and per0 != cal.scores()
+
+
+def test_seed_clicks_are_raw_pixels_replace_and_undo(tmp_path, small_seq, make_app):
     proj = tmp_path / "proj"
     app = make_app(proj, small_seq)
-    app.tabs["Calibrate"].gamma_number.value = 0.7
+    app.views["Calibrate"].panel.gamma_number.value = 0.7
     app.set_mode("Seed")
     app.worker.wait_idle()
-    seed = app.tabs["Seed"]
-    assert click(app, seed.image_planes["frame"], (100.25, 80.75))[0] == "frame"
-    assert click(app, seed.image_planes["base"], (300.5, 250.0))[0] == "base"
-    assert click(app, seed.image_planes["base"], (310.0, 260.0))[0] == "base"  # replaces
+    seed = app.views["Seed"]
+    seed.panel.auto_fit.value = False
+    assert click(app, seed.scene.planes["frame"], (100.25, 80.75))[0] == "frame"
+    assert click(app, seed.scene.planes["base"], (300.5, 250.0))[0] == "base"
+    assert click(app, seed.scene.planes["base"], (310.0, 260.0))[0] == "base"  # replaces
     fx, fy, bx, by = app.state.seed
     corrected = HarrisModel(0.7, 640, 480).corrected_from_raw([(fx, fy)])[0]
     assert np.allclose(corrected, (100.25, 80.75), atol=1e-6)
     assert (bx, by) == pytest.approx((310.0, 260.0), abs=1e-6)
     saved = json.loads((proj / "project.json").read_text())
     assert saved["seed_base"] == pytest.approx([310.0, 260.0]) and saved["mode"] == "Seed"
+    # The frame is drawn as tall as the map, and both markers are on screen.
+    app.worker.wait_idle()
+    fg, bg = seed.scene.planes["frame"].geom, seed.scene.planes["base"].geom
+    assert fg.render_size[1] == pytest.approx(bg.render_size[1])
+    assert set(seed.scene.markers) == {("frame", 1), ("base", 1)}
+    # Undo takes back the last click, then the one before.
+    seed.seed_edit("Undo")
+    assert app.state.seed_base == pytest.approx((300.5, 250.0))
+    seed.seed_edit("Undo")
+    assert app.state.seed_base is None and app.state.seed_frame is not None
+    # A second pair: heading and scale from the two pairs are shown at once.
+    click(app, seed.scene.planes["base"], (300.0, 250.0))
+    seed.set_pair(2)
+    click(app, seed.scene.planes["frame"], (400.0, 80.75))
+    click(app, seed.scene.planes["base"], (600.0, 250.0))
+    assert app.state.seed2 is not None
+    assert "heading +0.0°" in seed.panel.seed_md.content, seed.panel.seed_md.content
     seed.clear_seed()
-    assert app.state.seed is None
+    assert app.state.seed is None and app.state.seed2 is None
 
 
-def test_bad_path_and_oversized_upload_notify(tmp_path, small_seq, make_app):
-    app = make_app(tmp_path / "proj", small_seq, max_upload_mb=0.001)
-    app.frames_text.value = "/etc"
-    app.base_text.value = str(small_seq / "base.png")
-    app.open_paths_from_gui(None)
-    assert "Path refused" in app.errors[-1] and "outside the allowed folders" in app.errors[-1]
-
-    class Upload:
-        name = "big.mp4"
-        content = b"\0" * 5000
-
-    app.handle_upload("frames", Upload(), None)
-    assert "Upload refused" in app.errors[-1] and "limit" in app.errors[-1]
-    assert app.inputs.frames_path == str(small_seq / "frames")  # inputs unchanged
-
-
-def test_upload_base_then_open(tmp_path, small_seq, make_app):
-    app = make_app(tmp_path / "proj", small_seq)
-
-    class Upload:
-        name = "my base.png"
-        content = (small_seq / "base.png").read_bytes()
-
-    app.handle_upload("base", Upload(), None)
+def test_seed_drop_moves_the_fit(fitted):
+    """Dropping a dragged map marker elsewhere moves the seed and re-runs the fit."""
+    app, truth, bxy = fitted
+    seed = app.views["Seed"]
+    before = app.state.reference
+    b0 = before.coarse.base_from_corrected.apply(before.coarse.frame_xy[:1])
+    seed.on_drop("base", 1, bxy + (6.0, -4.0))
     app.worker.wait_idle()
-    assert Path(app.inputs.base_path).name == "base-my_base.png"
-    assert Path(app.inputs.base_path).parent == app.project.uploads_dir
-
-
-def test_coarse_fine_and_sequence_in_process(tmp_path, small_seq, make_app):
-    from registration.synth import load_truth
-
-    truth = load_truth(small_seq)
-    proj = tmp_path / "proj"
-    app = make_app(proj, small_seq)
-    app.tabs["Calibrate"].gamma_number.value = truth.gamma
-    app.set_mode("Seed")
-    seed = app.tabs["Seed"]
-    fxy = np.array([320.0, 240.0])
-    bxy = truth.frame_to_base(0, fxy[None])[0]
-    corrected = HarrisModel(truth.gamma, 640, 480).corrected_from_raw(fxy[None])[0]
-    click(app, seed.image_planes["frame"], corrected)
-    click(app, seed.image_planes["base"], bxy)
-    assert seed.run_coarse()
     app.jobs.join(120)
     app.worker.wait_idle()
-    coarse = app.state.coarse
-    assert coarse is not None and coarse.success, app.errors
-    assert "inliers" in seed.coarse_md.content and seed._matches is not None
-    assert seed.run_fine()
-    app.jobs.join(120)
+    assert app.state.seed_base == pytest.approx(tuple(bxy + (6.0, -4.0)))
+    after = app.state.reference
+    assert after is not before and after.key["seed"][2:] == pytest.approx(list(bxy + (6.0, -4.0)))
+    assert after.coarse and after.fine
+    # The drop can be undone, which brings the earlier seed back.
+    seed.seed_edit("Undo")
+    assert app.state.seed_base == pytest.approx(tuple(bxy))
+    assert np.isfinite(b0).all()
+
+
+def test_control_points_disable_worst_manual_and_export(fitted):
+    from app.controlpoints import read_qgis_points
+
+    app, truth, bxy = fitted
+    seed = app.views["Seed"]
+    t0 = seed.table
+    assert t0 is not None and t0.n_enabled == int(app.state.reference.fine_auto.kept.sum())
+    rms0 = t0.rms
+    assert f"{rms0:.3f} px" in seed.panel.cps.summary.content
+    worst = seed.disable_worst()
     app.worker.wait_idle()
-    assert app.state.fine is not None and app.state.fine.success, app.errors
-    assert seed.image_planes["base"].has("residuals")
-    seed.show_template_matches.value = True
+    t1 = seed.table
+    assert not t1.enabled[t1.row(worst)] and t1.n_enabled == t0.n_enabled - 1
+    assert t1.rms < rms0 and f"{t1.rms:.3f} px" in seed.panel.cps.summary.content
+    # The run uses the re-fitted model.
+    assert app.state.reference.fine.base_from_corrected is t1.model
+    # Selecting a row highlights it and centres the magnifier on it.
+    seed.select_point(int(t1.ids[5]))
     app.worker.wait_idle()
-    assert seed._template_lines is not None
-    seed.mid_opacity.value = 0.7
+    assert seed.selected == int(t1.ids[5]) and 'class="selected' in seed.panel.cps.table.content
+    # A manual point at the true position of a frame point joins the fit.
+    w, h = app.inputs.frame_size
+    fxy = np.array([[200.0, 150.0]])
+    seed.bulk_action("Add manual")
+    corrected = HarrisModel(truth.gamma, w, h).corrected_from_raw(fxy)[0]
+    click(app, seed.scene.planes["frame"], corrected)
+    click(app, seed.scene.planes["base"], truth.frame_to_base(0, fxy)[0])
     app.worker.wait_idle()
-    assert seed.image_planes["base"].has("mid")
-    app.set_mode("Sequence")
-    seq = app.tabs["Sequence"]
-    assert seq.run()
-    app.jobs.join(300)
+    t2 = seed.table
+    assert "manual" in t2.source and t2.n_enabled == t1.n_enabled + 1
+    assert t2.residual[t2.source.index("manual")] < 2.0
+    # Undo removes the manual point again.
+    seed.seed_edit("Undo")
     app.worker.wait_idle()
-    assert seq.result is not None and all(r["status"] == "ok" for r in seq.result.records), (
-        app.errors
+    assert "manual" not in seed.table.source
+    # Export as QGIS .points: the header, and raw (x, y) -> (x + 0.5, -(y + 0.5)).
+    assert seed.export_points()
+    text = next(app.project.folder.glob("reference_frame_*.points")).read_text()
+    assert text.splitlines()[0] == "mapX,mapY,sourceX,sourceY,enable,dX,dY,residual"
+    rows = read_qgis_points(text)
+    t = seed.table
+    assert len(rows) == len(t.ids)
+    assert np.allclose(rows[:, 2], t.frame_xy[:, 0] + 0.5, atol=1e-3)
+    assert np.allclose(rows[:, 3], -(t.frame_xy[:, 1] + 0.5), atol=1e-3)
+    assert np.allclose(rows[:, 1], -(t.base_xy[:, 1] + 0.5), atol=1e-3)
+    assert int(rows[:, 4].sum()) == t.n_enabled
+
+
+def test_review_inliers_only_by_default_and_screen_sized(fitted):
+    app, truth, bxy = fitted
+    seed = app.views["Seed"]
+    coarse = app.state.reference.coarse
+    lines = seed.scene.match_lines
+    assert lines is not None and len(lines.points) == coarse.n_inliers
+    seed.panel.show_outliers.value = True
+    app.worker.wait_idle()
+    assert len(seed.scene.match_lines.points) == int(coarse.gated.sum())
+    # Dots keep their screen size: zooming in by 4 shrinks them 4x in world units.
+    dots = seed.scene.planes["base"].overlay("cps")
+    size0 = dots.point_size
+    app.camera_moved(-2.0, np.deg2rad(60), 800)
+    app.worker.wait_idle()
+    size1 = seed.scene.planes["base"].overlay("cps").point_size
+    app.camera_moved(-0.5, np.deg2rad(60), 800)
+    app.worker.wait_idle()
+    size2 = seed.scene.planes["base"].overlay("cps").point_size
+    assert size0 > 0 and size2 == pytest.approx(size1 / 4)
+    # Residual vectors are scaled automatically (90th percentile ~3 % of the map's width).
+    t = seed.table
+    bw = seed.scene.planes["base"].geom.width
+    drawn = seed.vector_scale_used * np.percentile(t.residual[t.enabled], 90)
+    assert 0.01 * bw < drawn < 0.06 * bw
+    # The gate is drawn, clipped to the map.
+    gate = seed.scene.planes["base"].overlay("gate")
+    assert gate is not None
+    pix = seed.scene.planes["base"].geom.pixel_from_world(np.asarray(gate.points, float))
+    assert pix.min() >= -0.6 and (pix[..., 0] <= bw).all()
+
+
+def test_sequence_plot_jump_failed_list_and_rerun(registered):
+    app, truth, bxy = registered
+    seq = app.views["Sequence"]
+    # The chart's x values are the frames, its RMS series the records'.
+    data = seq.panel.plot.data
+    assert np.array_equal(data[0], np.arange(4.0))
+    assert np.allclose(data[1], seq.error_values(), equal_nan=True)
+    # A click on the chart (the browser script sends the hovered frame) shows that frame.
+    assert app.events.dispatch(json.dumps({"kind": "plot-frame", "value": 2, "n": 1}))
+    app.worker.wait_idle()
+    assert app.state.seq_frame == 2 and app.shown["Sequence"][0] == 2
+    assert data is not seq.panel.plot.data and seq.panel.plot.data[4][2] == pytest.approx(
+        seq.error_values()[2]
     )
-    seq.scrub.value = 2
+    # Frame 0 shows its stage times, not a zero total.
+    seq.set_frame(0)
     app.worker.wait_idle()
-    assert app.state.seq_frame == 2 and app.shown["Sequence"][0] == 2 and app.shown["Sequence"][3]
-    seq.show_field.value = True
-    seq.overlay.value = "checkerboard"
+    assert (
+        "time 0.00 s" not in seq.panel.frame_md.content and "coarse" in seq.panel.frame_md.content
+    )
+    # Register frame 2 again: its record is rewritten, the others are left alone.
+    frames = app.project.result_dir / "frames"
+    mtimes = {p.name: p.stat().st_mtime_ns for p in frames.glob("*.json")}
+    seq.set_frame(2)
+    assert seq.rerun_frame()
+    app.jobs.join(120)
     app.worker.wait_idle()
-    assert app.shown["Sequence"][2] == "checkerboard"
-    # A click on the error plot at frame 1's column jumps there.
-    plot = seq.image_planes["plot"]
-    x0, x1 = seq._plot_x
-    u = x0 + (x1 - x0) * 1 / 3
-    click(app, plot, ((u / 960) * plot.geom.width - 0.5, plot.geom.height / 2))
+    after = {p.name: p.stat().st_mtime_ns for p in frames.glob("*.json")}
+    assert after["000002.json"] != mtimes["000002.json"]
+    assert all(after[n] == m for n, m in mtimes.items() if n != "000002.json")
+    assert app.state.result.is_ok(2)
+    # A failed frame is listed with its reason and can be jumped to.
+    import registration.result as rresult
+
+    rec = rresult.frame_record_path(app.project.result_dir, 3, ".json")
+    rec.write_text(
+        json.dumps({"k": 3, "status": "failed", "reason": "too few matches <b>", "stats": {}})
+    )
+    seq.load_result(app.project.result_dir)
+    seq.refresh_text()
+    assert "too few matches &lt;b&gt;" in seq.panel.failed_html.content
+    seq.jump("next failed")
+    assert app.state.seq_frame == 3
+    # The frame's control points (read-only) are listed for the frame shown.
+    seq.set_frame(1)
     app.worker.wait_idle()
-    assert app.state.seq_frame == 1
-    seq.jump_to_worst()
-    vals = seq.error_values()
-    assert app.state.seq_frame == int(np.nanargmax(vals))
-    # Evaluate: points marked at their true raw positions; the proposal for the next frame comes
-    # from the result; Table 2 from the evaluation module.
+    assert (
+        seq.table is not None
+        and seq.table_frame == 1
+        and "Read-only" in seq.panel.cps.summary.content
+    )
+
+
+def test_sequence_text_follows_the_seed(tmp_path, small_seq, make_app):
+    """The Sequence view no longer says "no seed" after a seed was set elsewhere."""
+    app = make_app(tmp_path / "proj", small_seq)
+    seq, seed = app.views["Sequence"], app.views["Seed"]
+    seed.panel.auto_fit.value = False
+    assert "no seed" in seq.panel.run_md.content
+    app.set_mode("Seed")
+    click(app, seed.scene.planes["frame"], (100.0, 100.0))
+    click(app, seed.scene.planes["base"], (300.0, 300.0))
+    assert "no seed" not in seq.panel.run_md.content and "seeded" in seq.panel.run_md.content
+    assert "✓ seeded" in app.steps_md.content and "▶ Seed" in app.mode_buttons.options
+
+
+def test_evaluate_pending_proposals_count_nowhere(registered):
+    from registration.evaluation import read_points_csv
+
+    app, truth, bxy = registered
     app.set_mode("Evaluate")
-    ev = app.tabs["Evaluate"]
-    b = np.array([[bxy[0], bxy[1]]])
+    ev = app.views["Evaluate"]
+    b = np.array([bxy])
     for k in (0, 1):
         ev.set_frame(k)
-        click(app, ev.image_planes["frame"], truth.base_to_frame(k, b)[0])
+        click(app, ev.scene.planes["frame"], truth.base_to_frame(k, b)[0])
     assert ev.propose_next()
     app.worker.wait_idle()
+    assert app.state.eval_frame == 2 and ("NW", 2) in app.state.pending
+    score = app.state.pending[("NW", 2)]
     proposed = np.array(app.state.points["NW"][2])
-    assert app.state.eval_frame == 2 and ("NW", 2) in ev.proposed
     assert np.hypot(*(proposed - truth.base_to_frame(2, b)[0])) < 3.0
+    # Shown as pending with its NCC score, left out of POINTS.csv and of Table 2.
+    assert f"proposed, NCC {score:.2f}" in ev.panel.marks_html.content
+    marks = read_points_csv(app.project.points_path, 4, (640, 480))
+    assert sorted(marks.marks["NW"]) == [0, 1]
+    assert "# proposed, not confirmed" in app.project.points_path.read_text()
     assert ev.compute_table()
     app.jobs.join(60)
-    assert "Post-Global" in ev.table_md.content and "Post-Local" in ev.table_md.content, app.errors
-    assert (proj / "TABLE2.csv").exists()
-    # The result survives a restart of the app.
-    app.stop()
-    app2 = make_app(proj, small_seq)
-    assert app2.tabs["Sequence"].result is not None
-    assert app2.state.seed is not None and app2.state.gamma == pytest.approx(truth.gamma)
-    # ... and so do the coarse and fine results of the Seed view (saved for this γ and seed).
-    assert app2.state.coarse is not None and app2.state.coarse.n_inliers == coarse.n_inliers
-    assert app2.state.fine is not None and app2.state.fine.success
-    assert np.allclose(
-        app2.state.fine.base_from_corrected.apply(app2.state.fine.src[:5]),
-        app.state.fine.base_from_corrected.apply(app.state.fine.src[:5]),
-    )
-    assert "inliers" in app2.tabs["Seed"].coarse_md.content
+    report = app.state.report
+    assert report.table.n["local"] == [1] and report.table.frames["NW"] == [1]
+    assert "1 pending proposals left out" in ev.panel.table_md.content
+    assert app.views["Evaluate"].panel.table_panel.visible
+    # Confirmed, it counts.
+    ev.confirm()
+    assert ("NW", 2) not in app.state.pending
+    assert ev.compute_table()
+    app.jobs.join(60)
+    assert app.state.report.table.frames["NW"] == [1, 2]
+    # Each mark shows its residual (local stage, px from the reference position).
+    res = ev.mark_residuals()
+    assert res[("NW", 0)] == pytest.approx(0.0) and res[("NW", 2)] < 3.0
+    # Table 2 is downloadable (CSV and markdown) and saved.
+    assert ev.download_table("CSV") and ev.download_table("Markdown")
+    assert (app.project.folder / "TABLE2.csv").exists() and (
+        app.project.folder / "TABLE2.md"
+    ).exists()
+    assert "✓ evaluated" in app.steps_md.content
+    # The mean anchor is a control of the app (the library's hint names it).
+    ev.panel.anchor.value = "mean"
+    assert app.state.anchor == "mean"
 
 
 def test_evaluate_marks_points(tmp_path, small_seq, make_app):
     proj = tmp_path / "proj"
     app = make_app(proj, small_seq)
     app.set_mode("Evaluate")
-    ev = app.tabs["Evaluate"]
+    ev = app.views["Evaluate"]
     app.worker.wait_idle()
-    click(app, ev.image_planes["frame"], (50.0, 60.0))
-    ev.frame_slider.value = 2
-    click(app, ev.image_planes["frame"], (52.5, 61.0))
+    click(app, ev.scene.planes["frame"], (50.0, 60.0))
+    ev.panel.frame_slider.value = 2
+    click(app, ev.scene.planes["frame"], (52.5, 61.0))
     ev.new_point()
-    click(app, ev.image_planes["frame"], (200.0, 100.0))
+    click(app, ev.scene.planes["frame"], (200.0, 100.0))
     pts = app.state.points
     assert sorted(pts) == ["NE", "NW"] and sorted(pts["NW"]) == [0, 2] and list(pts["NE"]) == [2]
     assert pts["NW"][0] == pytest.approx((50.0, 60.0), abs=1e-6)
@@ -406,12 +561,11 @@ def test_evaluate_marks_points(tmp_path, small_seq, make_app):
     assert [r[:2] for r in ev.points_rows()] == [(0, "NW"), (2, "NW"), (2, "NE")]
     saved = json.loads((proj / "project.json").read_text())
     assert saved["points"]["NW"]["2"] == pytest.approx([52.5, 61.0], abs=1e-6)
-    # POINTS.csv is written as marks change and reads back with the evaluation module.
     from registration.evaluation import read_points_csv
 
     marks = read_points_csv(proj / "POINTS.csv", 4, (640, 480), min_frames=1)
     assert marks.marks["NW"][2] == pytest.approx((52.5, 61.0), abs=1e-3)
-    assert ev.export_csv()  # saved, checked with the evaluation reader, sent to the browser
+    assert ev.export_csv()
     assert any(n[0] == "POINTS.csv" for n in app.notices)
     ev.delete_mark()
     assert "NE" not in app.state.points
@@ -446,8 +600,8 @@ def test_estimate_gamma_from_clicked_lines_and_automatically(tmp_path, small_seq
 
     truth = load_truth(small_seq)
     app = make_app(tmp_path / "proj", small_seq)
-    cal = app.tabs["Calibrate"]
-    plane = cal.image_planes["frame"]
+    cal = app.views["Calibrate"]
+    plane = cal.scene.planes["frame"]
     # Lines straight on the ground (straight in the base map), clicked where they appear in the
     # raw frame (γ = 0 shows the raw frame).
     centre = truth.frame_to_base(0, np.array([[320.0, 240.0]]))[0]
@@ -470,17 +624,24 @@ def test_estimate_gamma_from_clicked_lines_and_automatically(tmp_path, small_seq
     app.jobs.join(120)
     app.worker.wait_idle()
     assert app.state.gamma == pytest.approx(truth.gamma, abs=0.05), app.errors
-    assert cal.plot is not None and "from lines" in cal.estimate_md.content
+    assert "from lines" in cal.panel.estimate_md.content
+    # The residual-versus-γ chart marks the estimate (one point, at the curve's γ nearest it).
+    grid, curve, marker = cal.panel.plot.data
+    i = int(np.flatnonzero(np.isfinite(marker))[0])
+    assert np.isfinite(marker).sum() == 1 and abs(grid[i] - app.state.gamma) <= np.diff(grid).max()
     assert json.loads(app.project.session_path.read_text())["gamma"] == pytest.approx(
         app.state.gamma
     )
     cal.set_gamma(0.0)
     cal.estimate(auto=True)
     app.jobs.join(180)
+    app.worker.wait_idle()
     assert app.state.gamma == pytest.approx(truth.gamma, abs=0.1), (
         app.errors,
-        cal.estimate_md.content,
+        cal.panel.estimate_md.content,
     )
+    # The lines the automatic estimate used are drawn on the image.
+    assert cal.scene.planes["frame"].has("detected")
 
 
 def test_sequence_cancel_resume_play_and_flicker(tmp_path, small_seq, make_app):
@@ -488,9 +649,9 @@ def test_sequence_cancel_resume_play_and_flicker(tmp_path, small_seq, make_app):
 
     truth = load_truth(small_seq)
     app = make_app(tmp_path / "proj", small_seq)
-    app.tabs["Calibrate"].set_gamma(truth.gamma)
+    app.views["Calibrate"].set_gamma(truth.gamma)
     app.set_mode("Sequence")
-    seq = app.tabs["Sequence"]
+    seq = app.views["Sequence"]
     records = app.project.result_dir / "frames"
     assert seq.run()
     # Cancel as soon as the first frame is written: the run stops after the frame in progress.
@@ -500,7 +661,7 @@ def test_sequence_cancel_resume_play_and_flicker(tmp_path, small_seq, make_app):
     app.jobs.request_cancel()
     app.jobs.join(120)
     app.worker.wait_idle()
-    statuses = [r["status"] for r in seq.result.records]
+    statuses = [r["status"] for r in app.state.result.records]
     assert "pending" in statuses and statuses.count("ok") >= 1, statuses
     assert "Registration cancelled" in [n[0] for n in app.notices]
     done = {p.name: p.stat().st_mtime_ns for p in records.glob("*.json")}
@@ -508,15 +669,15 @@ def test_sequence_cancel_resume_play_and_flicker(tmp_path, small_seq, make_app):
     assert seq.run()
     app.jobs.join(300)
     app.worker.wait_idle()
-    assert all(r["status"] == "ok" for r in seq.result.records), app.errors
+    assert all(r["status"] == "ok" for r in app.state.result.records), app.errors
     assert all((records / n).stat().st_mtime_ns == m for n, m in done.items())
     # Play advances the scrubber; pausing stops it.
     seq.set_frame(0)
-    seq.play.value = True
+    seq.panel.play.value = True
     t0 = time.monotonic()
     while app.state.seq_frame == 0 and time.monotonic() - t0 < 10:
         time.sleep(0.05)
-    seq.play.value = False
+    seq.panel.play.value = False
     assert app.state.seq_frame != 0
     time.sleep(0.5)
     app.worker.wait_idle()
@@ -524,12 +685,169 @@ def test_sequence_cancel_resume_play_and_flicker(tmp_path, small_seq, make_app):
     time.sleep(1.0)
     assert app.state.seq_frame == k
     # Flicker toggles the registered overlay on and off.
-    seq.overlay.value = "flicker"
+    seq.panel.overlay.value = "flicker"
     app.worker.wait_idle()
-    handle = seq.image_planes["base"]._overlays["registered"]
     seen = set()
     t0 = time.monotonic()
     while len(seen) < 2 and time.monotonic() - t0 < 5:
-        seen.add(bool(handle.visible))
+        seen.add(bool(seq.scene.planes["base"].overlay("registered").visible))
         time.sleep(0.05)
     assert seen == {True, False}
+
+
+def test_one_project_per_opening(tmp_path, small_seq):
+    """Starting on the demo and uploading both inputs makes exactly one new project, holding
+    the uploads; the upload alone does not open anything."""
+    data = tmp_path / "data"
+    server = make_server("127.0.0.1", 0, verbose=False)
+    from app.project import default_project_dir
+
+    app = App(
+        server,
+        Project(default_project_dir(None, None, data)),
+        demo_builder=lambda progress=None: small_seq,
+        project_is_explicit=False,
+        data_dir=data,
+    )
+    try:
+        app.start()
+        app.jobs.join(30)
+        app.worker.wait_idle()
+        projects = data / "projects"
+        assert len(list(projects.iterdir())) == 1
+
+        class Up:
+            def __init__(self, name, content):
+                self.name, self.content = name, content
+
+        frames_video = sorted((small_seq / "frames").iterdir())[0]
+        app.handle_upload("base", Up("base.png", (small_seq / "base.png").read_bytes()), None)
+        app.worker.wait_idle()
+        assert len(list(projects.iterdir())) == 1  # nothing opened yet
+        app.handle_upload("frames", Up("f.png", frames_video.read_bytes()), None)
+        app.worker.wait_idle()
+        assert len(list(projects.iterdir())) == 2, app.errors
+        assert Path(app.inputs.base_path).parent == app.project.uploads_dir
+        assert Path(app.inputs.frames_path).parent == app.project.uploads_dir
+        demo_project = next(p for p in projects.iterdir() if p != app.project.folder)
+        assert (
+            not any((demo_project / "uploads").glob("*"))
+            if (demo_project / "uploads").exists()
+            else True
+        )
+    finally:
+        app.stop()
+
+
+def test_job_progress_reports_time_left():
+    from app.worker import Job
+
+    seen = []
+    job = Job("register", seen.append)
+    t0 = time.monotonic()
+    job(0, 10, "frames")
+    assert job.eta_s is None and "left" not in job.describe()
+    time.sleep(0.2)
+    job(2, 10, "frames")
+    t1 = time.monotonic()
+    # 2 frames in ~0.2 s: 8 more take ~0.8 s.
+    assert 4 * 0.2 * 0.9 <= job.eta_s <= 4 * (t1 - t0) * 1.1
+    assert "register: 2/10 frames" in job.describe() and "left" in job.describe()
+    assert len(seen) == 2 and job.fraction == pytest.approx(0.2)
+
+
+def test_undo_restores_seeds_and_edits():
+    from app.controlpoints import Edits
+
+    st = AppState()
+    st.push_undo()
+    st.seed_frame, st.seed_base = (1.0, 2.0), (3.0, 4.0)
+    st.push_undo()
+    st.cp_edits = Edits(enabled={3: False})
+    assert st.pop_undo() and st.cp_edits.empty and st.seed == (1.0, 2.0, 3.0, 4.0)
+    assert st.pop_undo() and st.seed is None
+    assert not st.pop_undo()
+
+
+def test_upload_does_not_open_an_unchecked_path(tmp_path, small_seq, make_app):
+    app = make_app(tmp_path / "proj", small_seq)
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    (outside / "f.png").write_bytes((small_seq / "base.png").read_bytes())
+    app.frames_text.value = str(outside / "*.png")
+
+    class Upload:
+        name = "base.png"
+        content = (small_seq / "base.png").read_bytes()
+
+    app.handle_upload("base", Upload(), None)
+    app.worker.wait_idle()
+    assert app.inputs.frames_path == str(small_seq / "frames")  # one upload opens nothing
+    app.open_paths_from_gui(None)  # ... and the other box's path is checked when opening
+    app.worker.wait_idle()
+    assert "Path refused" in app.errors[-1] and "outside the allowed folders" in app.errors[-1]
+    assert app.inputs.frames_path == str(small_seq / "frames")
+
+
+def test_serve_allows_only_named_folders(tmp_path, small_seq, monkeypatch):
+    from app.server import serve
+
+    monkeypatch.chdir(tmp_path)
+    app = serve(
+        frames=str(small_seq / "frames"),
+        base=str(small_seq / "base.png"),
+        project_dir=str(tmp_path / "proj"),
+        port=0,
+        block=False,
+    )
+    try:
+        roots = app.allowed_roots()
+        assert Path.cwd().resolve() not in roots and small_seq.resolve() in roots
+        assert app.server.origin_policy is not None  # handshakes are checked
+        app.frames_text.value = str(tmp_path / "x.png")
+        (tmp_path / "x.png").write_bytes(b"x")
+        app.open_paths_from_gui(None)
+        assert "outside the allowed folders" in app.errors[-1]
+    finally:
+        app.stop()
+
+
+def test_transform_choice_reaches_the_run(tmp_path, small_seq, make_app):
+    """Projective instead of polyprojective, local field off: the fit and the run use them."""
+    from registration.synth import load_truth
+
+    truth = load_truth(small_seq)
+    app = make_app(tmp_path / "proj", small_seq)
+    app.views["Calibrate"].set_gamma(truth.gamma)
+    app.set_mode("Seed")
+    seed = app.views["Seed"]
+    seed.panel.transform.value = "projective"
+    seed.panel.local.value = False
+    assert app.state.degree == 1 and not app.state.run_local
+    seed_at_truth(app, truth)
+    assert app.state.reference.fine.base_from_corrected.degree == 1, app.errors
+    assert "(projective)" in seed.panel.cps.summary.content
+    app.set_mode("Sequence")
+    assert app.views["Sequence"].run()
+    app.jobs.join(300)
+    app.worker.wait_idle()
+    r = app.state.result
+    assert all(r.model(k).degree == 1 for k in range(r.n_frames)), app.errors
+    assert all(r.field(k) is None for k in range(r.n_frames))
+    assert "projective, local field off" in app.views["Sequence"].panel.run_md.content
+
+
+def test_reference_fit_and_edits_survive_a_restart(fitted, make_app, small_seq, tmp_path):
+    app, truth, bxy = fitted
+    seed = app.views["Seed"]
+    seed.disable_worst()
+    app.worker.wait_idle()
+    rms, n_enabled = seed.table.rms, seed.table.n_enabled
+    app.stop()
+    app2 = make_app(tmp_path / "proj", small_seq)
+    app2.worker.wait_idle()
+    ref = app2.state.current_reference()
+    assert ref is not None and ref.fine, app2.errors
+    t = app2.views["Seed"].table
+    assert t.n_enabled == n_enabled and t.rms == pytest.approx(rms, rel=1e-6)
+    assert app2.state.steps()["reference registered"] and app2.state.steps()["seeded"]

@@ -33,11 +33,13 @@ viser = pytest.importorskip("viser")
 playwright_api = pytest.importorskip("playwright.sync_api")
 
 from app.project import Project  # noqa: E402
+from app.security import make_server  # noqa: E402
 from app.server import App  # noqa: E402
 from registration.distortion import HarrisModel  # noqa: E402
 from tests.test_app import small_seq  # noqa: E402,F401  (session fixture: 4 frames 640x480)
 
 VIEWPORT = {"width": 1280, "height": 800}
+WIDE = {"width": 1440, "height": 900}
 SHOTS = (
     Path(os.environ.get("AERIALREG_TEST_SHOTS", ""))
     if os.environ.get("AERIALREG_TEST_SHOTS")
@@ -87,7 +89,7 @@ def live_app(tmp_path, small_seq):  # noqa: F811
     apps = []
 
     def start(**kw) -> App:
-        server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
+        server = make_server("127.0.0.1", 0, verbose=False)
         app = App(
             server,
             Project(tmp_path / "proj"),
@@ -109,10 +111,10 @@ def live_app(tmp_path, small_seq):  # noqa: F811
 class Page:
     """A playwright page on the app, recording any request that leaves localhost."""
 
-    def __init__(self, browser, port: int) -> None:
+    def __init__(self, browser, port: int, viewport=VIEWPORT) -> None:
         self.port = port
         self.external: list[str] = []
-        self.page = browser.new_page(viewport=VIEWPORT)
+        self.page = browser.new_page(viewport=viewport, accept_downloads=True)
         self.page.route("**/*", self._route)
         self.page.goto(f"http://127.0.0.1:{port}/")
         self.page.wait_for_function(
@@ -179,6 +181,15 @@ class Page:
     def button(self, text: str):
         return self.page.get_by_role("button", name=text, exact=True).first
 
+    def view_button(self, mode: str):
+        """A "View" button: its label carries markers (▶ active, ✓ done) around the name."""
+        import re
+
+        return self.page.get_by_role("button", name=re.compile(rf"^(▶ )?{mode}( ✓)?$")).first
+
+    def text(self) -> str:
+        return self.page.inner_text("body")
+
     def count_dominant(self, channel: int, margin: int) -> int:
         """Pixels of a page screenshot whose RGB ``channel`` exceeds both others by ``margin``."""
         import cv2
@@ -194,16 +205,32 @@ class Page:
             self.page.screenshot(path=str(SHOTS / f"{name}.png"))
 
 
-def zoom_to(app: App, geom, xy, span_px: float = 200.0) -> None:
-    """Point every client's camera at pixel ``xy`` of a plane, ``span_px`` image px across."""
+JS_CANVAS_CENTRE = """() => { const r = window.__viserMutable.canvas.getBoundingClientRect();
+  return [r.left + r.width / 2, r.top + r.height / 2]; }"""
+
+
+def zoom_to(app: App, geom, xy, span_px: float = 200.0, page=None, node=None) -> None:
+    """Point every client's camera at pixel ``xy`` of a plane, ``span_px`` image px across;
+    with ``page`` and the plane's ``node``, wait until that browser shows ``xy`` at the centre."""
     from app import scene2d
 
     centre = geom.world_from_pixel(np.asarray(xy, float))
     region = scene2d.PlaneGeometry(int(span_px), int(span_px * 0.75), position=tuple(centre))
     pose = scene2d.fit_camera([region])
     for client in app.server.get_clients().values():
-        app._apply_camera(client, pose)
-    time.sleep(1.5)  # camera message, then a software-WebGL render
+        app.apply_camera(client, pose)
+    if page is not None and node is not None:
+        seen = []
+
+        def there():
+            seen[:] = [page.screen_of(node, geom, xy), page.page.evaluate(JS_CANVAS_CENTRE)]
+            return np.hypot(*(np.subtract(seen[0], seen[1]))) < 2.0
+
+        try:
+            wait_until(there, what="the browser's camera at the zoomed pose")
+        except AssertionError as exc:
+            raise AssertionError(f"{exc}: target on screen, canvas centre = {seen}") from None
+    time.sleep(1.0)  # a software-WebGL render
 
 
 def background_points(page, node, geom, gap=0.04):
@@ -240,16 +267,22 @@ def rendered_matches_image(page: Page, node: str, geom, image_rgb: np.ndarray) -
     return float(np.corrcoef(got, want)[0, 1])
 
 
-def test_loads_offline_shows_frame_and_gamma_changes_it(browser, live_app, small_seq):  # noqa: F811
+def test_loads_offline_gamma_changes_frame_and_straightness(browser, live_app, small_seq):  # noqa: F811
+    import re
+
     import cv2
 
     app = live_app()
-    cal = app.tabs["Calibrate"]
-    cal.grid_box.value = False  # reference lines off: compare pure image pixels
+    cal = app.views["Calibrate"]
+    cal.panel.grid_box.value = False  # reference lines off: compare pure image pixels
+    # A line straight in the raw frame (clicked at γ = 0): its straightness depends on γ.
+    for xy in ([40.0, 60.0], [320.0, 50.0], [600.0, 60.0]):
+        cal.on_click("frame", np.array(xy), None)
+    cal.finish_line()
     app.worker.wait_idle()
     page = Page(browser, app.server.get_port())
     page.wait_node("/calibrate/frame")
-    geom = cal.image_planes["frame"].geom
+    geom = cal.scene.planes["frame"].geom
     raw = cv2.cvtColor(app.inputs.frame(0), cv2.COLOR_BGR2RGB)
     corr = wait_until(
         lambda: (c := rendered_matches_image(page, "/calibrate/frame", geom, raw)) > 0.8 and c,
@@ -258,13 +291,18 @@ def test_loads_offline_shows_frame_and_gamma_changes_it(browser, live_app, small
     page.shot("calibrate")
     # Background just outside the image is the empty scene (uniform). The camera fits the image
     # to the viewport's shape, so take points beside it on whichever side has room on screen.
-    # It re-fits once the browser reports the viewport's size, so wait for that to settle.
     pts = wait_until(
         lambda: background_points(page, "/calibrate/frame", geom),
         what="background visible beside the image",
     )
     bg = page.pixels(pts)
     assert np.ptp(bg[:, :3]) < 10, bg
+
+    def overall() -> float:
+        m = re.search(r"Overall: ([0-9.]+) px", page.text())
+        return float(m.group(1)) if m else float("nan")
+
+    at0 = wait_until(lambda: np.isfinite(overall()) and overall(), what="the straightness table")
     before = page.pixels(
         [page.screen_of("/calibrate/frame", geom, p) for p in grid_points(geom, 7)]
     )
@@ -280,88 +318,265 @@ def test_loads_offline_shows_frame_and_gamma_changes_it(browser, live_app, small
     assert rendered_matches_image(page, "/calibrate/frame", geom, raw) < 0.8
     after = page.pixels([page.screen_of("/calibrate/frame", geom, p) for p in grid_points(geom, 7)])
     assert np.abs(after - before)[:, :3].mean() > 5.0
+    # The straightness table follows γ: the page shows the line's RMS at 0.7.
+    expected = cal.scores()[1]
+    wait_until(lambda: abs(overall() - expected) < 0.006, what=f"Overall {expected:.2f} px")
+    assert abs(at0 - expected) > 0.05
     assert json.loads((app.project.session_path).read_text())["gamma"] == pytest.approx(0.7)
     page.shot("calibrate_gamma")
     assert page.external == [], page.external
     assert corr > 0.8
 
 
-def test_seed_clicks_within_one_pixel_and_match_view(browser, live_app, small_seq):  # noqa: F811
+def screen_of_node(page: Page, node: str, lx: float, ly: float) -> tuple[float, float]:
+    return tuple(page.page.evaluate(JS_SCREEN_OF, [node, lx, ly]))
+
+
+@pytest.mark.slow
+def test_seed_click_drag_and_disable_worst(browser, live_app, small_seq):  # noqa: F811
+    import re
+
     from registration.synth import load_truth
 
     truth = load_truth(small_seq)
     app = live_app()
-    app.tabs["Calibrate"].set_gamma(truth.gamma)
+    app.views["Calibrate"].set_gamma(truth.gamma)
     page = Page(browser, app.server.get_port())
-    page.button("Seed").click()
+    page.view_button("Seed").click()
     wait_until(lambda: app.state.mode == "Seed", what="Seed view")
     app.worker.wait_idle()
-    seed = app.tabs["Seed"]
+    seed = app.views["Seed"]
     page.wait_node("/seed/frame")
     page.wait_node("/seed/base")
     time.sleep(1.0)
-    fgeom, bgeom = seed.image_planes["frame"].geom, seed.image_planes["base"].geom
+    fgeom, bgeom = seed.scene.planes["frame"].geom, seed.scene.planes["base"].geom
     w, h = app.inputs.frame_size
     raw_target = np.array([w * 0.45 + 0.3, h * 0.46 + 0.6])
     corrected_target = HarrisModel(truth.gamma, w, h).corrected_from_raw(raw_target[None])[0]
     base_target = truth.frame_to_base(0, raw_target[None])[0]
     # Zoomed in so that one CSS pixel is a fraction of an image pixel, as an analyst would.
-    zoom_to(app, fgeom, corrected_target)
+    zoom_to(app, fgeom, corrected_target, page=page, node="/seed/frame")
     page.click_pixel("/seed/frame", fgeom, corrected_target)
     wait_until(lambda: app.state.seed_frame is not None, what="the frame click")
-    zoom_to(app, bgeom, base_target)
+    zoom_to(app, bgeom, base_target, page=page, node="/seed/base")
     page.click_pixel("/seed/base", bgeom, base_target)
     wait_until(lambda: app.state.seed is not None, what="the map click")
-    app.fit_cameras(seed.planes())
     got = HarrisModel(truth.gamma, w, h).corrected_from_raw([app.state.seed_frame])[0]
     assert np.hypot(*(got - corrected_target)) < 1.0, (got, corrected_target)
     assert np.hypot(*(np.array(app.state.seed_base) - base_target)) < 1.0
-    # Match view: the coarse step's matches appear as green (inlier) lines between the images.
-    green_before = page.count_dominant(1, 40)  # green-dominated pixels (trees, before lines)
-    page.button("Run coarse step").click()
+    # The click fits the reference frame by itself; heading and scale appear in the panel.
+    wait_until(lambda: app.state.current_reference() is not None, what="the fit to start")
+    app.jobs.join(120)
+    app.worker.wait_idle()
+    first = app.state.current_reference()
+    assert first.coarse and first.fine, app.errors
+    page.page.wait_for_selector("text=heading", timeout=15000)
+    # Drag the map marker (grabbed on its ring) by a known number of map pixels.
+    page.wait_node("/seed/seed_base_1")
+    app.worker.wait_idle()
+    time.sleep(1.0)  # the marker's size for the current zoom has reached the browser
+    shift = np.array([7.0, -5.0])
+    a = np.array(page.screen_of("/seed/base", bgeom, base_target))
+    b = np.array(page.screen_of("/seed/base", bgeom, base_target + shift))
+    radius = seed.scene.markers[("base", 1)].radius  # world units; the ring is 0.6-1.0 of it
+    grab = np.array(screen_of_node(page, "/seed/seed_base_1", 0.8 * radius, 0.0))
+    page.page.mouse.move(*grab)
+    page.page.mouse.down()
+    for t in np.linspace(0.1, 1.0, 12):
+        page.page.mouse.move(*(grab + t * (b - a)))
+        time.sleep(0.05)
+    page.page.mouse.up()
     wait_until(
-        lambda: app.jobs.busy or app.state.coarse is not None, what="the coarse step to start"
+        lambda: np.hypot(*(np.array(app.state.seed_base) - base_target - shift)) < 1.0,
+        what="the seed moved by the drag",
+    )
+    # ... which moves the fit: a new one, for the new seed.
+    wait_until(
+        lambda: (r := app.state.current_reference()) is not None and r is not first,
+        what="a new fit",
     )
     app.jobs.join(120)
-    assert app.state.coarse.success, app.errors
     app.worker.wait_idle()
-    page.wait_node("/seed/matches")
-    time.sleep(1.5)
-    page.shot("seed_matches")
-    wait_until(
-        lambda: page.count_dominant(1, 40) > green_before + 1000,
-        what="green match lines on the canvas",
-    )
-    page.shot("seed_matches")
-    assert page.page.locator("text=inliers").count() >= 1
+    moved = app.state.current_reference()
+    assert moved.key["seed"][2:] == pytest.approx(list(base_target + shift), abs=1.0)
+    assert moved.coarse and moved.fine
+    page.shot("seed_dragged")
+    # Disabling the worst control point lowers the RMS the page shows.
+    app.fit_cameras(seed.scene.geoms())
+
+    def rms() -> float:
+        m = re.search(r"RMS of the enabled ([0-9.]+) px", page.text())
+        return float(m.group(1)) if m else float("nan")
+
+    r0 = wait_until(lambda: np.isfinite(rms()) and rms(), what="the control-point table")
+    page.button("Disable worst").click()
+    wait_until(lambda: rms() < r0, what="a lower RMS after disabling the worst point")
+    assert "✗" in page.page.inner_text(".aerialreg-table")
+    page.shot("seed_control_points")
 
 
-def test_scrubber_changes_frame(browser, live_app, small_seq):  # noqa: F811
+@pytest.fixture
+def registered_app(live_app, small_seq):  # noqa: F811
+    """A live app with the reference fitted and the 4 frames registered (in process)."""
     from registration.synth import load_truth
 
     truth = load_truth(small_seq)
     app = live_app()
-    app.tabs["Calibrate"].set_gamma(truth.gamma)
-    seq = app.tabs["Sequence"]
+    app.views["Calibrate"].set_gamma(truth.gamma)
+    app.set_mode("Seed")
+    seed = app.views["Seed"]
+    fxy = np.array([[320.0, 240.0]])
+    bxy = truth.frame_to_base(0, fxy)[0]
+    seed.place_seed("frame", tuple(fxy[0]))
+    seed.place_seed("base", tuple(bxy))
+    app.jobs.join(120)
+    app.worker.wait_idle()
     app.set_mode("Sequence")
-    assert seq.run()
+    assert app.views["Sequence"].run()
     app.jobs.join(300)
     app.worker.wait_idle()
-    assert seq.result is not None and seq.result.is_ok(3), app.errors
+    assert app.state.result is not None and app.state.result.is_ok(3), app.errors
+    return app, truth, bxy
+
+
+@pytest.mark.slow
+def test_scrub_plot_click_and_table2(browser, registered_app):
+    app, truth, bxy = registered_app
+    seq = app.views["Sequence"]
     page = Page(browser, app.server.get_port())
     page.wait_node("/sequence/base")
-    geom = seq.image_planes["base"].geom
+    geom = seq.scene.planes["base"].geom
     pts = [page.screen_of("/sequence/base", geom, p) for p in grid_points(geom, 9, 0.3)]
     time.sleep(1.5)
     before = page.pixels(pts)
     page.set_number("Frame", 3)
-    wait_until(lambda: app.state.seq_frame == 3, what="the scrubber")
-    app.worker.wait_idle()
+    wait_until(lambda: app.shown["Sequence"][0] == 3, what="the scrubber to show frame 3")
     wait_until(
         lambda: np.abs(page.pixels(pts) - before)[:, :3].mean() > 2.0, what="a changed image"
     )
     assert app.shown["Sequence"][0] == 3
+    # Clicking a point of the per-frame chart shows that frame: hover along the chart until its
+    # legend names frame 1, then click.
+    chart = page.page.locator(".uplot", has_text="Per-frame").first
+    chart.scroll_into_view_if_needed()
+    over = chart.locator(".u-over")
+    box = over.bounding_box()
+    legend = chart.locator(".u-legend .u-series").first.locator(".u-value")
+
+    def legend_at(fx: float) -> str:
+        # The legend follows the pointer after a render: wait until it settles.
+        page.page.mouse.move(box["x"] + fx * box["width"], box["y"] + box["height"] / 2)
+        last, t0 = None, time.monotonic()
+        while time.monotonic() - t0 < 5:
+            time.sleep(0.1)
+            now = legend.inner_text().strip()
+            if now == last:
+                return now
+            last = now
+        return last
+
+    fx = next((f for f in np.linspace(0.02, 0.98, 25) if legend_at(f) == "1"), None)
+    assert fx is not None, "no pointer position over the chart shows frame 1"
+    page.page.mouse.click(box["x"] + fx * box["width"], box["y"] + box["height"] / 2)
+    wait_until(lambda: app.shown["Sequence"][0] == 1, what="the chart click to show frame 1")
     page.shot("sequence")
+    # Evaluate: two marks and a proposal; the unconfirmed proposal is not in Table 2.
+    page.view_button("Evaluate").click()
+    wait_until(lambda: app.state.mode == "Evaluate", what="Evaluate view")
+    app.worker.wait_idle()
+    ev = app.views["Evaluate"]
+    page.wait_node("/evaluate/frame")
+    fgeom = ev.scene.planes["frame"].geom
+    for k in (0, 1):
+        ev.set_frame(k)
+        app.worker.wait_idle()
+        time.sleep(0.5)
+        page.click_pixel("/evaluate/frame", fgeom, truth.base_to_frame(k, bxy[None])[0])
+        wait_until(lambda k=k: k in app.state.points.get("NW", {}), what=f"the mark in frame {k}")
+    page.button("Propose next").click()
+    wait_until(lambda: ("NW", 2) in app.state.pending, what="a proposal in frame 2")
+    page.page.wait_for_selector("text=proposed, NCC", timeout=15000)
+    page.button("Compute Table 2").click()
+    wait_until(lambda: app.state.report is not None, what="Table 2")
+    page.page.wait_for_selector("text=pending proposals left out", timeout=15000)
+    assert app.state.report.table.frames["NW"] == [1]
+    page.page.wait_for_selector("text=Post-Local", timeout=15000)
+    page.shot("evaluate_table2")
+    # Table 2 downloads as CSV (and markdown) from its panel.
+    with page.page.expect_download(timeout=15000) as dl:
+        page.button("CSV").click()
+    path = dl.value.path()
+    assert Path(path).read_text() == app.state.report.table.to_csv()
+    with page.page.expect_download(timeout=15000) as dl:
+        page.button("Markdown").click()
+    assert "Post-Local" in Path(dl.value.path()).read_text()
+
+
+JS_OVERFLOW = """() => {
+  // Elements of the control panel and of floating panels whose box runs past their panel's
+  // right edge (text or tables that would be cut off), ignoring our own scroll containers.
+  const out = [];
+  const panels = Array.from(document.querySelectorAll('.mantine-Paper-root, [class*="panel" i]'))
+    .filter((p) => p.getBoundingClientRect().width > 200);
+  for (const panel of panels) {
+    const pr = panel.getBoundingClientRect();
+    panel.querySelectorAll('*').forEach((e) => {
+      if (e.closest('.aerialreg-scroll') || e.closest('.u-wrap')) return;
+      // Resize grips sit on the edge by design: only content with text counts.
+      if (!(e.textContent || '').trim()) return;
+      const r = e.getBoundingClientRect();
+      if (r.width > 0 && r.right > pr.right + 2 && r.left < pr.right) {
+        out.push((e.tagName + '.' + (typeof e.className === 'string' ? e.className : '') + ' ' +
+          Math.round(r.left) + '-' + Math.round(r.right) + ' in ' + Math.round(pr.left) + '-' +
+          Math.round(pr.right) + ' ' + (e.textContent || '').slice(0, 30)).trim());
+      }
+    });
+  }
+  return Array.from(new Set(out)).slice(0, 20);
+}"""
+
+
+@pytest.mark.slow
+def test_each_view_at_1440x900_is_drawn_and_nothing_overflows(browser, registered_app):
+    import cv2
+
+    app, truth, bxy = registered_app
+    ev = app.views["Evaluate"]
+    app.set_mode("Evaluate")
+    for k in (0, 1):
+        ev.set_frame(k)
+        ev.on_click("frame", truth.base_to_frame(k, bxy[None])[0], None)
+    assert ev.compute_table()
+    app.jobs.join(60)
+    page = Page(browser, app.server.get_port(), viewport=WIDE)
+    for mode in ("Calibrate", "Seed", "Sequence", "Evaluate"):
+        page.view_button(mode).click()
+        wait_until(lambda m=mode: app.state.mode == m, what=f"{mode} view")
+        app.worker.wait_idle()
+        page.wait_node(f"/{mode.lower()}")
+        time.sleep(2.5)  # camera fit and textures (software WebGL)
+        png = np.frombuffer(page.page.screenshot(), np.uint8)
+        shot = cv2.imdecode(png, cv2.IMREAD_COLOR)
+        page.shot(f"wide_{mode.lower()}")
+        rect = page.page.evaluate(
+            "() => { const r = window.__viserMutable.canvas.getBoundingClientRect();"
+            " return [r.left, r.top, r.width, r.height]; }"
+        )
+        x, y, w, h = (int(v) for v in rect)
+        canvas = shot[y : y + h, x : x + w].astype(float)
+        # Drawn: the canvas is mostly the images, not a blank background.
+        assert canvas.std() > 20, f"{mode}: blank canvas (std {canvas.std():.1f})"
+        busy = (np.abs(np.diff(canvas.mean(axis=2), axis=1)) > 8).mean()
+        assert busy > 0.05, f"{mode}: canvas shows no image ({busy:.3f} edge pixels)"
+        overflow = page.page.evaluate(JS_OVERFLOW)
+        assert overflow == [], f"{mode}: panel content overflows: {overflow}"
+    # The check itself sees an overflow: a wide line of text put into the panel.
+    page.page.evaluate(
+        "() => { const d = document.createElement('div'); d.id = 'wide-probe';"
+        " d.style.width = '3000px'; d.textContent = 'x'.repeat(50);"
+        " document.querySelector('.mantine-Paper-root').appendChild(d); }"
+    )
+    assert page.page.evaluate(JS_OVERFLOW) != []
 
 
 def test_two_tabs_moving_sliders_stay_consistent(browser, live_app):
@@ -384,8 +599,8 @@ def test_two_tabs_moving_sliders_stay_consistent(browser, live_app):
     app.worker.wait_idle()
     g = app.state.gamma
     assert g in values_a + values_b
-    cal = app.tabs["Calibrate"]
-    assert cal.gamma_number.value == pytest.approx(g)
+    cal = app.views["Calibrate"]
+    assert cal.panel.gamma_number.value == pytest.approx(g)
     assert app.shown["Calibrate"][1] == pytest.approx(g)  # the image shown is for the final γ
     assert json.loads(app.project.session_path.read_text())["gamma"] == pytest.approx(g)
     # Both boxes show the state's γ.
@@ -395,7 +610,7 @@ def test_two_tabs_moving_sliders_stay_consistent(browser, live_app):
         boxes = [float(p.number_input("γ (exact)").input_value()) for p in (a, b)]
         with app.state.lock:
             state = app.state.gamma
-        seen[:] = [boxes, state, cal.gamma_number.value]
+        seen[:] = [boxes, state, cal.panel.gamma_number.value]
         return all(v == pytest.approx(state) for v in boxes) and state
 
     try:
@@ -406,21 +621,27 @@ def test_two_tabs_moving_sliders_stay_consistent(browser, live_app):
     app.worker.wait_idle()
     time.sleep(0.8)  # the settle render
     app.worker.wait_idle()
-    assert cal.gamma_number.value == pytest.approx(g)
+    assert cal.panel.gamma_number.value == pytest.approx(g)
     assert app.shown["Calibrate"][1] == pytest.approx(g)
 
 
-def test_bad_path_and_oversized_upload_notify(browser, live_app, tmp_path):
+def test_escaping_glob_and_oversized_upload_refused(browser, live_app, tmp_path, small_seq):  # noqa: F811
+    # tmp_path is allowed; tmp_path/../secret is not. The glob's fixed part lies inside.
+    secret = tmp_path.parent / f"{tmp_path.name}-secret"
+    secret.mkdir()
+    (secret / "s.png").write_bytes((small_seq / "base.png").read_bytes())
+    (tmp_path / "d").mkdir()
     app = live_app(max_upload_mb=0.01)
     page = Page(browser, app.server.get_port())
     page.page.get_by_text("Inputs", exact=True).first.click()
     time.sleep(0.5)
     frames_box = page.number_input("Frames (video, folder, glob)")
-    frames_box.fill("/etc/passwd")
+    frames_box.fill(f"{tmp_path}/*/../../{secret.name}/*.png")
     frames_box.press("Enter")
     page.button("Open paths").click()
     page.page.wait_for_selector("text=Path refused", timeout=15000)
     assert "outside the allowed folders" in page.page.inner_text("body")
+    assert app.inputs.frames_path == str(small_seq / "frames")
     big = tmp_path / "big.mp4"
     big.write_bytes(b"\0" * 50_000)
     page.page.locator("input[type=file]").first.set_input_files(str(big))
@@ -430,6 +651,39 @@ def test_bad_path_and_oversized_upload_notify(browser, live_app, tmp_path):
     page.close_notifications()
     page.set_number("γ (exact)", 0.3)
     wait_until(lambda: app.state.gamma == pytest.approx(0.3), what="the app still responding")
+
+
+JS_OPEN_WS = """([url, proto]) => new Promise((resolve) => {
+  const ws = new WebSocket(url, [proto]);
+  ws.onopen = () => { ws.close(); resolve('open'); };
+  ws.onerror = () => resolve('error');
+  setTimeout(() => resolve('timeout'), 10000);
+})"""
+
+
+def test_page_from_another_local_origin_cannot_connect(browser, live_app, tmp_path):
+    import functools
+    import threading
+    from http.server import SimpleHTTPRequestHandler, ThreadingHTTPServer
+
+    app = live_app()
+    port = app.server.get_port()
+    url, proto = f"ws://127.0.0.1:{port}", f"viser-v{viser.__version__}"
+    (tmp_path / "index.html").write_text("<html><body>another local app</body></html>")
+    handler = functools.partial(SimpleHTTPRequestHandler, directory=str(tmp_path))
+    other = ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    threading.Thread(target=other.serve_forever, daemon=True).start()
+    try:
+        page = browser.new_page()
+        page.goto(f"http://127.0.0.1:{other.server_address[1]}/")
+        assert page.evaluate(JS_OPEN_WS, [url, proto]) == "error"
+        page.close()
+    finally:
+        other.shutdown()
+    assert any("differs from the served address" in r for r in app.server.origin_policy.refused)
+    # The app's own page connects (its Origin is the served address).
+    own = Page(browser, port)
+    assert own.page.evaluate(JS_OPEN_WS, [url, proto]) == "open"
 
 
 def _free_port() -> int:
@@ -467,6 +721,7 @@ def _serve(project: Path, seq: Path, port: int) -> subprocess.Popen:
     raise AssertionError("server did not start")
 
 
+@pytest.mark.slow
 def test_kill_mid_sequence_and_restart_keeps_frames(browser, tmp_path_factory):
     from registration.synth import SimConfig, load_truth, simulate
 

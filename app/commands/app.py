@@ -28,7 +28,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "user's data folder)",
     )
     p.add_argument(
-        "--host", default="127.0.0.1", help="address to bind (default 127.0.0.1: this machine only)"
+        "--host",
+        default="127.0.0.1",
+        help="address to bind (default 127.0.0.1: this machine only; 0.0.0.0: all interfaces, "
+        "pages are still accepted only from the address they were served at)",
     )
     p.add_argument("--port", type=int, default=8080, help="port (default 8080; 0 = any free port)")
     p.add_argument(
@@ -36,8 +39,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         action="append",
         default=[],
         metavar="DIR",
-        help="a folder the browser's path field may open files from (repeatable; the current "
-        "folder, the project and the inputs' folders are always allowed)",
+        help="a folder the browser's path field may open files from (repeatable; the project and "
+        "the inputs' folders are allowed too, the current folder only when named here)",
     )
     p.add_argument(
         "--max-upload-mb",

@@ -1,0 +1,268 @@
+"""The control-point table (as in QGIS's Georeferencer) of one frame's fine fit.
+
+Rows come from a fine result (``registration.global_registration.FineResult`` of the reference
+frame, or a registered frame's control points in a result folder) plus the analyst's edits:
+points switched on or off, deleted, or added by hand. "Enabled" starts as what REQCON kept.
+A re-fit is the least-squares fit of the same model (warm-started from the current one, the
+whole frame as its domain) to the enabled points: what the Georeferencer does, and what makes
+disabling the worst point never raise the RMS shown. Every number comes from ``registration``:
+the model's ``apply`` for residuals, ``PolyProjective.estimate`` for the fit, the Harris model
+for raw <-> corrected pixels.
+
+Library API that would be cleaner (reported to the lead): ``global_registration.refit_fine(
+src, dst, enabled, start, config, domain) -> FineResult`` (this module's :func:`refit`), and
+``register_intra(..., extra_points=...)`` so a manual point can rescue a sequence frame too.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+SOURCE_NAMES = {
+    "reference": {0: "template"},
+    "template": {0: "template", 1: "template (prev. frame)"},
+    "gridded_sift": {0: "SIFT", 1: "SIFT (prev. frame)"},
+}
+"""Names of ``FineResult.source`` codes by how the points were found."""
+
+MANUAL = "manual"
+SORTS = ("residual", "id")
+
+
+@dataclass
+class Edits:
+    """The analyst's changes to a frame's automatic control points.
+
+    Attributes:
+        enabled: ``{id: bool}`` for automatic points switched on or off (default: REQCON's kept).
+        deleted: ids of automatic points removed from the table.
+        manual: points added by hand, ``(fx, fy, bx, by)``: raw frame px, base px.
+    """
+
+    enabled: dict[int, bool] = field(default_factory=dict)
+    deleted: set[int] = field(default_factory=set)
+    manual: list[tuple[float, float, float, float]] = field(default_factory=list)
+    manual_enabled: dict[int, bool] = field(default_factory=dict)
+
+    @property
+    def empty(self) -> bool:
+        return not (self.enabled or self.deleted or self.manual)
+
+    def to_json(self) -> dict:
+        return {
+            "enabled": {str(k): bool(v) for k, v in sorted(self.enabled.items())},
+            "deleted": sorted(int(i) for i in self.deleted),
+            "manual": [[float(v) for v in m] for m in self.manual],
+            "manual_enabled": {str(k): bool(v) for k, v in sorted(self.manual_enabled.items())},
+        }
+
+    @classmethod
+    def from_json(cls, data) -> Edits:
+        """Edits from :meth:`to_json`'s dict; malformed parts are dropped."""
+        out = cls()
+        if not isinstance(data, dict):
+            return out
+        try:
+            out.enabled = {int(k): bool(v) for k, v in dict(data.get("enabled", {})).items()}
+            out.deleted = {int(i) for i in data.get("deleted", [])}
+            out.manual = [tuple(float(v) for v in m) for m in data.get("manual", []) if len(m) == 4]
+            out.manual_enabled = {
+                int(k): bool(v) for k, v in dict(data.get("manual_enabled", {})).items()
+            }
+        except (TypeError, ValueError):
+            return cls()
+        return out
+
+    def copy(self) -> Edits:
+        return Edits(
+            dict(self.enabled), set(self.deleted), list(self.manual), dict(self.manual_enabled)
+        )
+
+
+@dataclass
+class ControlPointTable:
+    """One frame's control points as rows (automatic ids ``0..M-1``, manual ``M..``).
+
+    Attributes:
+        ids: ``(N,)`` row ids.
+        frame_xy: ``(N, 2)`` raw frame pixels.
+        corrected_xy: ``(N, 2)`` corrected frame pixels (what the model maps).
+        base_xy: ``(N, 2)`` base pixels.
+        source: ``N`` names (:data:`SOURCE_NAMES`, or ``"manual"``).
+        enabled: ``(N,)`` bool, used by the fit.
+        kept_by_reqcon: ``(N,)`` bool, what REQCON kept (manual points: True).
+        model: the fitted ``base_from_corrected`` model (None when the fit failed).
+        residual_xy: ``(N, 2)`` ``model(corrected) - base`` in base px (NaN without a model).
+        reason: why the fit failed ("" when it did not).
+    """
+
+    ids: NDArray[np.int_]
+    frame_xy: NDArray[np.float64]
+    corrected_xy: NDArray[np.float64]
+    base_xy: NDArray[np.float64]
+    source: list[str]
+    enabled: NDArray[np.bool_]
+    kept_by_reqcon: NDArray[np.bool_]
+    model: object | None
+    residual_xy: NDArray[np.float64]
+    reason: str = ""
+
+    @property
+    def residual(self) -> NDArray[np.float64]:
+        return np.hypot(self.residual_xy[:, 0], self.residual_xy[:, 1])
+
+    @property
+    def n_enabled(self) -> int:
+        return int(self.enabled.sum())
+
+    @property
+    def rms(self) -> float:
+        """RMS residual (base px) of the enabled points."""
+        r = self.residual[self.enabled]
+        r = r[np.isfinite(r)]
+        return float(np.sqrt(np.mean(r**2))) if len(r) else float("nan")
+
+    def order(self, sort: str = "residual") -> NDArray[np.int_]:
+        """Row positions sorted by residual (largest first, ties by id) or by id."""
+        if sort == "id":
+            return np.argsort(self.ids, kind="stable")
+        r = np.where(np.isfinite(self.residual), self.residual, -1.0)
+        return np.lexsort((self.ids, -r))
+
+    def row(self, row_id: int) -> int | None:
+        """Position of the row with id ``row_id``, or None."""
+        hit = np.flatnonzero(self.ids == int(row_id))
+        return int(hit[0]) if len(hit) else None
+
+    def worst_enabled(self) -> int | None:
+        """Id of the enabled point with the largest residual."""
+        r = np.where(self.enabled & np.isfinite(self.residual), self.residual, -1.0)
+        return int(self.ids[int(np.argmax(r))]) if (r >= 0).any() else None
+
+
+def table_from_points(
+    src_corrected: NDArray,
+    dst: NDArray,
+    kept: NDArray,
+    source_codes: NDArray | None,
+    kind: str,
+    harris,
+    model,
+    edits: Edits | None = None,
+) -> ControlPointTable:
+    """Rows for automatic points (corrected frame px -> base px) plus the analyst's edits.
+
+    ``model`` is the fit the residuals are shown for (the automatic one, or a re-fit).
+    """
+    edits = edits or Edits()
+    src = np.asarray(src_corrected, np.float64).reshape(-1, 2)
+    dst = np.asarray(dst, np.float64).reshape(-1, 2)
+    kept = np.asarray(kept, bool).reshape(-1)
+    m = len(src)
+    names = SOURCE_NAMES.get(kind, {})
+    codes = np.zeros(m, int) if source_codes is None else np.asarray(source_codes, int)
+    source = [names.get(int(c), f"{kind} {int(c)}") for c in codes]
+    enabled = kept.copy()
+    for i, on in edits.enabled.items():
+        if 0 <= i < m:
+            enabled[i] = on
+    alive = np.ones(m, bool)
+    alive[[i for i in edits.deleted if 0 <= i < m]] = False
+    ids = np.arange(m)[alive]
+    frame_raw = harris.raw_from_corrected(src[alive]) if m else np.zeros((0, 2))
+    man = np.asarray(edits.manual, np.float64).reshape(-1, 4)
+    man_ids = np.arange(m, m + len(man))
+    man_raw = man[:, :2]
+    man_corr = harris.corrected_from_raw(man_raw) if len(man) else np.zeros((0, 2))
+    man_on = np.array([edits.manual_enabled.get(int(i), True) for i in man_ids], bool)
+    corrected = np.concatenate([src[alive], man_corr])
+    base = np.concatenate([dst[alive], man[:, 2:]])
+    table = ControlPointTable(
+        ids=np.concatenate([ids, man_ids]).astype(int),
+        frame_xy=np.concatenate([frame_raw, man_raw]),
+        corrected_xy=corrected,
+        base_xy=base,
+        source=[s for s, a in zip(source, alive, strict=True) if a] + [MANUAL] * len(man),
+        enabled=np.concatenate([enabled[alive], man_on]),
+        kept_by_reqcon=np.concatenate([kept[alive], np.ones(len(man), bool)]),
+        model=model,
+        residual_xy=np.full((len(corrected), 2), np.nan),
+    )
+    return with_residuals(table, model)
+
+
+def with_residuals(table: ControlPointTable, model, reason: str = "") -> ControlPointTable:
+    """The table with ``model`` and its residuals ``model(corrected) - base``."""
+    res = np.full((len(table.ids), 2), np.nan)
+    if model is not None and len(table.ids):
+        with np.errstate(all="ignore"):
+            res = np.asarray(model.apply(table.corrected_xy), np.float64) - table.base_xy
+    return replace(table, model=model, residual_xy=res, reason=reason)
+
+
+def refit(table: ControlPointTable, start, *, domain=None, optimizer: str = "lm"):
+    """Least-squares re-fit of ``start``'s model type and degree to the enabled rows.
+
+    Returns ``(table with the new model's residuals, model or None)``; on failure the table keeps
+    no model and ``reason`` says why (e.g. too few enabled points for the degree).
+    """
+    en = table.enabled & np.isfinite(table.corrected_xy).all(axis=1)
+    en &= np.isfinite(table.base_xy).all(axis=1)
+    fit = type(start).estimate(
+        table.corrected_xy[en], table.base_xy[en], initial=start, optimizer=optimizer, domain=domain
+    )
+    if not fit:
+        return with_residuals(table, None, reason=str(getattr(fit, "reason", fit))), None
+    return with_residuals(table, fit), fit
+
+
+def qgis_points(table: ControlPointTable, *, crs: str | None = None) -> str:
+    """The table as a QGIS Georeferencer ``.points`` file.
+
+    QGIS 3 format: an optional ``#CRS:`` line, the header
+    ``mapX,mapY,sourceX,sourceY,enable,dX,dY,residual``, one row per point. Source coordinates
+    are QGIS's pixel coordinates of a non-georeferenced raster: the corner of the top-left pixel
+    at (0, 0), rows counted negative, so raw pixel ``(x, y)`` (centres at integers) is
+    ``(x + 0.5, -(y + 0.5))``. Without a georeferenced base map, the map side is the base map in
+    the same pixel coordinates. ``dX``, ``dY``, ``residual`` are this app's residuals in base
+    pixels (``model(frame point) - map point``; 0 where there is no model).
+    """
+    buf = io.StringIO()
+    if crs:
+        buf.write(f"#CRS: {crs}\n")
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["mapX", "mapY", "sourceX", "sourceY", "enable", "dX", "dY", "residual"])
+    res = np.nan_to_num(table.residual_xy, nan=0.0)
+    for i in range(len(table.ids)):
+        fx, fy = table.frame_xy[i]
+        bx, by = table.base_xy[i]
+        dx, dy = res[i]
+        w.writerow(
+            [
+                f"{bx + 0.5:.4f}",
+                f"{-(by + 0.5):.4f}",
+                f"{fx + 0.5:.4f}",
+                f"{-(fy + 0.5):.4f}",
+                int(bool(table.enabled[i])),
+                f"{dx:.4f}",
+                f"{dy:.4f}",
+                f"{float(np.hypot(dx, dy)):.4f}",
+            ]
+        )
+    return buf.getvalue()
+
+
+def read_qgis_points(text: str) -> NDArray[np.float64]:
+    """``(N, 5)`` ``mapX, mapY, sourceX, sourceY, enable`` rows of a ``.points`` text (for tests
+    and for loading points back)."""
+    rows = []
+    for line in text.splitlines():
+        if not line.strip() or line.startswith("#") or line.lower().startswith("mapx"):
+            continue
+        rows.append([float(v) for v in line.split(",")[:5]])
+    return np.asarray(rows, np.float64).reshape(-1, 5)

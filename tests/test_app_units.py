@@ -1,0 +1,162 @@
+"""Unit tests of the app's pure parts: control-point tables and their re-fit, the QGIS export,
+screen-space helpers, the static assets and the event channel."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from app import assets, controlpoints, scene2d
+from app.controlpoints import Edits
+from registration.distortion import HarrisModel
+from registration.models import PolyProjective, Projective
+
+
+@pytest.fixture
+def known():
+    """Corrected frame points, their exact images under a known projective, and outliers at
+    named indices (3 and 17) moved by 40 px."""
+    rng = np.random.default_rng(7)
+    proj = Projective.from_matrix(
+        np.array([[1.1, 0.05, 30.0], [-0.04, 1.05, 12.0], [1e-5, 2e-5, 1.0]])
+    )
+    model = PolyProjective.from_projective(proj, 2)
+    src = rng.uniform([20, 20], [620, 460], (60, 2))
+    dst = model.apply(src)
+    dst[[3, 17]] += 40.0
+    kept = np.ones(60, bool)
+    kept[[3, 17]] = False
+    return src, dst, kept, model
+
+
+def test_table_residuals_and_order(known):
+    src, dst, kept, model = known
+    harris = HarrisModel(0.3, 640, 480)
+    t = controlpoints.table_from_points(src, dst, kept, None, "reference", harris, model)
+    assert t.n_enabled == 58 and t.rms == pytest.approx(0.0, abs=1e-6)
+    # The two outliers have 40*sqrt(2) px residuals, first when sorted by residual.
+    assert set(t.ids[t.order("residual")[:2]]) == {3, 17}
+    assert t.residual[3] == pytest.approx(40 * np.sqrt(2), rel=1e-6)
+    assert np.allclose(t.residual_xy[17], (-40.0, -40.0))
+    # Frame points are shown in raw pixels: back through the Harris model they are the source.
+    assert np.allclose(harris.corrected_from_raw(t.frame_xy), src, atol=1e-6)
+    assert t.source[0] == "template" and list(t.order("id")) == list(range(60))
+
+
+def test_refit_follows_the_enabled_points(known):
+    src, dst, kept, model = known
+    harris = HarrisModel(0.0, 640, 480)
+    start = PolyProjective.from_projective(Projective.from_matrix(np.eye(3)), 2)
+    # Enabling an outlier pulls the fit; disabling it again restores the exact model.
+    t = controlpoints.table_from_points(
+        src, dst, kept, None, "reference", harris, model, Edits(enabled={3: True})
+    )
+    t1, m1 = controlpoints.refit(t, start)
+    assert m1 is not None and t1.rms > 1.0
+    t2, m2 = controlpoints.refit(
+        controlpoints.table_from_points(src, dst, kept, None, "reference", harris, model), start
+    )
+    assert t2.rms < 1e-3
+    # Disabling the worst enabled point never raises the RMS (least squares on a subset).
+    w = t1.worst_enabled()
+    assert w == 3
+    t3, _ = controlpoints.refit(
+        controlpoints.table_from_points(
+            src, dst, kept, None, "reference", harris, model, Edits(enabled={3: True, w: False})
+        ),
+        m1,
+    )
+    assert t3.rms <= t1.rms
+    # Too few points for the degree: no model, and the reason says why.
+    few = Edits(enabled={i: i < 5 for i in range(60)})
+    t4, m4 = controlpoints.refit(
+        controlpoints.table_from_points(src, dst, kept, None, "reference", harris, model, few),
+        start,
+    )
+    assert m4 is None and "needs at least" in t4.reason and not np.isfinite(t4.rms)
+
+
+def test_manual_and_deleted_points(known):
+    src, dst, kept, model = known
+    harris = HarrisModel(0.5, 640, 480)
+    raw = harris.raw_from_corrected(np.array([[300.0, 200.0]]))[0]
+    b = model.apply(np.array([[300.0, 200.0]]))[0]
+    edits = Edits(deleted={0, 1}, manual=[(*raw, *b)])
+    t = controlpoints.table_from_points(src, dst, kept, None, "reference", harris, model, edits)
+    assert len(t.ids) == 59 and 0 not in t.ids and t.ids[-1] == 60
+    assert t.source[-1] == "manual" and t.residual[-1] == pytest.approx(0.0, abs=1e-6)
+    back = Edits.from_json(json.loads(json.dumps(edits.to_json())))
+    assert back.deleted == {0, 1} and np.allclose(back.manual, edits.manual)
+    assert Edits.from_json("garbage").empty
+
+
+def test_qgis_points_convention(known):
+    src, dst, kept, model = known
+    harris = HarrisModel(0.0, 640, 480)
+    t = controlpoints.table_from_points(
+        src[:3], dst[:3], kept[:3], None, "reference", harris, model
+    )
+    text = controlpoints.qgis_points(t, crs="EPSG:32612")
+    lines = text.splitlines()
+    assert lines[0] == "#CRS: EPSG:32612"
+    assert lines[1] == "mapX,mapY,sourceX,sourceY,enable,dX,dY,residual"
+    rows = controlpoints.read_qgis_points(text)
+    # Pixel centres at integers -> QGIS pixel corners, rows negative.
+    assert np.allclose(rows[:, 2], src[:3, 0] + 0.5, atol=1e-3)
+    assert np.allclose(rows[:, 3], -(src[:3, 1] + 0.5), atol=1e-3)
+    assert np.allclose(rows[:, 0], dst[:3, 0] + 0.5, atol=1e-3)
+    assert np.allclose(rows[:, 1], -(dst[:3, 1] + 0.5), atol=1e-3)
+    assert list(rows[:, 4]) == [1, 1, 1]
+
+
+def test_clip_segments_known_cases():
+    a = np.array([[-10.0, 5.0], [2.0, 2.0], [-5.0, -5.0], [np.nan, 0.0]])
+    b = np.array([[20.0, 5.0], [4.0, 3.0], [-1.0, -1.0], [3.0, 3.0]])
+    s, e, keep = scene2d.clip_segments(a, b, 10, 8)
+    assert list(keep) == [True, True, False, False]
+    assert np.allclose(s[0], (-0.5, 5.0)) and np.allclose(e[0], (9.5, 5.0))
+    assert np.allclose(s[1], (2, 2)) and np.allclose(e[1], (4, 3))
+
+
+def test_auto_vector_scale_and_zoom_helpers():
+    assert scene2d.auto_vector_scale([], 1000) == 1.0
+    k = scene2d.auto_vector_scale(np.full(100, 0.5), 1000)  # 3 % of 1000 px / 0.5 px = 60
+    assert k in (50.0, 100.0) and 0.5 * k == pytest.approx(30, rel=0.7)
+    # A camera 2 units up with a 60° field and 600 px: 2*2*tan(30°)/600 world units per px.
+    assert scene2d.world_per_screen_px(-2.0, np.deg2rad(60), 600) == pytest.approx(
+        4 * np.tan(np.deg2rad(30)) / 600
+    )
+    g = scene2d.PlaneGeometry(100, 80)
+    assert np.allclose(
+        scene2d.pixel_under_pointer(g, (0, 0, -1.0), g.world_from_pixel([30.0, 20.0], -0.01)),
+        (30.0, 20.0),
+        atol=0.5,
+    )
+
+
+def test_static_assets_and_event_channel():
+    for name in ("camera.js", "events.js", "app.css"):
+        assert assets.read_asset(name).strip()
+    assert "__CHANNEL__" in assets.read_asset("events.js")
+    js = assets.css_loader_js("a { b: 'c' }")
+    assert "aerialreg-css" in js and json.dumps("a { b: 'c' }") in js
+    with pytest.raises(FileNotFoundError, match="missing"):
+        assets.read_asset("nope.js")
+
+    class Gui:
+        def add_text(self, *a, **k):
+            class W:
+                def on_update(self, cb):
+                    pass
+
+            return W()
+
+    ch = assets.EventChannel(Gui())
+    got = []
+    ch.on("cp-select:seed", lambda v, c: got.append(v))
+    assert ch.dispatch(json.dumps({"kind": "cp-select:seed", "value": 12, "n": 1}))
+    assert not ch.dispatch(json.dumps({"kind": "nope", "value": 1}))
+    assert not ch.dispatch("not json") and not ch.dispatch(json.dumps([1, 2]))
+    assert got == [12]
