@@ -47,6 +47,8 @@ from registration.warp import (
 )
 
 CANVASES = ("same", "full")
+# Strongest pincushion correction accepted from a user (see harris_gamma_range).
+HARRIS_GAMMA_MIN = -1.0
 # Image correction offers these two; "nearest" stays available through registration.warp.
 IMAGE_INTERPOLATIONS = ("linear", "cubic")
 # The "full" canvas grows without bound as a model approaches its validity limit (the frame's
@@ -111,6 +113,33 @@ class _Radial:
             factor = factor_of_rho2(rho2)
         return c + (xy - c) * factor[:, None]
 
+    def correction_stretch(self, xy: ArrayLike) -> tuple[NDArray, NDArray]:
+        """Local magnification of ``corrected_from_raw`` at raw pixels ``xy`` (``(N, 2)``).
+
+        Returns:
+            ``(s_r, s_t)``, each ``(N,)``: corrected length per raw length along the radius
+            (one-sided inward difference of 0.5 px, valid wherever ``xy`` is) and across it
+            (corrected radius / raw radius); 1 at the centre, NaN where undefined.
+        """
+        xy = as_points(xy)
+        c = self.c
+        radial = xy - c
+        r_raw = np.linalg.norm(radial, axis=1)
+        ok = r_raw > 1e-9
+        rhat = np.where(ok[:, None], radial / np.where(ok, r_raw, 1)[:, None], [1.0, 0.0])
+        eps = np.minimum(0.5, r_raw)[:, None]
+        corrected = self.corrected_from_raw(xy)
+        inner = self.corrected_from_raw(xy - eps * rhat)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            s_r = np.where(ok, np.linalg.norm(corrected - inner, axis=1) / eps[:, 0], 1.0)
+            s_t = np.where(ok, np.linalg.norm(corrected - c, axis=1) / np.where(ok, r_raw, 1), 1.0)
+        if not ok.all():
+            # At the centre both equal the derivative of the radial map at 0.
+            at0 = self.corrected_from_raw(c + [[0.5, 0.0]])[0]
+            s0 = float(np.linalg.norm(at0 - c) / 0.5)
+            s_r, s_t = np.where(ok, s_r, s0), np.where(ok, s_t, s0)
+        return s_r, s_t
+
     # Subclasses: validity_problem() -> str | None, raw_from_corrected, corrected_from_raw.
     def validity_problem(self) -> str | None:  # pragma: no cover - overridden
         raise NotImplementedError
@@ -157,6 +186,16 @@ class HarrisModel(_Radial):
     def corrected_from_raw(self, xy: ArrayLike) -> NDArray[np.float64]:
         """``(N, 2)`` raw pixels -> ``(N, 2)`` corrected pixels (the same formula with -γ)."""
         return self._apply(as_points(xy), -self.gamma, self.c, self.r_n)
+
+    def correction_stretch(self, xy: ArrayLike) -> tuple[NDArray, NDArray]:
+        """Exact local magnification of ``corrected_from_raw`` (see ``_Radial``): with
+        ``F = 1 / sqrt(1 - γ ρ'²)`` the corrected radius is ``F`` times the raw one, so
+        across the radius the stretch is ``F`` and along it ``dρ/dρ' = F³``."""
+        d = (as_points(xy) - self.c) / self.r_n
+        u = np.sum(d * d, axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            f = 1.0 / np.sqrt(1.0 - self.gamma * u)
+        return f**3, f
 
     def gamma_limit(self) -> float:
         """Largest valid γ (exclusive) for this frame and centre: ``1 / ρ'_max²``."""
@@ -367,9 +406,40 @@ def harris_gamma_limit(width: int, height: int, center: tuple[float, float] | No
     """Supremum of valid Harris γ for a frame: ``1 / ρ'_max²`` (just above 1 for the centre).
 
     For γ at or above it, ``1 - γ ρ'²`` reaches 0 inside the frame and the farthest raw pixels
-    have no corrected position. Any γ below it (including all negative γ) is valid.
+    have no corrected position. Any γ below it (including all negative γ) is valid. A 1x1 frame
+    centred on its one pixel has no limit (inf).
     """
-    return 1.0 / HarrisModel(0.0, width, height, center).max_raw_rho() ** 2
+    rho = HarrisModel(0.0, width, height, center).max_raw_rho()
+    return float("inf") if rho == 0 else 1.0 / rho**2
+
+
+def harris_gamma_range(
+    width: int, height: int, center: tuple[float, float] | None = None
+) -> tuple[float, float]:
+    """The γ a user may ask for: ``[HARRIS_GAMMA_MIN, harris_gamma_limit)``.
+
+    Every γ below the limit is mathematically valid, but pincushion correction stronger than
+    γ = -1 shrinks the frame's corners to less than 71 % of their radius (γ = -50: 14 %, a
+    mostly black image): no lens this project meets needs it, and it is what a mistyped sign
+    or value produces. Automatic estimation searches the same range.
+    """
+    return HARRIS_GAMMA_MIN, harris_gamma_limit(width, height, center)
+
+
+def check_harris_gamma(
+    gamma: float, width: int, height: int, center: tuple[float, float] | None = None
+) -> float:
+    """``gamma`` if it is in :func:`harris_gamma_range`, else ValueError naming the range."""
+    lo, hi = harris_gamma_range(width, height, center)
+    if not (np.isfinite(gamma) and lo <= gamma < hi):
+        where = "" if center is None else f" with centre ({center[0]:g}, {center[1]:g})"
+        raise ValueError(
+            f"gamma {gamma:g} is out of range for a {width}x{height} frame{where}: valid "
+            f"{lo:g} <= gamma < {_floor(hi)} (below {lo:g} the corrected frame shrinks to "
+            f"a small disc; at the upper limit the farthest raw pixels have no corrected "
+            f"position)"
+        )
+    return float(gamma)
 
 
 def check_valid(model: RadialModel) -> RadialModel:
@@ -590,7 +660,8 @@ def simulate_raw_frame(
     *,
     max_zoom_out: float = 2.5,
     interpolation: str = "linear",
-) -> tuple[NDArray, float]:
+    return_mask: bool = False,
+) -> tuple[NDArray, float] | tuple[NDArray, float, NDArray[np.bool_]]:
     """A raw frame of ``model``'s size seeing ``scene`` (undistorted) through the lens.
 
     ``scene`` is resized (INTER_AREA, keeping its aspect ratio) so that, centred on the
@@ -598,18 +669,30 @@ def simulate_raw_frame(
     times the frame's half extent (models near their validity limit send the corners to
     infinity; beyond that the frame shows ``0``). Used to test γ estimation on real imagery.
 
+    The scene's border is a perfectly straight line in the world: where it shows in the raw
+    frame (the black corners beyond ``max_zoom_out``) it is a fake edge that obeys the model
+    exactly. ``return_mask`` gives the raw pixels that see the scene, so an estimator can be
+    told to ignore the rest.
+
     Args:
         scene: ``(H_s, W_s[, C])`` undistorted image.
         model: a valid radial model; the output has its frame size.
         max_zoom_out: cap on covered extent / frame extent.
         interpolation: resampling of the raw frame.
+        return_mask: also return the ``(H, W)`` bool mask of raw pixels whose every
+            interpolation neighbour lies inside the scene.
 
     Returns:
-        ``(raw, scale)``: the raw frame and the resize factor applied to ``scene`` (scene pixel
-        ``p`` appears at corrected coordinate ``c + (p - c_s) * scale``, ``c_s`` its centre).
+        ``(raw, scale)`` or, with ``return_mask``, ``(raw, scale, mask)``: the raw frame and the
+        resize factor applied to ``scene`` (scene pixel ``p`` appears at corrected coordinate
+        ``c + (p - c_s) * scale``, ``c_s`` its centre).
     """
     import cv2
 
+    if interpolation not in INTERPOLATIONS:
+        raise ValueError(
+            f"interpolation must be one of {sorted(INTERPOLATIONS)}, got {interpolation!r}"
+        )
     check_valid(model)
     w, h = int(model.width), int(model.height)
     corrected = model.corrected_from_raw(_raw_boundary(w, h))
@@ -619,6 +702,15 @@ def simulate_raw_frame(
     scale = max(zoom * w / ws, zoom * h / hs)
     size = (max(round(ws * scale), 1), max(round(hs * scale), 1))
     big = cv2.resize(scene, size, interpolation=cv2.INTER_AREA if scale < 1 else cv2.INTER_CUBIC)
-    origin = (model.c[0] - (size[0] - 1) / 2, model.c[1] - (size[1] - 1) / 2)
-    raw = distort_image(big, model, origin=origin, interpolation=interpolation)
-    return raw, float(size[0] / ws)
+    ox, oy = (model.c[0] - (size[0] - 1) / 2, model.c[1] - (size[1] - 1) / 2)
+    source_map = source_map_from_function(lambda xy: model.corrected_from_raw(xy) - (ox, oy), w, h)
+    raw = remap(big, source_map, interpolation=interpolation, border_value=0)
+    if not return_mask:
+        return raw, float(size[0] / ws)
+    # Source positions whose interpolation neighbours all lie in the scene: nearest rounds,
+    # bilinear reads floor and floor + 1, bicubic floor - 1 .. floor + 2.
+    lo, hi = {"nearest": (-0.5, 0.5), "linear": (0.0, 1.0), "cubic": (1.0, 3.0)}[interpolation]
+    sx, sy = source_map[..., 0], source_map[..., 1]
+    with np.errstate(invalid="ignore"):
+        mask = (sx >= lo) & (sx <= size[0] - hi) & (sy >= lo) & (sy <= size[1] - hi)
+    return raw, float(size[0] / ws), mask

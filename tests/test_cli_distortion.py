@@ -114,7 +114,7 @@ def test_undistort_bad_input(raw_png, tmp_path, capsys):
     assert_one_line_error(code, err, "undistort", "is a directory")
     code, _, err = run(capsys, "undistort", str(raw_png), "--gamma", "2.5", "-o", out)
     assert_one_line_error(
-        code, err, "undistort", "gamma 2.5 is out of range for a 480x360 frame", "valid gamma <"
+        code, err, "undistort", "gamma 2.5 is out of range for a 480x360 frame", "valid -1 <="
     )
     code, _, err = run(
         capsys, "undistort", str(raw_png), "--gamma", "0.5", "-o", str(tmp_path / "x.nope")
@@ -148,9 +148,14 @@ def test_calibrate_from_lines_json(raw_png, tmp_path, capsys):
     d = json.loads(stdout)
     assert d["gamma"] == pytest.approx(0.6, abs=1e-3)
     assert d["method"] == "lines" and d["n_lines"] == 4 and "uncertainty" in d
+    assert d["center"] == [239.5, 179.5] and d["center_source"] == "frame"
+    assert isinstance(d["confident"], bool) and d["evidence"]
+    assert d["model_check"]["enough"] is True
+    assert not d["center_fit"]["supported"]
     assert len(d["gamma_grid"]) == len(d["residual_curve"])
     code, stdout, err = run(capsys, "calibrate", str(raw_png), "--lines", str(lines))
     assert code == 0 and stdout.startswith("gamma 0.6") and "4 lines" in err
+    assert "centre (239.5, 179.5) [frame]" in err and "one parameter is enough" in err
 
 
 def test_calibrate_auto(raw_png, capsys):
@@ -160,6 +165,9 @@ def test_calibrate_auto(raw_png, capsys):
     d = json.loads(stdout)
     assert d["gamma"] == pytest.approx(0.6, abs=0.02)
     assert d["method"] == "auto" and d["n_lines"] >= 5
+    assert abs(d["gamma"] - 0.6) <= 2 * d["uncertainty"]
+    for key in ("confident", "evidence", "center", "center_source", "center_fit", "model_check"):
+        assert key in d
 
 
 def test_calibrate_bad_input(raw_png, tmp_path, capsys):
@@ -198,8 +206,11 @@ def test_calibrate_bad_input(raw_png, tmp_path, capsys):
 @pytest.mark.parametrize(
     "cmd,options",
     [
-        ("undistort", ["--gamma", "--output", "--canvas", "--interpolation", "--json", "IMAGE"]),
-        ("calibrate", ["--lines", "--gamma-range", "--json", "IMAGE"]),
+        (
+            "undistort",
+            ["--gamma", "--output", "--center", "--canvas", "--interpolation", "--json", "IMAGE"],
+        ),
+        ("calibrate", ["--lines", "--gamma-range", "--center", "--json", "IMAGE"]),
     ],
 )
 def test_help_documents_every_option(cmd, options, capsys):
@@ -209,3 +220,228 @@ def test_help_documents_every_option(cmd, options, capsys):
     text = capsys.readouterr().out
     for opt in options:
         assert opt in text
+
+
+# ------------------------------------------------------------------------------------------
+# a distortion centre off the frame centre
+
+
+def test_calibrate_center_auto_finds_an_off_centre_lens(tmp_path, capsys):
+    c = (239.5 + 30.0, 179.5 - 18.0)
+    model = HarrisModel(0.6, W, H, center=c)
+    rng = np.random.default_rng(4)
+    lines = []
+    while len(lines) < 20:
+        a = rng.uniform([0.05, 0.05], [0.95, 0.95]) * [W - 1, H - 1]
+        ang = rng.uniform(0, np.pi)
+        pts = a + np.linspace(-1, 1, 40)[:, None] * [np.cos(ang), np.sin(ang)] * 200
+        ok = (pts[:, 0] > 3) & (pts[:, 0] < W - 4) & (pts[:, 1] > 3) & (pts[:, 1] < H - 4)
+        if ok.sum() >= 15:
+            lines.append(model.raw_from_corrected(pts[ok]) + rng.normal(0, 0.1, (ok.sum(), 2)))
+    path = tmp_path / "L.json"
+    save_lines(path, lines, (W, H))
+    img = tmp_path / "img.png"
+    cv2.imwrite(str(img), np.full((H, W), 90, np.uint8))
+    code, stdout, _ = run(capsys, "calibrate", str(img), "--lines", str(path), "--json")
+    d = json.loads(stdout)
+    assert code == 0 and d["center_source"] == "frame" and d["center_fit"]["supported"]
+    code, stdout, err = run(
+        capsys, "calibrate", str(img), "--lines", str(path), "--center", "auto", "--json"
+    )
+    d = json.loads(stdout)
+    assert code == 0 and d["center_source"] == "estimated"
+    assert d["center"] == pytest.approx(c, abs=2.0)
+    assert d["gamma"] == pytest.approx(0.6, abs=0.01)
+    # The same centre given explicitly.
+    code, stdout, _ = run(
+        capsys, "calibrate", str(img), "--lines", str(path), "--center", f"{c[0]},{c[1]}", "--json"
+    )
+    d = json.loads(stdout)
+    assert d["center_source"] == "given" and d["center"] == [c[0], c[1]]
+
+
+def test_undistort_with_a_given_centre(raw_png, tmp_path, capsys):
+    out = tmp_path / "c.png"
+    code, stdout, _ = run(
+        capsys,
+        "undistort",
+        str(raw_png),
+        "--gamma",
+        "0.6",
+        "--center",
+        "200,150",
+        "-o",
+        str(out),
+        "--json",
+    )
+    assert code == 0 and json.loads(stdout)["center"] == [200.0, 150.0]
+    expected, _ = undistort_image(
+        cv2.imread(str(raw_png)), HarrisModel(0.6, W, H, center=(200.0, 150.0))
+    )
+    np.testing.assert_array_equal(cv2.imread(str(out), cv2.IMREAD_UNCHANGED), expected)
+
+
+# ------------------------------------------------------------------------------------------
+# bad input: one line, exit 2, no traceback, nothing already there changed
+
+
+def snapshot(folder):
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir()) if p.is_file()}
+
+
+def refused(capsys, folder, cmd, argv, *needles):
+    """Run, assert a one-line error naming ``needles`` and that no file in ``folder`` changed
+    or appeared."""
+    before = snapshot(folder)
+    code, out, err = run(capsys, cmd, *argv)
+    assert_one_line_error(code, err, cmd, *needles)
+    assert out == ""
+    assert snapshot(folder) == before
+    return err
+
+
+@pytest.fixture
+def workdir(tmp_path, raw_png):
+    """A folder with an image and an existing output that a refused command must not touch."""
+    img = tmp_path / "x.png"
+    img.write_bytes(raw_png.read_bytes())
+    (tmp_path / "out.png").write_bytes(b"previous result")
+    return tmp_path
+
+
+def test_one_pixel_image_is_refused(workdir, capsys):
+    tiny = workdir / "tiny.png"
+    cv2.imwrite(str(tiny), np.full((1, 1), 200, np.uint8))
+    out = str(workdir / "out.png")
+    refused(
+        capsys,
+        workdir,
+        "undistort",
+        [str(tiny), "--gamma", "0.5", "-o", out],
+        "is 1x1 px",
+        "at least 16x16",
+    )
+    refused(capsys, workdir, "calibrate", [str(tiny)], "is 1x1 px", "at least 16x16")
+    refused(capsys, workdir, "calibrate", [str(tiny), "--json"], "is 1x1 px")
+
+
+def test_image_size_limits_at_the_boundary(workdir, capsys, monkeypatch):
+    import app.commands.undistort as undistort_cmd
+
+    out = workdir / "out.png"
+    small = workdir / "s16.png"
+    cv2.imwrite(str(small), np.full((16, 16), 100, np.uint8))
+    code, _, _ = run(
+        capsys, "undistort", str(small), "--gamma", "0.3", "-o", str(workdir / "ok.png")
+    )
+    assert code == 0  # exactly the minimum
+    too_small = workdir / "s15.png"
+    cv2.imwrite(str(too_small), np.full((16, 15), 100, np.uint8))
+    refused(
+        capsys, workdir, "undistort", [str(too_small), "--gamma", "0.3", "-o", str(out)], "15x16 px"
+    )
+    monkeypatch.setattr(undistort_cmd, "MAX_IMAGE_PIXELS", 400)
+    at = workdir / "m20.png"
+    cv2.imwrite(str(at), np.full((20, 20), 100, np.uint8))
+    code, _, _ = run(capsys, "undistort", str(at), "--gamma", "0.3", "-o", str(workdir / "ok2.png"))
+    assert code == 0  # exactly the maximum
+    over = workdir / "m21.png"
+    cv2.imwrite(str(over), np.full((20, 21), 100, np.uint8))
+    refused(
+        capsys,
+        workdir,
+        "undistort",
+        [str(over), "--gamma", "0.3", "-o", str(out)],
+        "21x20 px",
+        "at most",
+    )
+    refused(capsys, workdir, "calibrate", [str(over)], "21x20 px", "megapixels")
+
+
+def test_gamma_outside_the_valid_range_is_refused(workdir, capsys):
+    img, out = str(workdir / "x.png"), str(workdir / "out.png")
+    for g in ("-50", "-1.01", "1.5"):
+        refused(
+            capsys,
+            workdir,
+            "undistort",
+            [img, "--gamma", g, "-o", out],
+            f"gamma {float(g):g} is out of range",
+            "valid -1 <= gamma < 1.0046",
+        )
+    code, _, _ = run(capsys, "undistort", img, "--gamma", "-1", "-o", str(workdir / "ok.png"))
+    assert code == 0  # the end of the range is allowed
+    refused(capsys, workdir, "undistort", [img, "--gamma", "nan", "-o", out], "out of range")
+    refused(capsys, workdir, "calibrate", [img, "--gamma-range=-5,1"], "starts below -1")
+
+
+def test_undistort_refuses_to_overwrite_its_input(workdir, capsys):
+    img = workdir / "x.png"
+    refused(
+        capsys,
+        workdir,
+        "undistort",
+        [str(img), "--gamma", "0.3", "-o", str(img)],
+        "is the input image",
+    )
+    # Also through another spelling of the same path.
+    other = workdir / "sub"
+    other.mkdir()
+    refused(
+        capsys,
+        workdir,
+        "undistort",
+        [str(img), "--gamma", "0.3", "-o", str(other / ".." / "x.png")],
+        "is the input image",
+    )
+
+
+def test_degenerate_lines_json_is_refused(workdir, capsys):
+    path = workdir / "same.json"
+    path.write_text(
+        json.dumps(
+            {
+                "version": 1,
+                "image_size": [W, H],
+                "lines": [[[10, 10]] * 5, [[1, 1], [100, 2], [200, 4]]],
+            }
+        )
+    )
+    refused(
+        capsys,
+        workdir,
+        "calibrate",
+        [str(workdir / "x.png"), "--lines", str(path), "--json"],
+        "lines[0] is degenerate",
+        "within 1 px of (10, 10)",
+    )
+
+
+def test_lines_json_size_limits(workdir, capsys, monkeypatch):
+    import registration.lines_file as lines_file
+
+    img = str(workdir / "x.png")
+    good = workdir / "good.json"
+    save_lines(good, lines_for(0.6), (W, H))
+    size = good.stat().st_size
+    monkeypatch.setattr(lines_file, "MAX_LINES_FILE_BYTES", size)
+    code, _, _ = run(capsys, "calibrate", img, "--lines", str(good))
+    assert code == 0  # exactly at the limit
+    big = workdir / "big.json"
+    big.write_bytes(good.read_bytes() + b" ")
+    refused(
+        capsys,
+        workdir,
+        "calibrate",
+        [img, "--lines", str(big)],
+        f"file is {(size + 1) / 1e6:.1f} MB",
+        "at most",
+    )
+    monkeypatch.setattr(lines_file, "MAX_LINES_FILE_BYTES", 10**7)
+    monkeypatch.setattr(lines_file, "MAX_LINES", 3)
+    refused(capsys, workdir, "calibrate", [img, "--lines", str(good)], "4 lines; at most 3")
+    monkeypatch.setattr(lines_file, "MAX_LINES", 100)
+    monkeypatch.setattr(lines_file, "MAX_LINES_POINTS", 159)
+    refused(
+        capsys, workdir, "calibrate", [img, "--lines", str(good)], "160 points in all; at most 159"
+    )

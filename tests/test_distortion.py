@@ -310,3 +310,133 @@ def test_bad_arguments_are_named():
         HarrisModel(float("nan"), W, H)
     with pytest.raises(ValueError, match="frame size must be positive"):
         HarrisModel(0.1, 0, H)
+
+
+# ------------------------------------------------------------------------------------------
+# an explicit centre (conventions.md: "unless a centre is given explicitly")
+
+
+def conventions_raw_from_corrected(xy, gamma, w, h, c):
+    """The formula of conventions.md written out independently of the project's code."""
+    r_n = np.sqrt(w**2 + h**2) / 2
+    out = []
+    for x, y in xy:
+        dx, dy = x - c[0], y - c[1]
+        dist = np.sqrt(dx * dx + dy * dy)
+        if dist == 0:
+            out.append((c[0], c[1]))
+            continue
+        rho = dist / r_n
+        f = rho / np.sqrt(1 + gamma * rho**2) if 1 + gamma * rho**2 > 0 else np.nan
+        out.append((c[0] + r_n * f * dx / dist, c[1] + r_n * f * dy / dist))
+    return np.array(out)
+
+
+def test_harris_model_uses_the_given_centre(rng):
+    c = (250.25, 301.75)  # well away from the frame centre (319.5, 239.5)
+    pts = frame_points(rng, n=300)
+    for gamma in (0.7, -0.4):
+        m = HarrisModel(gamma, W, H, center=c)
+        expected = conventions_raw_from_corrected(pts, gamma, W, H, c)
+        np.testing.assert_allclose(m.raw_from_corrected(pts), expected, atol=1e-9)
+        # The inverse is the same formula with -gamma, about the same centre.
+        expected_inv = conventions_raw_from_corrected(pts, -gamma, W, H, c)
+        np.testing.assert_allclose(m.corrected_from_raw(pts), expected_inv, atol=1e-9)
+        # The given centre is the fixed point, the frame centre is not.
+        np.testing.assert_allclose(m.raw_from_corrected([c])[0], c, atol=1e-12)
+        moved = m.raw_from_corrected([[319.5, 239.5]])[0]
+        assert np.linalg.norm(moved - [319.5, 239.5]) > 1.0
+
+
+def test_undistorted_image_with_a_given_centre_matches_an_independent_remap():
+    from scipy import ndimage
+
+    gamma, c = 0.6, (270.0, 280.5)
+    img = ndimage.gaussian_filter(np.random.default_rng(3).uniform(0, 255, (H, W)), 2.5)
+    img = img.astype(np.float32)
+    # Independent: corrected pixel (x, y) samples the raw image at the conventions' formula.
+    ys, xs = np.mgrid[0:H, 0:W].astype(np.float64)
+    r_n = np.hypot(W, H) / 2
+    dx, dy = xs - c[0], ys - c[1]
+    rho = np.hypot(dx, dy) / r_n
+    scale = 1.0 / np.sqrt(1 + gamma * rho**2)  # f(rho) / rho
+    src_x, src_y = c[0] + dx * scale, c[1] + dy * scale
+    expected = ndimage.map_coordinates(img, [src_y, src_x], order=1, mode="constant", cval=0)
+    got, info = undistort_image(img, HarrisModel(gamma, W, H, center=c))
+    assert info.width == W and info.height == H and info.origin == (0.0, 0.0)
+    inner = np.s_[5:-5, 5:-5]
+    assert np.abs(got[inner] - expected[inner]).max() < 0.5
+    # Ignoring the centre (frame centre instead) would be far off.
+    wrong, _ = undistort_image(img, HarrisModel(gamma, W, H))
+    assert np.abs(wrong[inner] - expected[inner]).max() > 10
+
+
+def test_correction_stretch_is_exact_for_harris(rng):
+    from registration.distortion import _Radial
+
+    m = HarrisModel(0.9, W, H, center=(300.0, 200.0))
+    pts = frame_points(rng, n=500)
+    s_r, s_t = m.correction_stretch(pts)
+    # Against a central finite difference of corrected_from_raw along / across the radius.
+    d = pts - m.c
+    rhat = d / np.linalg.norm(d, axis=1, keepdims=True)
+    that = np.stack([-rhat[:, 1], rhat[:, 0]], axis=1)
+    e = 1e-4
+    num_r = np.linalg.norm(
+        m.corrected_from_raw(pts + e * rhat) - m.corrected_from_raw(pts - e * rhat), axis=1
+    ) / (2 * e)
+    num_t = np.linalg.norm(
+        m.corrected_from_raw(pts + e * that) - m.corrected_from_raw(pts - e * that), axis=1
+    ) / (2 * e)
+    np.testing.assert_allclose(s_r, num_r, rtol=1e-5)
+    np.testing.assert_allclose(s_t, num_t, rtol=1e-5)
+    # The generic (numerical) version agrees with the closed form away from the limit.
+    g_r, g_t = _Radial.correction_stretch(HarrisModel(0.3, W, H), pts)
+    h_r, h_t = HarrisModel(0.3, W, H).correction_stretch(pts)
+    np.testing.assert_allclose(g_t, h_t, rtol=1e-6)
+    np.testing.assert_allclose(g_r, h_r, rtol=2e-3)
+
+
+# ------------------------------------------------------------------------------------------
+# the range a user may ask for, tiny frames, simulated frames' masks
+
+
+def test_gamma_range_names_both_ends():
+    from registration.distortion import check_harris_gamma, harris_gamma_range
+
+    lo, hi = harris_gamma_range(480, 360)
+    assert lo == -1.0 and 1.0 < hi < 1.01
+    assert check_harris_gamma(-1.0, 480, 360) == -1.0
+    assert check_harris_gamma(0.99, 480, 360) == 0.99
+    for bad in (-50.0, -1.0001, 2.5, hi, float("nan")):
+        with pytest.raises(ValueError) as exc:
+            check_harris_gamma(bad, 480, 360)
+        msg = str(exc.value)
+        assert "valid -1 <= gamma < 1.0046" in msg and "480x360" in msg and "\n" not in msg
+    # An explicit centre moves the farthest corner and lowers the limit.
+    assert harris_gamma_range(480, 360, (100.0, 100.0))[1] < hi
+
+
+def test_one_pixel_frame_has_no_limit_and_no_division_by_zero():
+    assert harris_gamma_limit(1, 1) == float("inf")
+    m = HarrisModel(0.7, 1, 1)
+    assert m.is_valid()
+    out, _ = undistort_image(np.full((1, 1), 7, np.uint8), m)
+    assert out.shape == (1, 1)
+
+
+def test_simulated_frame_mask_marks_what_sees_the_scene():
+    from registration.distortion import simulate_raw_frame
+
+    scene = straight_edge_chart(600, 450, seed=5) // 2 + 100  # nothing black in the scene
+    for gamma, zoom in ((0.3, 2.5), (1.0, 1.5)):
+        raw, scale, mask = simulate_raw_frame(
+            scene, HarrisModel(gamma, 320, 240), max_zoom_out=zoom, return_mask=True
+        )
+        assert mask.shape == raw.shape and mask.dtype == bool
+        assert np.all(raw[mask] >= 100)  # every pixel in the mask sees only the scene
+        assert not mask[raw == 0].any()  # every blank pixel is outside it
+        if gamma == 1.0:
+            assert 0.01 < (~mask).mean() < 0.5  # the corners lie beyond the scene
+        else:
+            assert mask.all()

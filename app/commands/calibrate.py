@@ -1,8 +1,11 @@
 """``aerialreg calibrate``: estimate the Harris γ that makes straight lines straight.
 
 With ``--lines LINES.json`` γ is fitted to polylines traced along straight world features (the
-format is documented in :mod:`registration.calibration`); without it, long edges are detected in
-the image and γ is fitted robustly to them.
+format is documented in :mod:`registration.lines_file`); without it, long edges are detected in
+the image and γ is fitted robustly to them. Besides γ and its uncertainty the command reports
+whether the estimate is confident, where the lines put the distortion centre
+(:func:`registration.lens_fit.fit_center`; used with ``--center auto`` when the lines support
+it) and whether one parameter is enough (:func:`registration.lens_fit.check_one_parameter`).
 """
 
 from __future__ import annotations
@@ -10,13 +13,17 @@ from __future__ import annotations
 import argparse
 import sys
 
+import numpy as np
+
 from app.cli import UsageError, emit_json
-from app.commands.undistort import read_image
+from app.commands.undistort import parse_center, read_image
 from registration.calibration import (
     estimate_gamma_auto,
     estimate_gamma_from_lines,
     load_lines,
 )
+from registration.distortion import HARRIS_GAMMA_MIN
+from registration.lens_fit import check_one_parameter, fit_center
 
 NAME = "calibrate"
 HELP = "Estimate the Harris distortion parameter γ from straight lines (drawn or detected)."
@@ -34,12 +41,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--gamma-range",
         metavar="LO,HI",
-        help="search γ only in this range (default: -1 up to the frame's validity limit, ~1.0); write --gamma-range=-0.5,1 when LO is negative",
+        help=f"search γ only in this range (default: {HARRIS_GAMMA_MIN:g} up to the frame's "
+        "validity limit, ~1.0); write --gamma-range=-0.5,1 when LO is negative",
+    )
+    p.add_argument(
+        "--center",
+        default="frame",
+        metavar="frame|auto|X,Y",
+        help="distortion centre: 'frame' = the frame centre, as the rest of aerialreg uses "
+        "(default); 'auto' = fitted together with γ where the lines locate it and put it "
+        "significantly off the frame centre, else the frame centre (the output says which); "
+        "X,Y = this centre in raw pixels",
     )
     p.add_argument(
         "--json",
         action="store_true",
-        help="print one JSON object: gamma, uncertainty, n_lines, method, residuals and the "
+        help="print one JSON object: gamma, uncertainty, confident, evidence, center, "
+        "center_source, center_fit, model_check, n_lines, method, residuals and the "
         "residual-versus-gamma curve",
     )
 
@@ -51,15 +69,23 @@ def _parse_range(text: str | None) -> tuple[float, float] | None:
         lo, hi = (float(v) for v in text.split(","))
     except ValueError:
         raise UsageError(f"--gamma-range must look like -0.5,1.0, got {text!r}") from None
-    if not lo < hi:
-        raise UsageError(f"--gamma-range needs LO < HI, got {text!r}")
+    if not (np.isfinite(lo) and np.isfinite(hi)) or not lo < hi:
+        raise UsageError(f"--gamma-range needs finite LO < HI, got {text!r}")
+    if lo < HARRIS_GAMMA_MIN:
+        raise UsageError(
+            f"--gamma-range {text!r} starts below {HARRIS_GAMMA_MIN:g}, the strongest "
+            f"pincushion correction aerialreg accepts"
+        )
     return lo, hi
 
 
 def run(args: argparse.Namespace) -> int:
     gamma_range = _parse_range(args.gamma_range)
+    mode = args.center
+    fixed_center = None if mode in ("frame", "auto") else parse_center(mode)
     image = read_image(args.image)
     h, w = image.shape[:2]
+    lines = None
     if args.lines:
         lines = load_lines(args.lines)
         if tuple(lines.image_size) != (w, h):
@@ -67,16 +93,38 @@ def run(args: argparse.Namespace) -> int:
                 f"{args.lines} is for a {lines.image_size[0]}x{lines.image_size[1]} image but "
                 f"{args.image} is {w}x{h}"
             )
-        est = estimate_gamma_from_lines(lines.lines, w, h, gamma_range=gamma_range)
-    else:
-        est = estimate_gamma_auto(image, gamma_range=gamma_range)
+
+    def estimate(center):
+        if lines is not None:
+            return estimate_gamma_from_lines(
+                lines.lines, w, h, center=center, gamma_range=gamma_range
+            )
+        return estimate_gamma_auto(image, center=center, gamma_range=gamma_range)
+
+    est = estimate(fixed_center)
+    source = "given" if fixed_center is not None else "frame"
+    center_fit = fit_center(est) if est.n_lines >= 2 else None
+    if mode == "auto" and center_fit is not None and center_fit.supported:
+        est = estimate(center_fit.center)
+        source = "estimated"
+    check = check_one_parameter(est) if est.n_lines >= 2 else None
     if args.json:
-        emit_json(est.to_dict())
-    else:
-        sys.stdout.write(f"gamma {est.gamma:.4f} ± {est.uncertainty:.4f}\n")
-        sys.stderr.write(
-            f"{est.method}: {est.n_lines} lines ({est.n_rejected} rejected as not straight), "
-            f"straightness {est.residual:.2f} px RMS at gamma {est.gamma:.3f} "
-            f"(uncorrected {est.residual_uncorrected:.2f} px); uncertainty by {est.uncertainty_method}\n"
-        )
+        d = est.to_dict()
+        d["center_source"] = source
+        d["center_fit"] = center_fit.to_dict() if center_fit else None
+        d["model_check"] = check.to_dict() if check else None
+        emit_json(d)
+        return 0
+    c = est.model().c
+    sys.stdout.write(f"gamma {est.gamma:.4f} ± {est.uncertainty:.4f}\n")
+    sys.stderr.write(
+        f"{est.method}: {est.n_lines} lines ({est.n_rejected} rejected as not straight), "
+        f"straightness {est.residual:.2f} px RMS at gamma {est.gamma:.3f} "
+        f"(uncorrected {est.residual_uncorrected:.2f} px)\n"
+        f"{'confident' if est.confident else 'NOT confident'}: {est.evidence}\n"
+        f"centre ({c[0]:.1f}, {c[1]:.1f}) [{source}]"
+        + (f"; centre fit: {center_fit.message}" if center_fit else "")
+        + "\n"
+        + (f"{check.message}\n" if check else "")
+    )
     return 0

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -14,6 +15,7 @@ from registration.distortion import (
     CANVASES,
     IMAGE_INTERPOLATIONS,
     HarrisModel,
+    check_harris_gamma,
     check_valid,
     undistort_image,
 )
@@ -32,8 +34,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         required=True,
         metavar="G",
         help="Harris distortion parameter γ (positive corrects barrel distortion; the paper's "
-        "camera: 0.7; 0 = no change; must be below ~1.0, the limit for the frame is printed "
-        "when exceeded)",
+        "camera: 0.7; 0 = no change; valid from -1 to just above 1.0; the exact limit "
+        "for the frame is printed when exceeded)",
     )
     p.add_argument(
         "-o",
@@ -41,6 +43,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         required=True,
         metavar="OUT",
         help="output image file; its extension picks the format (.png, .jpg, .tif, ...)",
+    )
+    p.add_argument(
+        "--center",
+        metavar="X,Y",
+        help="distortion centre in raw pixels (default: the frame centre ((W-1)/2, (H-1)/2)); "
+        "as printed by 'aerialreg calibrate --center auto'",
     )
     p.add_argument(
         "--canvas",
@@ -62,8 +70,45 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
+# Images a command accepts: at least MIN_IMAGE_SIDE pixels each way (a smaller picture shows
+# no lines to straighten and has no meaningful distortion), at most MAX_IMAGE_SIDE (the
+# correction maps hold int16 positions) and MAX_IMAGE_PIXELS in all (a 100-megapixel colour
+# frame already needs ~2 GB for its correction maps).
+MIN_IMAGE_SIDE = 16
+MAX_IMAGE_SIDE = 32000
+MAX_IMAGE_PIXELS = 100_000_000
+
+
+def check_image_size(width: int, height: int, path: str | Path) -> None:
+    """ValueError naming the size and the limit unless the image is within the limits."""
+    if width < MIN_IMAGE_SIDE or height < MIN_IMAGE_SIDE:
+        raise ValueError(
+            f"{path} is {width}x{height} px; images must be at least "
+            f"{MIN_IMAGE_SIDE}x{MIN_IMAGE_SIDE} px"
+        )
+    if max(width, height) > MAX_IMAGE_SIDE or width * height > MAX_IMAGE_PIXELS:
+        raise ValueError(
+            f"{path} is {width}x{height} px ({width * height / 1e6:.1f} megapixels); images may "
+            f"be at most {MAX_IMAGE_SIDE} px on a side and {MAX_IMAGE_PIXELS / 1e6:g} megapixels"
+        )
+
+
+def _header_size(p: Path) -> tuple[int, int] | None:
+    """``(width, height)`` from the file's header without decoding it; None if unknown."""
+    try:
+        from PIL import Image
+
+        with Image.open(p) as im:
+            return int(im.size[0]), int(im.size[1])
+    except Exception:  # not a format Pillow knows: OpenCV decodes it, then it is checked
+        return None
+
+
 def read_image(path: str | Path) -> np.ndarray:
     """Read an image file as stored (grey, colour BGR or BGRA; 8 or 16 bit).
+
+    The size is checked from the header before decoding (:func:`check_image_size`), so an
+    oversized file is refused without being decoded.
 
     Raises:
         FileNotFoundError: no such file.
@@ -76,6 +121,41 @@ def read_image(path: str | Path) -> np.ndarray:
     return decode_image_file(path, max_pixels=MAX_FRAME_PIXELS)
 
 
+def parse_center(text: str | None) -> tuple[float, float] | None:
+    """``"X,Y"`` (raw pixels) -> ``(x, y)``; None for None; UsageError otherwise."""
+    if text is None:
+        return None
+    try:
+        x, y = (float(v) for v in text.split(","))
+    except ValueError:
+        raise UsageError(
+            f"--center must look like 959.5,539.5 (raw pixels), got {text!r}"
+        ) from None
+    if not (np.isfinite(x) and np.isfinite(y)):
+        raise UsageError(f"--center must be finite, got {text!r}")
+    return x, y
+
+
+def same_file(a: Path, b: Path) -> bool:
+    """True when ``a`` and ``b`` name the same file (also through links or ``..``)."""
+    if a.exists() and b.exists():
+        return os.path.samefile(a, b)
+    return a.resolve() == b.resolve()
+
+
+def write_image_atomically(out: Path, image: np.ndarray) -> None:
+    """Write ``image`` to ``out`` through a temporary file beside it, so that a failed write
+    never leaves a truncated ``out`` (and an existing ``out`` stays intact until replaced)."""
+    tmp = out.with_name(f".{out.stem}.{os.getpid()}.tmp{out.suffix}")
+    try:
+        if not cv2.imwrite(str(tmp), image):
+            raise UsageError(f"could not write {out}")
+        os.replace(tmp, out)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
 def run(args: argparse.Namespace) -> int:
     out = Path(args.output)
     if out.is_dir():
@@ -84,19 +164,25 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"output folder {out.parent} does not exist")
     if not out.suffix or not cv2.haveImageWriter(str(out)):
         raise UsageError(f"cannot write images of type {out.suffix or '(none)'!r}: {out}")
+    if same_file(Path(args.image), out):
+        raise UsageError(
+            f"output {out} is the input image; write the corrected image to another file"
+        )
+    center = parse_center(args.center)
     image = read_image(args.image)
     h, w = image.shape[:2]
-    model = check_valid(HarrisModel(args.gamma, w, h))
+    check_harris_gamma(args.gamma, w, h, center)
+    model = check_valid(HarrisModel(args.gamma, w, h, center))
     corrected, info = undistort_image(
         image, model, canvas=args.canvas, interpolation=args.interpolation
     )
-    if not cv2.imwrite(str(out), corrected):
-        raise UsageError(f"could not write {out}")
+    write_image_atomically(out, corrected)
     if args.json:
         emit_json(
             {
                 "output": str(out),
                 "gamma": float(args.gamma),
+                "center": [float(model.c[0]), float(model.c[1])],
                 "image_size": [w, h],
                 "canvas": info.to_dict(),
                 "interpolation": args.interpolation,
