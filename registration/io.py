@@ -349,11 +349,11 @@ def read_base_map(
     """
     p = Path(path)
     if not p.exists():
-        raise FileNotFoundError(f"base map not found: {p}")
+        raise FileNotFoundError(f"image not found: {p}")
     if p.is_dir():
-        raise ValueError(f"expected a base map file, got a directory: {p}")
+        raise ValueError(f"{p} is a directory, not an image file")
     if p.stat().st_size == 0:
-        raise ValueError(f"base map file is empty: {p}")
+        raise ValueError(f"image file {p} is empty")
     if not (nodata in ("auto", "file") or isinstance(nodata, (int, float))):
         raise ValueError(f"nodata must be 'auto', 'file' or a number, got {nodata!r}")
     if p.suffix.lower() in PLAIN_SUFFIXES:
@@ -401,9 +401,8 @@ def read_georeference(path: str | os.PathLike, *, crs: Any = None):
 def _read_plain_base(p: Path, crs: Any, nodata) -> BaseMap:
     from registration import georef as gr
 
-    img = cv2.imdecode(np.fromfile(str(p), dtype=np.uint8), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise ValueError(f"not a readable image: {p}")
+    # Size limits from the header before decoding, truncated files refused (decode_image_file).
+    img = decode_image_file(p, max_pixels=MAX_BASE_PIXELS)
     notes: list[str] = []
     if img.ndim == 2:
         img = img[:, :, None]
@@ -412,7 +411,7 @@ def _read_plain_base(p: Path, crs: Any, nodata) -> BaseMap:
         valid = img[:, :, -1] > 0
         img = img[:, :, :-1]
         notes.append("alpha channel -> no-data mask")
-    bands = np.moveaxis(img, 2, 0)[::-1] if img.shape[2] == 3 else np.moveaxis(img, 2, 0)
+    bands = np.moveaxis(img, 2, 0)  # OpenCV's channel order is already BGR
     lossy = p.suffix.lower() in (".jpg", ".jpeg")
     image, valid = _bands_to_bgr(bands, valid, nodata, lossy, notes)
     world = gr.find_world_file(p)
@@ -445,6 +444,8 @@ def _read_gdal_base(p: Path, crs: Any, nodata) -> BaseMap:
     except RasterioIOError as exc:
         raise ValueError(f"not a readable raster: {p} ({str(exc).splitlines()[0]})") from None
     with ds:
+        # The raster's size from its header, before any pixel is read.
+        check_image_size((ds.width, ds.height), p, max_pixels=MAX_BASE_PIXELS)
         interp = list(ds.colorinterp)
         lossy = str(getattr(ds.compression, "value", ds.compression)).upper() in ("JPEG", "WEBP")
         has_mask = any(flags != [MaskFlags.all_valid] for flags in ds.mask_flag_enums)

@@ -24,7 +24,7 @@ from registration import features
 from registration.coarse import normalise_seeds
 from registration.config import PipelineConfig, config_from_dict
 from registration.coords import image_size
-from registration.distortion import HarrisModel, check_valid
+from registration.distortion import HarrisModel, check_harris_gamma
 from registration.global_registration import (
     CoarseResult,
     FineResult,
@@ -69,7 +69,7 @@ def validate_inputs(frames: FrameSource, base: NDArray, gamma, seed, reference_f
     """ValueError naming the problem for a γ, seed or reference frame that cannot work (out of
     range, unreadable, or of another size than the sequence's first readable frame)."""
     w, h = frames.size
-    check_valid(HarrisModel(float(gamma), w, h))
+    check_harris_gamma(float(gamma), w, h)
     if not 0 <= reference_frame < len(frames):
         raise ValueError(
             f"reference frame {reference_frame} out of range: the sequence has {len(frames)} frames"

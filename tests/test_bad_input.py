@@ -6,9 +6,6 @@ Each refused case asserts the exit status 2, exactly one line ``aerialreg COMMAN
 on standard error (progress-bar lines aside) naming the problem, no traceback, and that no file
 that existed before was changed. Cases the run survives (a corrupt frame, a damaged record)
 assert what the result says about them.
-
-Cases marked ``xfail(reason="fixed on branch calib/synth")`` are fixed by other helpers' branches
-(calibrate/undistort validation, simulate); they pass once those are merged.
 """
 
 from __future__ import annotations
@@ -41,8 +38,6 @@ REPO = Path(__file__).resolve().parents[1]
 N = 6
 SIZE = (480, 360)
 PROGRESS = re.compile(r"^[\w ]+: \d+/\d+ \(\d+%\)")
-CALIB = pytest.mark.xfail(reason="fixed on branch calib", strict=False)
-SYNTH = pytest.mark.xfail(reason="fixed on branch synth", strict=False)
 
 
 # ------------------------------------------------------------------------------------------
@@ -568,7 +563,6 @@ def test_register_bad_options(sims, tmp_path, capsys, extra, needle):
     assert not out.exists()
 
 
-@CALIB
 def test_register_gamma_outside_the_harris_range(sims, tmp_path, capsys):
     code, _, err = cli(capsys, *register_args(sims[0], tmp_path / "out"), "--gamma", "-50")
     assert_refused(code, err, "register", "gamma -50")
@@ -774,14 +768,12 @@ def test_undistort_gamma_nan(frame_png, tmp_path, capsys):
     assert not (tmp_path / "u.png").exists()
 
 
-@CALIB
 def test_undistort_gamma_far_out_of_range(frame_png, tmp_path, capsys):
     code, _, err = cli(capsys, "undistort", frame_png, "--gamma", "-50", "-o", tmp_path / "u.png")
     assert_refused(code, err, "undistort", "-50")
     assert not (tmp_path / "u.png").exists()
 
 
-@CALIB
 def test_undistort_onto_its_own_input(frame_png, tmp_path, capsys):
     image = tmp_path / "x.png"
     shutil.copy(frame_png, image)
@@ -795,7 +787,7 @@ def test_undistort_onto_its_own_input(frame_png, tmp_path, capsys):
     "kind, needle",
     [
         ("lines-not-utf8", "not valid JSON"),
-        ("lines-too-large", "over the 64 MiB limit"),
+        ("lines-too-large", "LINES.json files may be at most 8 MB"),
         ("lines-directory", "is a directory"),
         ("gamma-range-nan", "--gamma-range"),
         ("gamma-range-one-number", "--gamma-range must look like"),
@@ -823,7 +815,6 @@ def test_calibrate_bad_input(frame_png, tmp_path, capsys, kind, needle):
     assert_unchanged(before, no_new_under=tmp_path)
 
 
-@CALIB
 def test_calibrate_degenerate_lines(frame_png, tmp_path, capsys):
     lines = tmp_path / "LINES.json"
     lines.write_text(
@@ -865,7 +856,6 @@ def test_simulate_out_that_is_a_file(tmp_path, capsys):
     assert_unchanged(before)
 
 
-@SYNTH
 def test_simulate_truncated_scene(frame_png, tmp_path, capsys):
     scene = make_bad_image("truncated-jpeg", tmp_path, frame_png)
     code, _, err = cli(
@@ -874,7 +864,6 @@ def test_simulate_truncated_scene(frame_png, tmp_path, capsys):
     assert_refused(code, err, "simulate", "truncated JPEG")
 
 
-@SYNTH
 def test_simulate_into_a_registration_result_changes_nothing(registered, tmp_path, capsys):
     out = copy_result(registered, tmp_path)
     before = snapshot(out)
@@ -974,7 +963,7 @@ def test_app_register_all_after_opening_other_inputs_recomputes(sims, tmp_path):
     app.start()
     try:
         app.worker.wait_idle()
-        seq = app.tabs["Sequence"]
+        seq = app.views["Sequence"]
         assert seq.run()
         app.jobs.join(300)
         app.worker.wait_idle()

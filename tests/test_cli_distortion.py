@@ -318,15 +318,15 @@ def test_one_pixel_image_is_refused(workdir, capsys):
         workdir,
         "undistort",
         [str(tiny), "--gamma", "0.5", "-o", out],
-        "is 1x1 px",
-        "at least 16x16",
+        "1x1 pixels is too small",
+        "at least 16 a side",
     )
-    refused(capsys, workdir, "calibrate", [str(tiny)], "is 1x1 px", "at least 16x16")
-    refused(capsys, workdir, "calibrate", [str(tiny), "--json"], "is 1x1 px")
+    refused(capsys, workdir, "calibrate", [str(tiny)], "1x1 pixels", "at least 16 a side")
+    refused(capsys, workdir, "calibrate", [str(tiny), "--json"], "1x1 pixels")
 
 
 def test_image_size_limits_at_the_boundary(workdir, capsys, monkeypatch):
-    import app.commands.undistort as undistort_cmd
+    import registration.io as rio
 
     out = workdir / "out.png"
     small = workdir / "s16.png"
@@ -338,9 +338,13 @@ def test_image_size_limits_at_the_boundary(workdir, capsys, monkeypatch):
     too_small = workdir / "s15.png"
     cv2.imwrite(str(too_small), np.full((16, 15), 100, np.uint8))
     refused(
-        capsys, workdir, "undistort", [str(too_small), "--gamma", "0.3", "-o", str(out)], "15x16 px"
+        capsys,
+        workdir,
+        "undistort",
+        [str(too_small), "--gamma", "0.3", "-o", str(out)],
+        "15x16 pixels",
     )
-    monkeypatch.setattr(undistort_cmd, "MAX_IMAGE_PIXELS", 400)
+    monkeypatch.setattr(rio, "MAX_FRAME_PIXELS", 400)
     at = workdir / "m20.png"
     cv2.imwrite(str(at), np.full((20, 20), 100, np.uint8))
     code, _, _ = run(capsys, "undistort", str(at), "--gamma", "0.3", "-o", str(workdir / "ok2.png"))
@@ -352,10 +356,10 @@ def test_image_size_limits_at_the_boundary(workdir, capsys, monkeypatch):
         workdir,
         "undistort",
         [str(over), "--gamma", "0.3", "-o", str(out)],
-        "21x20 px",
-        "at most",
+        "21x20 pixels",
+        "over the limit",
     )
-    refused(capsys, workdir, "calibrate", [str(over)], "21x20 px", "megapixels")
+    refused(capsys, workdir, "calibrate", [str(over)], "21x20 pixels", "over the limit")
 
 
 def test_gamma_outside_the_valid_range_is_refused(workdir, capsys):

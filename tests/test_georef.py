@@ -249,3 +249,21 @@ def test_real_orthophoto_palette_utm43n_with_black_collar():
     assert dark_inside.sum() > 0
     lon, lat = georef.to_crs(georef.map_from_base([[x, y]]), "EPSG:4326")[0]
     assert 72.9 < lon < 73.1 and 33.6 < lat < 33.7  # Islamabad
+
+
+def test_plain_colour_base_reads_as_the_same_bgr_pixels_as_a_frame(tmp_path):
+    """A PNG base without a world file is the plain image, in OpenCV's BGR order like every
+    other image of the pipeline (a swapped channel order changes every grey level)."""
+    import cv2
+
+    from registration.io import read_base_map, read_image
+
+    rng = np.random.default_rng(3)
+    img = rng.integers(0, 256, (40, 60, 3), dtype=np.uint8)
+    img[0, 0] = (255, 0, 0)  # pure blue in BGR
+    path = tmp_path / "base.png"
+    cv2.imwrite(str(path), img)
+    bm = read_base_map(path)
+    np.testing.assert_array_equal(bm.image, read_image(path))
+    np.testing.assert_array_equal(bm.image[0, 0], (255, 0, 0))
+    assert bm.georef is None

@@ -70,55 +70,28 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
-# Images a command accepts: at least MIN_IMAGE_SIDE pixels each way (a smaller picture shows
-# no lines to straighten and has no meaningful distortion), at most MAX_IMAGE_SIDE (the
-# correction maps hold int16 positions) and MAX_IMAGE_PIXELS in all (a 100-megapixel colour
-# frame already needs ~2 GB for its correction maps).
-MIN_IMAGE_SIDE = 16
+# Beyond registration.io's limits (at least 16 px a side, at most 100 megapixels, checked from
+# the header before decoding): at most MAX_IMAGE_SIDE a side, since the correction maps hold
+# int16 positions.
 MAX_IMAGE_SIDE = 32000
-MAX_IMAGE_PIXELS = 100_000_000
-
-
-def check_image_size(width: int, height: int, path: str | Path) -> None:
-    """ValueError naming the size and the limit unless the image is within the limits."""
-    if width < MIN_IMAGE_SIDE or height < MIN_IMAGE_SIDE:
-        raise ValueError(
-            f"{path} is {width}x{height} px; images must be at least "
-            f"{MIN_IMAGE_SIDE}x{MIN_IMAGE_SIDE} px"
-        )
-    if max(width, height) > MAX_IMAGE_SIDE or width * height > MAX_IMAGE_PIXELS:
-        raise ValueError(
-            f"{path} is {width}x{height} px ({width * height / 1e6:.1f} megapixels); images may "
-            f"be at most {MAX_IMAGE_SIDE} px on a side and {MAX_IMAGE_PIXELS / 1e6:g} megapixels"
-        )
-
-
-def _header_size(p: Path) -> tuple[int, int] | None:
-    """``(width, height)`` from the file's header without decoding it; None if unknown."""
-    try:
-        from PIL import Image
-
-        with Image.open(p) as im:
-            return int(im.size[0]), int(im.size[1])
-    except Exception:  # not a format Pillow knows: OpenCV decodes it, then it is checked
-        return None
 
 
 def read_image(path: str | Path) -> np.ndarray:
     """Read an image file as stored (grey, colour BGR or BGRA; 8 or 16 bit).
 
-    The size is checked from the header before decoding (:func:`check_image_size`), so an
-    oversized file is refused without being decoded.
-
     Raises:
         FileNotFoundError: no such file.
         ValueError: a directory, an empty, truncated or corrupt file, data OpenCV cannot decode,
-            an image outside the size limits (one line each).
+            an image outside the size limits (one line each, :func:`registration.io.
+            decode_image_file`).
     """
-    from registration.io import MAX_FRAME_PIXELS, decode_image_file
+    from registration import io
 
-    # Checks size limits before decoding and refuses truncated files (registration.io).
-    return decode_image_file(path, max_pixels=MAX_FRAME_PIXELS)
+    image = io.decode_image_file(path, max_pixels=io.MAX_FRAME_PIXELS)
+    h, w = image.shape[:2]
+    if max(w, h) > MAX_IMAGE_SIDE:
+        raise ValueError(f"{path}: {w}x{h} pixels; images may be at most {MAX_IMAGE_SIDE} a side")
+    return image
 
 
 def parse_center(text: str | None) -> tuple[float, float] | None:

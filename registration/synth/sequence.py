@@ -30,7 +30,6 @@ import os
 from collections.abc import Callable
 from pathlib import Path
 
-import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -210,13 +209,10 @@ def load_truth(directory: str | os.PathLike) -> SimTruth:
 
 def read_rgb(path: str | os.PathLike) -> NDArray[np.uint8]:
     """Read an image file as ``(H, W, 3)`` uint8 RGB."""
-    p = Path(path)
-    if not p.is_file():
-        raise FileNotFoundError(f"image not found: {p}")
-    img = cv2.imread(str(p), cv2.IMREAD_COLOR)
-    if img is None:
-        raise ValueError(f"cannot read image {p}")
-    return np.ascontiguousarray(img[..., ::-1])
+    from registration.io import read_image
+
+    # Size limits and truncated files as for every other image (registration.io).
+    return np.ascontiguousarray(read_image(path)[..., ::-1])
 
 
 def _as_rgb(image, name: str) -> NDArray[np.uint8]:

@@ -1,0 +1,241 @@
+"""Inter-sensor registration of the reference frame (paper 4.3) at any heading, map resolution
+and sensor: the simulator's exact truth with base maps turned and resampled, a wrong click, real
+SRIF pairs four years apart, and a real UAV photo against an official orthophoto of another
+date (OrthoLoC) with a reference registration from the camera's pose."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from registration.config import get_preset
+from registration.distortion import HarrisModel
+from registration.global_registration import coarse_register, fine_register_reference
+from registration.io import open_frames, read_image
+from registration.synth import SimConfig, load_truth, rebase, simulate
+from tests.conftest import shared_data
+
+W, H = 640, 480
+HEADINGS = range(0, 360, 30)
+# Error of the reference frame's global (fine) model against the exact truth, in frame pixels
+# (base px divided by the base's resolution factor): 0.73-0.74 measured at every heading and
+# resolution below, seeded and unseeded (seed 3, 640x480); the issue's bar is 1 px.
+REFERENCE_LIMIT_FRAME_PX = 1.0
+
+
+@pytest.fixture(scope="module")
+def one_frame(tmp_path_factory):
+    out = tmp_path_factory.mktemp("inter") / "sim"
+    simulate(out, SimConfig(frame_size=(W, H), n_frames=1, seed=3, video=False))
+    return out
+
+
+def _grid() -> np.ndarray:
+    gx, gy = np.meshgrid(np.linspace(0, W - 1, 17), np.linspace(0, H - 1, 13))
+    return np.c_[gx.ravel(), gy.ravel()]
+
+
+def _register(sim, seed):
+    truth = load_truth(sim)
+    frame = open_frames(sim / "frames").get(0)
+    base = read_image(sim / "base.png")
+    valid = base.max(axis=2) > 0  # the turned map's no-data corners
+    cfg = get_preset("default")
+    coarse = coarse_register(frame, base, truth.gamma, seed, cfg, base_valid=valid, rng=0)
+    if not coarse:
+        return coarse, None, truth
+    fine = fine_register_reference(frame, base, truth.gamma, coarse, cfg, base_valid=valid)
+    return coarse, fine, truth
+
+
+def _frame_px_error(fine, truth, scale: float) -> float:
+    grid = _grid()
+    est = fine.base_from_corrected.apply(HarrisModel(truth.gamma, W, H).corrected_from_raw(grid))
+    return float(np.mean(np.hypot(*(est - truth.frame_to_base(0, grid)).T)) / scale)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scale", [0.5, 1.0, 2.0])
+def test_reference_frame_at_every_heading_and_map_resolution(one_frame, tmp_path, scale):
+    """Base map turned 0-330° in 30° steps and resampled at 0.5x, 1x, 2x: one click with a 2 px
+    error, and no click at all, both register the reference frame within 1 frame px."""
+    rng = np.random.default_rng(int(scale * 10))
+    failures = []
+    for heading in HEADINGS:
+        sim = rebase(one_frame, tmp_path / f"h{heading}", heading, scale)
+        truth = load_truth(sim)
+        seed_f = np.array([0.45 * W, 0.55 * H])
+        a = rng.uniform(0, 2 * math.pi)
+        seed_b = truth.frame_to_base(0, seed_f[None])[0] + 2.0 * np.array(
+            [math.cos(a), math.sin(a)]
+        )
+        for label, seed in (("one click", (*seed_f, *seed_b)), ("no click", None)):
+            coarse, fine, truth = _register(sim, seed)
+            if not coarse or not fine:
+                failures.append(f"{heading}° {label}: {(fine or coarse).reason}")
+                continue
+            err = _frame_px_error(fine, truth, scale)
+            if not err < REFERENCE_LIMIT_FRAME_PX:
+                failures.append(f"{heading}° {label}: {err:.2f} frame px")
+            if seed is not None:
+                gap = abs((coarse.heading_deg - _true_heading(truth) + 180) % 360 - 180)
+                if gap > 3:
+                    failures.append(f"{heading}° {label}: heading estimate {gap:.1f}° off")
+    assert not failures, f"scale {scale}: " + "; ".join(failures)
+
+
+def _true_heading(truth) -> float:
+    """Rotation frame -> base of the truth at the frame centre, degrees."""
+    c = np.array([[W / 2, H / 2], [W / 2 + 20, H / 2]])
+    b = truth.frame_to_base(0, c)
+    f = HarrisModel(truth.gamma, W, H).corrected_from_raw(c)
+    return math.degrees(math.atan2(*(b[1] - b[0])[::-1]) - math.atan2(*(f[1] - f[0])[::-1])) % 360.0
+
+
+def test_two_clicks_fix_heading_and_scale(one_frame, tmp_path):
+    sim = rebase(one_frame, tmp_path / "h135", 135.0, 0.5)
+    truth = load_truth(sim)
+    f = np.array([[0.3 * W, 0.3 * H], [0.7 * W, 0.7 * H]])
+    b = truth.frame_to_base(0, f)
+    coarse, fine, truth = _register(sim, [(*f[0], *b[0]), (*f[1], *b[1])])
+    assert coarse and fine and coarse.gate == "two seeds"
+    assert abs((coarse.heading_deg - _true_heading(truth) + 180) % 360 - 180) < 2.0
+    assert _frame_px_error(fine, truth, 0.5) < REFERENCE_LIMIT_FRAME_PX
+
+
+def test_a_click_on_another_street_is_refused_with_a_reason(one_frame, tmp_path):
+    """A click 150 px away from the right spot (another street) must not give a silent wrong
+    answer: the step fails and says the click contradicts the registration found."""
+    sim = rebase(one_frame, tmp_path / "h90", 90.0, 1.0)
+    truth = load_truth(sim)
+    seed_f = np.array([0.5 * W, 0.5 * H])
+    seed_b = truth.frame_to_base(0, seed_f[None])[0] + (150.0, 0.0)
+    coarse, fine, _ = _register(sim, (*seed_f, *seed_b))
+    if coarse:  # if it ever succeeds, it must be right despite the click
+        assert fine and _frame_px_error(fine, truth, 1.0) < REFERENCE_LIMIT_FRAME_PX
+    else:
+        assert "click" in coarse.reason and "\n" not in coarse.reason
+
+
+# ------------------------------------------------------------------------------------------
+# Real imagery
+
+
+def _srif_pair(folder, i):
+    im1 = cv2.imread(str(folder / f"pair{i}_1.jpg"))
+    im2 = cv2.imread(str(folder / f"pair{i}_2.jpg"))
+    gt = np.loadtxt(folder / f"gt_{i}.txt").reshape(2, 3)
+    return im1, im2, cv2.cvtColor(im2, cv2.COLOR_BGR2GRAY) > 0, gt
+
+
+def _srif_click(i, im1, valid, gt):
+    """A point of image 1's central 60 % whose true position lies 15 px inside image 2's
+    content, the image-2 side 2 px off in a random direction (seeded by the pair id)."""
+    rng = np.random.default_rng(i)
+    h1, w1 = im1.shape[:2]
+    inner = cv2.erode(valid.astype(np.uint8), np.ones((31, 31), np.uint8))
+    for _ in range(2000):
+        p = rng.uniform([0.2 * w1, 0.2 * h1], [0.8 * w1, 0.8 * h1])
+        q = p @ gt[:, :2].T + gt[:, 2]
+        x, y = round(q[0]), round(q[1])
+        if 0 <= x < inner.shape[1] and 0 <= y < inner.shape[0] and inner[y, x]:
+            a = rng.uniform(0, 2 * math.pi)
+            return (*p, *(q + 2.0 * np.array([math.cos(a), math.sin(a)])))
+    raise AssertionError(f"pair {i}: no point of image 1 inside image 2")
+
+
+def _corner_error(model, gt, w, h) -> float:
+    c = np.array([[0, 0], [w - 1, 0], [0, h - 1], [w - 1, h - 1]], float)
+    err = np.hypot(*(model.apply(c) - (c @ gt[:, :2].T + gt[:, 2])).T)
+    return float(err.mean()) if np.isfinite(err).all() else math.inf
+
+
+@pytest.mark.slow
+def test_srif_one_click_beats_no_click_on_real_pairs():
+    """SRIF pairs 1-20 (two dates four years apart, rotations up to 360°, scales 0.25-2): the
+    corner error of coarse + fine under 10 px for 19 of 20 with one click (measured 95 %),
+    16 of 20 without (measured 80 %; plain OpenCV: 20 % over all 200)."""
+    folder = shared_data("srif-optical-optical")
+    cfg = get_preset("default")
+    ok = {"click": 0, "none": 0}
+    for i in range(1, 21):
+        im1, im2, valid, gt = _srif_pair(folder, i)
+        h, w = im1.shape[:2]
+        for mode, seed in (("click", _srif_click(i, im1, valid, gt)), ("none", None)):
+            coarse = coarse_register(im1, im2, 0.0, seed, cfg, base_valid=valid, rng=i)
+            if not coarse:
+                continue
+            fine = fine_register_reference(im1, im2, 0.0, coarse, cfg, base_valid=valid)
+            ok[mode] += bool(fine) and _corner_error(fine.base_from_corrected, gt, w, h) < 10
+    assert ok["click"] >= 17, ok  # measured 19 of 20
+    assert ok["none"] >= 13, ok  # measured 16 of 20
+    assert ok["click"] > ok["none"], ok
+
+
+def _ortholoc():
+    folder = shared_data("ortholoc-uav-vs-orthophoto", "demo_urban_residential")
+    k = np.array(
+        json.loads((folder / "urban_residential_intrinsics.json").read_text())["intrinsics"]
+    )
+    pose = np.array(
+        json.loads((folder / "urban_residential_extrinsics.json").read_text())["pose_w2c"]
+    )
+    query = cv2.imread(str(folder / "urban_residential.jpg"))
+    dop = cv2.imread(str(folder / "urban_residential_DOP.tif"), cv2.IMREAD_COLOR)
+    xdop = cv2.imread(str(folder / "urban_residential_xDOP.tif"), cv2.IMREAD_COLOR)
+    return k, pose, query, dop, xdop
+
+
+def _base_from_query(k, pose, z0):
+    """Ground-plane homography query px -> orthophoto px (SOURCE.md's formula; pixel centres at
+    integers, the GeoTIFF's affine maps pixel corners)."""
+    s, x0, y0 = 0.1815185546875, -92.821044921875, 92.836181640625
+    m = np.array([[s, 0, x0 + s / 2], [0, -s, y0 - s / 2], [0, 0, z0], [0, 0, 1]])
+    return np.linalg.inv(k @ pose @ m)
+
+
+def _apply(h, p):
+    q = np.c_[p, np.ones(len(p))] @ h.T
+    return q[:, :2] / q[:, 2:]
+
+
+def test_ortholoc_uav_photo_against_an_orthophoto_of_another_date():
+    """A real UAV photo (25° off nadir, turned ~90° against the map) against the official
+    orthophoto of another date and sensor (xDOP), one click: within 2 px (median over the
+    frame) of the reference registration from the camera's intrinsics and pose.
+
+    The reference needs the ground's height, which the sample does not give: it is fitted
+    here, independently of our pipeline, to plain OpenCV SIFT + MAGSAC matches between the photo
+    and the same-date orthophoto (DOP): z0 = -12.75 m, 1.3 px median residual (the SOURCE's
+    estimate, -11 m, leaves 8.8 px). Measured: median 1.27 px, mean 2.19 px (the mean is
+    pulled by the frame's far edge, where the ground plane model itself is least reliable)."""
+    k, pose, query, dop, xdop = _ortholoc()
+    kq, kd = cv2.SIFT.create(), cv2.SIFT.create()
+    pq, dq = kq.detectAndCompute(cv2.cvtColor(query, cv2.COLOR_BGR2GRAY), None)
+    pd, dd = kd.detectAndCompute(cv2.cvtColor(dop, cv2.COLOR_BGR2GRAY), None)
+    knn = cv2.BFMatcher().knnMatch(dq, dd, k=2)
+    good = [m[0] for m in knn if len(m) == 2 and m[0].distance < 0.8 * m[1].distance]
+    a = np.array([pq[m.queryIdx].pt for m in good])
+    b = np.array([pd[m.trainIdx].pt for m in good])
+    _, mask = cv2.findHomography(a, b, cv2.USAC_MAGSAC, 3.0)
+    a, b = a[mask.ravel() > 0], b[mask.ravel() > 0]
+    heights = np.arange(-15.0, -10.0, 0.05)
+    resid = [np.median(np.hypot(*(_apply(_base_from_query(k, pose, z), a) - b).T)) for z in heights]
+    ref = _base_from_query(k, pose, heights[int(np.argmin(resid))])
+    assert min(resid) < 2.0  # the reference itself fits the same-date map
+
+    gx, gy = np.meshgrid(np.linspace(0, 1023, 17), np.linspace(0, 767, 13))
+    grid = np.c_[gx.ravel(), gy.ravel()]
+    seed_b = _apply(ref, np.array([[512.0, 384.0]]))[0] + (1.5, 1.0)
+    cfg = get_preset("default")
+    coarse = coarse_register(query, xdop, 0.0, (512.0, 384.0, *seed_b), cfg, rng=0)
+    assert coarse, coarse.reason
+    fine = fine_register_reference(query, xdop, 0.0, coarse, cfg)
+    assert fine, fine.reason
+    err = np.hypot(*(fine.base_from_corrected.apply(grid) - _apply(ref, grid)).T)
+    assert np.median(err) < 2.0, f"median {np.median(err):.2f} px"
+    assert err.mean() < 2.9, f"mean {err.mean():.2f} px (measured 2.19)"
