@@ -40,7 +40,7 @@ from registration.correlation import CorrelationConfig, agreement, refine_by_cor
 from registration.distortion import HarrisModel, undistort_image
 from registration.features import Keypoints, SiftConfig
 from registration.heading import HeadingConfig, SimilarityPrior
-from registration.models import Affine, Projective, Similarity
+from registration.models import Affine, Projective, Similarity, quantized
 from registration.robust import RansacConfig, ransac, simplest_supported
 
 Seed = tuple[float, float, float, float]
@@ -572,7 +572,7 @@ def fit_coarse(
         result.reason = f"coarse step: RANSAC failed: {fit.reason}"
         return result
     inliers[idx[fit.inliers]] = True
-    result.base_from_corrected = fit.model.rescaled(1.0 / s, 1.0 / s)
+    result.base_from_corrected = quantized(fit.model.rescaled(1.0 / s, 1.0 / s))
     result.success = True
     return result
 
@@ -686,6 +686,7 @@ def coarse_register(
         _correlate(result, view, cbase, priors, seeds, s_f, cfg, rng, domain, base_c.scale)
     if seeds and result.success:
         _check_seed(result, seeds, harris, cfg, priors[0] if priors else None)
+    result.base_from_corrected = quantized(result.base_from_corrected)
     result.time_s = time.perf_counter() - t0
     return result
 
@@ -738,8 +739,16 @@ def _correlate(result, view, cbase, priors, seeds, s_f, cfg, rng, probes, s_b) -
         result.gate = result.gate or "seed"
 
 
+# The reference frame's matches are exact (brute force) below this many descriptor pairs (~1 s
+# per 40 M here): a one-off per sequence, and FLANN's approximate neighbours change with its
+# random trees, which moved the reference frame's registration by up to 0.3 px between seeds.
+_EXACT_MAX_PAIRS = 400_000_000
+
+
 def _priors(seeds, harris, frame, base_c, cfg, w, h):
-    matches = features.match_ratio(frame.keypoints, base_c.keypoints, cfg.ratio)
+    n_pairs = len(frame.keypoints) * len(base_c.keypoints)
+    method = "bf" if n_pairs <= _EXACT_MAX_PAIRS else "flann"
+    matches = features.match_ratio(frame.keypoints, base_c.keypoints, cfg.ratio, method=method)
     attr = heading.attribute_differences(frame.keypoints, base_c.keypoints, matches)
     if seeds:
         priors = _seed_priors(seeds, harris, frame, base_c, matches, attr, cfg)
