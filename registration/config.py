@@ -185,6 +185,7 @@ def _default() -> PipelineConfig:
             ),
             reqcon=lm_reqcon,
             reanchor_coverage=REANCHOR_COVERAGE,
+            base_fallback=True,
         ),
         local=replace(paper.local, **{**FLOW_OVERRIDES, **LOCAL_FLOW}),
         reference_local=REFERENCE_LOCAL,

@@ -516,12 +516,15 @@ class GriddedReference:
         frame_from_ref: reference px -> frame px (accepted for symmetry; not needed here).
         keypoints: precomputed keypoints of ``image`` (e.g. of the mid base image, computed
             once per sequence); None = detect them inside the needed windows only.
+        valid: ``(H, W)`` bool, where ``image`` has content (None = everywhere); used by the
+            template matcher's fallbacks.
     """
 
     image: NDArray
     ref_from_frame: PointFunction
     frame_from_ref: PointFunction | None = None
     keypoints: Keypoints | None = None
+    valid: NDArray | None = None
 
 
 Reference = GriddedReference  # short alias used by the pipeline

@@ -126,6 +126,11 @@ class IntraConfig:
         reanchor_max_shift_px: an anchor whose model differs from the frame's intra-sensor
             model by more than this (base px, median over the frame) is not trusted: the
             frame keeps its intra-sensor registration.
+        base_fallback: beyond the paper (template control points only): templates that
+            neither the mid base image nor the previous frame cover are matched in the base
+            map itself (source 2). A frame flying over new ground has a leading edge that no
+            earlier frame saw; without control points there, the polyprojective extrapolates
+            (on a flyover at 480x360, hundreds of px at the leading corners).
     """
 
     prediction_gate_px: float = 150.0
@@ -137,6 +142,7 @@ class IntraConfig:
     use_previous_frame: bool = True
     reanchor_coverage: float = 0.0
     reanchor_max_shift_px: float = 20.0
+    base_fallback: bool = False
 
     def __post_init__(self) -> None:
         if not 0 <= self.reanchor_coverage <= 1:
@@ -415,6 +421,9 @@ class JointBase:
         mid_valid: (Hb, Wb) bool, where the mid base image has content.
         mid_coarse: coarse SIFT of the mid base image.
         mid_image: the mid base image as rendered (colour), for writing it out.
+        base_grey, base_valid: the base map (grey) and its content mask, searched by the
+            templates that neither the mid base image nor the previous frame can take
+            (``IntraConfig.base_fallback``).
         mid_sift: full-scale SIFT of the mid base image (gridded-SIFT control points), lazily.
         previous: the previously registered frame, or None.
         previous_index: that frame's index in the sequence.
@@ -426,6 +435,8 @@ class JointBase:
     mid_valid: NDArray[np.bool_]
     mid_coarse: CoarseFeatures
     mid_image: NDArray[np.uint8] | None = None
+    base_grey: NDArray[np.uint8] | None = None
+    base_valid: NDArray[np.bool_] | None = None
     mid_sift: Keypoints | None = None
     previous: PreviousFrame | None = None
     previous_index: int | None = None
@@ -586,14 +597,19 @@ def register_intra(
         )
         cps = _points_to_corrected(cps, view)
     else:
-        fallback = None
+        fallbacks = []
         if prev is not None:
             p, pv = prev.base_from_corrected, prev.view
-            fallback = features.Reference(
+            fallbacks.append(features.Reference(
                 pv.grey, lambda xy: pv.from_corrected(p.inverse(model.apply(view.to_corrected(xy))))
-            )
+            ))  # fmt: skip
+        if cfg.base_fallback and joint.base_grey is not None:
+            fallbacks.append(features.Reference(
+                joint.base_grey, lambda xy: model.apply(view.to_corrected(xy)),
+                valid=joint.base_valid,
+            ))  # fmt: skip
         cps = _template_points(
-            view, joint.mid_grey, model, cfg.template, ref_valid=joint.mid_valid, fallback=fallback
+            view, joint.mid_grey, model, cfg.template, ref_valid=joint.mid_valid, fallback=fallbacks
         )
     if prev is not None and len(cps.src):
         # Points found in the previous frame (source 1) are in its raw pixels: to base pixels.

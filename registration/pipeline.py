@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from registration import features
 from registration.coarse import normalise_seeds
 from registration.config import PipelineConfig, config_from_dict
 from registration.coords import bbox_of, frame_outline, image_size
@@ -245,7 +246,7 @@ def _reference_step(
             )
         # Resuming: the mid base image is rebuilt from the records (the reference frame, then
         # the anchors in processing order), exactly as the uninterrupted run built it.
-        return _rebuild_joint(frames, base, gamma, rec, config)
+        return _rebuild_joint(frames, base, gamma, rec, config, base_valid)
 
     t0 = time.perf_counter()
     if reference is not None:
@@ -282,13 +283,21 @@ def _reference_step(
         "model": model.to_dict(),
     }
     writer.write_frame(ref, record, _frame_arrays(fine, field, field_stats))
-    joint = make_joint_base(mid, valid, config)
+    joint = _joint_base(mid, valid, base, base_valid, config)
     joint.previous = previous_frame_state(frame, gamma, model, config)
     joint.previous_index = ref
     return joint
 
 
-def _rebuild_joint(frames, base, gamma, rec: RegistrationResult, config) -> JointBase:
+def _joint_base(mid, valid, base, base_valid, config) -> JointBase:
+    joint = make_joint_base(mid, valid, config)
+    if config.intra.base_fallback:
+        joint.base_grey = features.to_grey(base)
+        joint.base_valid = base_valid
+    return joint
+
+
+def _rebuild_joint(frames, base, gamma, rec: RegistrationResult, config, base_valid) -> JointBase:
     """The joint base of a resumed run, from the records alone: the reference frame rendered
     with its model and field, then each anchor frame's pixels where the mid base image is still
     empty, in processing order."""
@@ -296,7 +305,7 @@ def _rebuild_joint(frames, base, gamma, rec: RegistrationResult, config) -> Join
     wb, hb = image_size(base)
     frame = frames.get(ref)
     mid, valid = render_to_base(frame, gamma, rec.model(ref), (0, 0, wb, hb), rec.field(ref))
-    joint = make_joint_base(mid, valid, config)
+    joint = _joint_base(mid, valid, base, base_valid, config)
     for k in processing_order(rec.n_frames, ref)[1:]:
         r = rec.records[k]
         if r.get("status") == "ok" and r.get("stage") == ANCHOR_STAGE:
