@@ -49,6 +49,13 @@ class PipelineConfig:
             frame's local stage is its global model).
         random_seed: seed of every random choice (RANSAC samples); frame ``k`` uses
             ``random_seed + k``.
+        chunk_frames: beyond the paper: split the frames after the reference frame, and the
+            frames before it, into chunks of at most this many consecutive frames that are
+            registered independently of each other (:func:`registration.pipeline.chunk_plan`),
+            so that they can run in parallel (``registration.distributed``). A chunk's first
+            frame has no registered predecessor (unless it follows the reference frame) and
+            each chunk sees only its own anchors. 0 = one chunk (the paper's chain). The result
+            depends on this value, not on where the chunks run.
     """
 
     coarse: CoarseConfig = field(default_factory=CoarseConfig)
@@ -59,6 +66,13 @@ class PipelineConfig:
     run_local: bool = True
     reference_local: LocalConfig | None = None
     random_seed: int = 0
+    chunk_frames: int = 0
+
+    def __post_init__(self) -> None:
+        if isinstance(self.chunk_frames, bool) or not isinstance(self.chunk_frames, int):
+            raise ValueError(f"chunk_frames must be an integer, got {self.chunk_frames!r}")
+        if self.chunk_frames < 0:
+            raise ValueError(f"chunk_frames must be 0 (one chunk) or more, got {self.chunk_frames}")
 
 
 def _paper() -> PipelineConfig:

@@ -6,6 +6,7 @@ in memory), a directory of images (sorted by name), or a glob pattern. Frames ar
 
 from __future__ import annotations
 
+import copy
 import glob as globlib
 import hashlib
 import json
@@ -736,6 +737,20 @@ class FrameSource:
     def path(self, k: int) -> Path | None:
         """The image file of frame ``k`` (None for a video)."""
         return self._paths[k] if self._video is None else None
+
+    @property
+    def video_path(self) -> Path | None:
+        """The video file (None for images)."""
+        return None if self._video is None else Path(self._video)
+
+    def resolved(self) -> FrameSource:
+        """A copy that names its files by absolute paths (for a process whose working folder
+        differs, e.g. a Dask worker); the same frames."""
+        other = copy.copy(self)
+        other._paths = [q.resolve() for q in self._paths]
+        if self._video is not None:
+            other._video = str(Path(self._video).resolve())
+        return other
 
     def name(self, k: int) -> str:
         """Frame ``k`` for messages: its file (images) or ``video.mp4 frame k``."""

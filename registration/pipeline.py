@@ -5,6 +5,13 @@ interrupted run resumes without redoing finished frames (paper Fig. 3).
 Processing order: the reference frame, then the frames after it in order, then the frames before
 it backwards, so that the "previous" frame (paper 4.4) is always the registered neighbour nearer
 to the reference.
+
+Chunks (``PipelineConfig.chunk_frames``, beyond the paper): the frames after the reference frame,
+and those before it, are split into chunks of consecutive frames (:func:`chunk_plan`). A chunk
+is registered from the reference frame's mid base image and its own anchors only, so chunks are
+independent: they run one after the other here, or in parallel on a Dask cluster
+(:mod:`registration.distributed`) with the same result. The process that calls
+:func:`register_sequence` registers the reference frame and writes every frame's record.
 """
 
 from __future__ import annotations
@@ -14,14 +21,16 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
 from registration import features
-from registration.coarse import normalise_seeds
+from registration.coarse import CoarseBase, normalise_seeds
 from registration.config import PipelineConfig, config_from_dict
 from registration.coords import bbox_of, frame_outline, image_size
 from registration.distortion import HarrisModel, check_harris_gamma
@@ -39,15 +48,18 @@ from registration.global_registration import (
     register_intra,
 )
 from registration.io import FrameSource
-from registration.local import frame_field, reference_field
+from registration.local import DisplacementField, frame_field, reference_field
+from registration.models import model_from_dict
 from registration.render import render_to_base
-from registration.result import RegistrationResult, ResultWriter, make_metadata
+from registration.result import MID_BASE, RegistrationResult, ResultWriter, make_metadata
 from registration.result import frame_arrays as _frame_arrays
 from registration.result import frame_stats as _stats
 
 log = logging.getLogger(__name__)
 
 Progress = Callable[[int, int], None]
+# What a chunk gives for each frame: ``(k, record, arrays)``, as ResultWriter.write_frame takes.
+FrameOutput = tuple[int, dict, "dict[str, NDArray] | None"]
 
 
 class RegistrationFailed(ValueError):
@@ -107,6 +119,247 @@ def validate_inputs(frames: FrameSource, base: NDArray, gamma, seed, reference_f
             )
 
 
+# --------------------------------------------------------------------------------------------
+# Chunks
+
+
+@dataclass(frozen=True)
+class Chunk:
+    """Consecutive frames in processing order, registered together (``PipelineConfig
+    .chunk_frames``).
+
+    Attributes:
+        index: the chunk's place in :func:`chunk_plan`.
+        frames: the frames, in processing order.
+        follows_reference: the first frame's predecessor is the reference frame; otherwise the
+            first frame has no registered predecessor and is registered to the mid base image
+            alone or, where that fails, to the base map (a chunk start, :func:`run_chunk`).
+    """
+
+    index: int
+    frames: tuple[int, ...]
+    follows_reference: bool
+
+
+def chunk_plan(n_frames: int, reference_frame: int, chunk_frames: int) -> list[Chunk]:
+    """The chunks of a sequence: the frames after the reference frame (forwards) and those
+    before it (backwards from it), each split into runs of at most ``chunk_frames`` consecutive
+    frames of (nearly) equal length, the longer ones first; ``chunk_frames`` 0 gives one chunk
+    of every frame but the reference, in processing order (the paper's single chain)."""
+    forwards = list(range(reference_frame + 1, n_frames))
+    backwards = list(range(reference_frame - 1, -1, -1))
+    if chunk_frames <= 0:
+        rest = forwards + backwards
+        return [Chunk(0, tuple(rest), True)] if rest else []
+    chunks: list[Chunk] = []
+    for run in (forwards, backwards):
+        n_chunks = math.ceil(len(run) / chunk_frames)
+        start = 0
+        for i in range(n_chunks):
+            size = len(run) // n_chunks + (i < len(run) % n_chunks)
+            chunks.append(Chunk(len(chunks), tuple(run[start : start + size]), start == 0))
+            start += size
+    return chunks
+
+
+@dataclass
+class DoneFrame:
+    """A frame of a chunk that a resumed run already has: what the chunk needs to carry on as
+    the uninterrupted run did (its model for the next frame, an anchor's field to add it to the
+    chunk's mid base image)."""
+
+    ok: bool
+    anchor: bool = False
+    model: dict | None = None
+    field: DisplacementField | None = None
+
+
+@dataclass
+class ChunkJob:
+    """A chunk to register: its frames, less those in ``done`` (already written)."""
+
+    chunk: Chunk
+    done: dict[int, DoneFrame] = field(default_factory=dict)
+
+    @property
+    def todo(self) -> list[int]:
+        return [k for k in self.chunk.frames if k not in self.done]
+
+
+@dataclass
+class ChunkContext:
+    """What every chunk of a run shares (built once by the driver; pickled to Dask workers).
+
+    Attributes:
+        frames: the sequence (paths: a worker reads the frames itself).
+        base: base map, BGR uint8 (Hb, Wb, 3); base_valid: (Hb, Wb) bool or None.
+        gamma: Harris γ of the frames.
+        config: the run's configuration.
+        reference_frame: the reference frame's index; reference_model: its model as recorded.
+        mid, mid_valid: the mid base image (the reference frame in base pixels) and its mask.
+        frames_identity: the frames' identity as the driver recorded it (``result.json``
+            ``inputs.frames``); a worker checks that it reads the same files.
+    """
+
+    frames: FrameSource
+    base: NDArray
+    base_valid: NDArray | None
+    gamma: float
+    config: PipelineConfig
+    reference_frame: int
+    reference_model: dict
+    mid: NDArray
+    mid_valid: NDArray
+    frames_identity: dict | None = None
+    _cache: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        state["_cache"] = {}  # per process
+        return state
+
+    def coarse_base(self) -> CoarseBase:
+        """The base map's coarse features, computed once per process (chunk starts)."""
+        if "coarse_base" not in self._cache:
+            self._cache["coarse_base"] = CoarseBase(self.base, self.config.coarse, self.base_valid)
+        return self._cache["coarse_base"]
+
+    def joint_base(self) -> JointBase:
+        """A fresh joint base: the reference frame's mid base image, no anchors yet."""
+        return _joint_base(self.mid.copy(), self.mid_valid.copy(), self.base, self.base_valid,
+                           self.config)  # fmt: skip
+
+
+class ChunkExecutor(Protocol):
+    """Runs chunk jobs and yields each frame's output as it is ready, in any order. Closing the
+    iterator, or setting ``cancel``, stops the work still running."""
+
+    def run(
+        self,
+        context: ChunkContext,
+        jobs: Sequence[ChunkJob],
+        cancel: threading.Event | None = None,
+    ) -> Iterator[FrameOutput]: ...
+
+
+class SerialExecutor:
+    """The chunks one after the other in this process (a frame is computed when the caller
+    asks for it, so the caller's cancel check between frames is enough)."""
+
+    def run(self, context, jobs, cancel=None) -> Iterator[FrameOutput]:
+        for job in jobs:
+            yield from run_chunk(context, job)
+
+
+def run_chunk(context: ChunkContext, job: ChunkJob) -> Iterator[FrameOutput]:
+    """Register the frames of ``job`` not yet done, in order, yielding ``(k, record, arrays)``
+    for each. Within a chunk, frames chain as in the paper: each is registered against the mid
+    base image (plus the chunk's anchors) and its predecessor, the nearest registered frame
+    towards the reference frame; a frame without one in the chunk (a chunk start) is registered
+    by :func:`_register_start`. Frames already done are replayed from their records, so that
+    the frames after them see exactly what the uninterrupted run saw."""
+    ctx, cfg = context, context.config
+    joint = ctx.joint_base()
+    anchoring = _Anchoring(ctx, joint)
+    models: dict[int, object] = {}  # registered frames of this chunk (None: failed)
+    for k in job.chunk.frames:
+        done = job.done.get(k)
+        if done is not None:
+            models[k] = model_from_dict(done.model) if done.ok else None
+            if done.ok and done.anchor and cfg.intra.reanchor_coverage > 0:
+                frame = ctx.frames.get(k)
+                _render_anchor(joint, frame, ctx.gamma, models[k], done.field, cfg)
+            continue
+        frame, problem = read_frame(ctx.frames, k)
+        if frame is None:
+            # Unreadable or of another size: marked failed, the chunk goes on (the next frame
+            # takes the last good one as its previous frame).
+            models[k] = None
+            yield k, _failed_record(problem), None
+            continue
+        prev = _predecessor(k, job.chunk, models, ctx.reference_frame)
+        _set_previous(joint, ctx, prev, models)
+        if prev is None:
+            record, arrays, state = _register_start(frame, k, ctx, joint, anchoring)
+        else:
+            record, arrays, state = _register_one(frame, k, ctx.gamma, joint, cfg)
+            record, arrays, state, _ = anchoring.maybe(frame, k, record, arrays, state)
+        models[k] = state.base_from_corrected if state is not None else None
+        if state is not None:
+            joint.previous, joint.previous_index = state, k
+        yield k, record, arrays
+
+
+def _predecessor(k: int, chunk: Chunk, models: dict, ref: int) -> int | None:
+    """The frame ``k`` chains from: the nearest registered frame of the chunk towards the
+    reference frame, the reference frame itself for a chunk that follows it, else None."""
+    members = set(chunk.frames)
+    p = previous_in_order(k, ref)
+    while p != ref:
+        if p not in members:
+            return None
+        if models.get(p) is not None:
+            return p
+        p = previous_in_order(p, ref)
+    return ref if chunk.follows_reference else None
+
+
+def _set_previous(joint: JointBase, ctx: ChunkContext, prev: int | None, models: dict) -> None:
+    """Make ``joint.previous`` frame ``prev`` (None: no previous frame)."""
+    if joint.previous_index == prev:
+        return
+    if prev is None:
+        joint.previous = joint.previous_index = None
+        return
+    model = model_from_dict(ctx.reference_model) if prev == ctx.reference_frame else models[prev]
+    joint.previous = previous_frame_state(ctx.frames.get(prev), ctx.gamma, model, ctx.config)
+    joint.previous_index = prev
+
+
+def _register_start(frame, k: int, ctx: ChunkContext, joint: JointBase, anchoring):
+    """A frame without a registered predecessor (the first of a chunk that does not follow the
+    reference frame): registered intra-sensor against the joint base alone (the coarse step
+    matches the whole mid base image, no prediction gate), re-anchored as any frame when it lies
+    little on the mid base image. Where that fails, or the frame lies little on the mid base
+    image and its anchor does not confirm the intra-sensor model, it is registered to the base
+    map as the reference frame is, without a seed (coarse step at any heading and scale, then
+    the fine step), and becomes an anchor."""
+    record, arrays, state = _register_one(frame, k, ctx.gamma, joint, ctx.config)
+    confirmed = False
+    if state is not None:
+        record, arrays, state, anchored = anchoring.maybe(frame, k, record, arrays, state)
+        confirmed = anchored is not False
+        record.setdefault("stats", {})["chunk_start"] = "anchored" if anchored else "mid base image"
+        if confirmed:
+            return record, arrays, state
+    first_reason = record.get("reason") or record.get("stats", {}).get("anchor", "")
+    t0 = time.perf_counter()
+    cfg = ctx.config
+    coarse = coarse_register(frame, ctx.base, ctx.gamma, None, cfg, base_features=ctx.coarse_base(),
+                             rng=cfg.random_seed + k)  # fmt: skip
+    fine = (
+        register_anchor(
+            frame, ctx.base, ctx.gamma, coarse.base_from_corrected, cfg, base_valid=ctx.base_valid
+        )  # fmt: skip
+        if coarse
+        else FineResult(False, coarse.reason, None, *_empty_points())
+    )
+    if not fine:
+        if state is not None:  # the intra-sensor result stands, unconfirmed (as in a chain)
+            record["stats"]["chunk_start"] = f"unconfirmed: base map: {fine.reason}"
+            return record, arrays, state
+        reason = f"no predecessor: mid base image: {first_reason}; base map: {fine.reason}"
+        return _failed_record(reason), None, None
+    times = {"coarse": coarse.time_s, "fine": fine.time_s}
+    record, arrays, state = anchoring.anchor(frame, fine, coarse, times, t0)
+    record["stats"]["chunk_start"] = "base map"
+    return record, arrays, state
+
+
+# --------------------------------------------------------------------------------------------
+# The run
+
+
 def register_sequence(
     frames: FrameSource,
     base: NDArray,
@@ -125,6 +378,7 @@ def register_sequence(
     cancel: threading.Event | None = None,
     reference: tuple[CoarseResult, FineResult] | None = None,
     base_georef=None,
+    executor: ChunkExecutor | None = None,
 ) -> RegistrationResult:
     """Register every frame of ``frames`` to ``base`` and write the result folder ``out_dir``.
 
@@ -132,7 +386,8 @@ def register_sequence(
         frames: the sequence (:func:`registration.io.open_frames`).
         base: base map, BGR uint8 (Hb, Wb, 3).
         gamma: Harris γ of the frames.
-        config: pipeline configuration (:mod:`registration.config`).
+        config: pipeline configuration (:mod:`registration.config`); ``config.chunk_frames``
+            splits the sequence into independent chunks (:func:`chunk_plan`).
         seed: one corresponding point ``(fx, fy, bx, by)`` (raw reference-frame px, base px),
             or a list of two (they fix heading and scale); None searches all headings and
             scales.
@@ -148,6 +403,9 @@ def register_sequence(
         base_georef: the base map's :class:`registration.georef.GeoReference` (or its
             ``to_dict()``), recorded in ``result.json`` as ``base_georef`` so that the result
             maps to map coordinates (``result.frame_to_map``); None for a plain image.
+        executor: where the chunks run (:class:`SerialExecutor` when None;
+            :class:`registration.distributed.DaskExecutor` on a Dask cluster). The result does
+            not depend on it; this process writes every frame as its output arrives.
 
     Returns:
         The result, as :func:`registration.load` would open it.
@@ -172,44 +430,64 @@ def register_sequence(
     )  # fmt: skip
     with ResultWriter.create(out_dir, meta, frames=frames, resume=resume, force=force) as writer:
         n = len(frames)
-        order = processing_order(n, reference_frame)
-        n_done = sum(writer.done(k) for k in order)
+        n_done = sum(writer.done(k) for k in range(n))
         if progress:
             progress(n_done, n)
-
-        joint = _reference_step(
+        mid_missing = not (out_dir / MID_BASE).is_file()
+        mid, valid, model = _reference_step(
             frames, base, gamma, seed, reference_frame, config, writer, reference, base_valid
         )
-        anchors = _Anchoring(base, base_valid, gamma, config, writer, joint)
-        n_done = sum(writer.done(k) for k in order)
+        n_done = sum(writer.done(k) for k in range(n))
         if progress:
             progress(n_done, n)
+        context = ChunkContext(
+            frames, base, base_valid, float(gamma), config, reference_frame, model, mid, valid,
+            meta["inputs"]["frames"],
+        )  # fmt: skip
+        jobs = chunk_jobs(writer, n, reference_frame, config)
+        cancelled = cancel is not None and cancel.is_set()
+        if jobs and not cancelled:
+            outputs = (executor or SerialExecutor()).run(context, jobs, cancel)
+            try:
+                for k, record, arrays in outputs:
+                    if not writer.done(k):  # a chunk redone after its worker died repeats it
+                        writer.write_frame(k, record, arrays)
+                        n_done += 1
+                        if progress:
+                            progress(n_done, n)
+                    if cancel is not None and cancel.is_set():
+                        break
+            finally:
+                outputs.close()
+        if n_done == n and (jobs or mid_missing):
+            _write_mosaic(writer, context)
+    return RegistrationResult(out_dir)
 
-        result = RegistrationResult(out_dir)
-        for k in order[1:]:
-            if cancel is not None and cancel.is_set():
-                break
-            if writer.done(k):
-                continue
-            frame, problem = read_frame(frames, k)
-            if frame is None:
-                # Unreadable or of another size: marked failed, the run goes on (the next frame
-                # takes the last good one as its previous frame).
-                writer.write_frame(k, _failed_record(problem))
-            else:
-                prev = previous_in_order(k, reference_frame)
-                _set_previous(joint, frames, gamma, result, prev, config)
-                record, arrays, state = _register_one(frame, k, gamma, joint, config)
-                record, arrays, state = anchors.maybe(frame, k, record, arrays, state)
-                writer.write_frame(k, record, arrays)
-                if state is not None:
-                    joint.previous = state
-                    joint.previous_index = k
-            n_done += 1
-            if progress:
-                progress(n_done, n)
-    result.reload()
-    return result
+
+def chunk_jobs(writer: ResultWriter, n_frames: int, ref: int, config) -> list[ChunkJob]:
+    """The chunks of :func:`chunk_plan` that have frames left to do, each with what it needs of
+    the frames already done (a resumed run)."""
+    result = None
+    jobs = []
+    for chunk in chunk_plan(n_frames, ref, config.chunk_frames):
+        done_ks = [k for k in chunk.frames if writer.done(k)]
+        if len(done_ks) == len(chunk.frames):
+            continue
+        done = {}
+        if done_ks:
+            result = result or RegistrationResult(writer.out_dir)
+            for k in done_ks:
+                rec = result.records[k]
+                ok = rec.get("status") == "ok"
+                anchor = ok and rec.get("stage") == ANCHOR_STAGE
+                done[k] = DoneFrame(
+                    ok,
+                    anchor,
+                    rec.get("model") if ok else None,
+                    result.field(k) if anchor else None,
+                )
+        jobs.append(ChunkJob(chunk, done))
+    return jobs
 
 
 def read_frame(frames: FrameSource, k: int) -> tuple[NDArray | None, str]:
@@ -232,21 +510,26 @@ def _failed_record(reason: str) -> dict:
 
 def _reference_step(
     frames, base, gamma, seed, ref, config, writer, reference, base_valid=None
-) -> JointBase:
-    """Register the reference frame (or load it when resuming) and build the joint base."""
+) -> tuple[NDArray, NDArray, dict]:
+    """Register the reference frame (or load it when resuming): ``(mid, valid, model)``, the mid
+    base image, its mask and the reference frame's model as recorded."""
     out_dir = writer.out_dir
     frame, problem = read_frame(frames, ref)
     if frame is None:
         raise ValueError(f"{problem}; choose another --reference-frame")
+    wb, hb = image_size(base)
     if writer.done(ref):
         rec = RegistrationResult(out_dir)
         if not rec.is_ok(ref):
             raise RegistrationFailed(
                 f"the reference frame {ref} failed before: {rec.records[ref].get('reason')}"
             )
-        # Resuming: the mid base image is rebuilt from the records (the reference frame, then
-        # the anchors in processing order), exactly as the uninterrupted run built it.
-        return _rebuild_joint(frames, base, gamma, rec, config, base_valid)
+        # Resuming: the mid base image is rendered again from the record, exactly as the
+        # uninterrupted run rendered it (each chunk adds its own anchors, run_chunk).
+        mid, valid = render_to_base(frame, gamma, rec.model(ref), (0, 0, wb, hb), rec.field(ref))
+        if writer.read_mid_base() is None:
+            writer.write_mid_base(mid, valid)
+        return mid, valid, rec.records[ref]["model"]
 
     t0 = time.perf_counter()
     if reference is not None:
@@ -267,13 +550,12 @@ def _reference_step(
             f"the reference frame {ref} could not be registered to the base map: {fine.reason}"
         )
     model = fine.base_from_corrected
-    wb, hb = image_size(base)
-    field, field_stats = None, None
+    field_, field_stats = None, None
     if config.run_local and config.reference_local is not None:
-        field, field_stats = reference_field(fine, (wb, hb), config.reference_local)
+        field_, field_stats = reference_field(fine, (wb, hb), config.reference_local)
     # The mid base image is the reference frame registered with its own field: every other
     # frame's local stage aligns to it, so its accuracy is theirs.
-    mid, valid = render_to_base(frame, gamma, model, (0, 0, wb, hb), field)
+    mid, valid = render_to_base(frame, gamma, model, (0, 0, wb, hb), field_)
     writer.write_mid_base(mid, valid)
     record = {
         "status": "ok",
@@ -282,11 +564,8 @@ def _reference_step(
         "stats": _stats(coarse, fine, times, field_stats),
         "model": model.to_dict(),
     }
-    writer.write_frame(ref, record, _frame_arrays(fine, field, field_stats))
-    joint = _joint_base(mid, valid, base, base_valid, config)
-    joint.previous = previous_frame_state(frame, gamma, model, config)
-    joint.previous_index = ref
-    return joint
+    writer.write_frame(ref, record, _frame_arrays(fine, field_, field_stats))
+    return mid, valid, record["model"]
 
 
 def _joint_base(mid, valid, base, base_valid, config) -> JointBase:
@@ -297,57 +576,77 @@ def _joint_base(mid, valid, base, base_valid, config) -> JointBase:
     return joint
 
 
-def _rebuild_joint(frames, base, gamma, rec: RegistrationResult, config, base_valid) -> JointBase:
-    """The joint base of a resumed run, from the records alone: the reference frame rendered
-    with its model and field, then each anchor frame's pixels where the mid base image is still
-    empty, in processing order."""
-    ref = rec.reference_frame
-    wb, hb = image_size(base)
-    frame = frames.get(ref)
-    mid, valid = render_to_base(frame, gamma, rec.model(ref), (0, 0, wb, hb), rec.field(ref))
-    joint = _joint_base(mid, valid, base, base_valid, config)
-    for k in processing_order(rec.n_frames, ref)[1:]:
-        r = rec.records[k]
-        if r.get("status") == "ok" and r.get("stage") == ANCHOR_STAGE:
-            _render_anchor(joint, frames.get(k), gamma, rec.model(k), rec.field(k), config)
-    joint.previous = previous_frame_state(frame, gamma, rec.model(ref), config)
-    joint.previous_index = ref
-    return joint
+def _write_mosaic(writer: ResultWriter, ctx: ChunkContext) -> None:
+    """Write ``mid_base.png`` as the reference frame plus every anchor where it is still empty,
+    in processing order (what a single chain's mid base image ends as; each chunk registered
+    against the reference frame and its own anchors only). Written once the run is complete,
+    so that it does not depend on the order in which chunks finished."""
+    if ctx.config.intra.reanchor_coverage <= 0:
+        return
+    result = RegistrationResult(writer.out_dir)
+    order = processing_order(result.n_frames, ctx.reference_frame)[1:]
+    anchors = [
+        k for k in order if result.is_ok(k) and result.records[k].get("stage") == ANCHOR_STAGE
+    ]
+    if not anchors:
+        return
+    mid, valid = ctx.mid.copy(), ctx.mid_valid.copy()
+    hb, wb = valid.shape
+    for k in anchors:
+        frame = ctx.frames.get(k)
+        box = _anchor_box(frame, ctx.gamma, result.model(k), (wb, hb))
+        if box is None:
+            continue
+        x0, y0, x1, y1 = box
+        image, image_valid = render_to_base(frame, ctx.gamma, result.model(k), box, result.field(k))
+        hole = np.asarray(image_valid, bool) & ~valid[y0:y1, x0:x1]
+        mid[y0:y1, x0:x1][hole] = image[hole]
+        valid[y0:y1, x0:x1] |= hole
+    writer.write_mid_base(mid, valid)
 
 
 ANCHOR_STAGE = "inter-sensor anchor"
 
 
-def _render_anchor(joint: JointBase, frame, gamma, model, field, config) -> None:
-    """Add a re-anchored frame to the mid base image (where it is empty)."""
-    hb, wb = joint.mid_valid.shape
+def _anchor_box(frame, gamma, model, base_size) -> tuple[int, int, int, int] | None:
+    """Base-pixel box a frame covers under ``model``, or None when it is empty."""
     w, h = image_size(frame)
     harris = HarrisModel(gamma, w, h)
-    box = bbox_of(model.apply(harris.corrected_from_raw(frame_outline(w, h))), (wb, hb), 2)
+    box = bbox_of(model.apply(harris.corrected_from_raw(frame_outline(w, h))), base_size, 2)
     x0, y0, x1, y1 = box
-    if x1 - x0 < 2 or y1 - y0 < 2:
+    return None if x1 - x0 < 2 or y1 - y0 < 2 else box
+
+
+def _render_anchor(joint: JointBase, frame, gamma, model, field_, config) -> None:
+    """Add a re-anchored frame to the mid base image (where it is empty)."""
+    hb, wb = joint.mid_valid.shape
+    box = _anchor_box(frame, gamma, model, (wb, hb))
+    if box is None:
         return
-    image, valid = render_to_base(frame, gamma, model, box, field)
+    image, valid = render_to_base(frame, gamma, model, box, field_)
     add_to_mid_base(joint, image, valid, box, config)
 
 
 class _Anchoring:
     """Re-anchoring of long flights (``IntraConfig.reanchor_coverage``, beyond the paper)."""
 
-    def __init__(self, base, base_valid, gamma, config, writer, joint: JointBase):
-        self.base, self.base_valid, self.gamma = base, base_valid, gamma
-        self.config, self.writer, self.joint = config, writer, joint
+    def __init__(self, ctx: ChunkContext, joint: JointBase):
+        self.ctx, self.joint = ctx, joint
+        self.base, self.base_valid, self.gamma = ctx.base, ctx.base_valid, ctx.gamma
+        self.config = ctx.config
 
     def maybe(self, frame, k, record, arrays, state):
-        """``(record, arrays, state)`` of frame ``k``: its intra-sensor result, or, when too
-        little of it lies on the mid base image, its registration to the base map itself."""
+        """``(record, arrays, state, anchored)`` of frame ``k``: its intra-sensor result, or,
+        when too little of it lies on the mid base image, its registration to the base map
+        itself. ``anchored`` is None when no anchor was needed (or re-anchoring is off), True
+        when the frame was re-anchored, False when its anchor failed or disagreed."""
         cfg = self.config.intra
         if cfg.reanchor_coverage <= 0 or state is None:
-            return record, arrays, state
+            return record, arrays, state, None
         intra = state.base_from_corrected
         coverage = mid_coverage(self.joint, frame, self.gamma, intra)
         if coverage >= cfg.reanchor_coverage:
-            return record, arrays, state
+            return record, arrays, state, None
         t0 = time.perf_counter()
         fine = register_anchor(frame, self.base, self.gamma, intra, self.config,
                                base_valid=self.base_valid)  # fmt: skip
@@ -355,27 +654,31 @@ class _Anchoring:
         stats["mid_coverage"] = round(coverage, 3)
         if not fine:
             stats["anchor"] = f"not re-anchored: {fine.reason}"
-            return record, arrays, state
+            return record, arrays, state, False
         shift = _median_gap(fine.base_from_corrected, intra, frame, self.gamma)
         if not shift <= cfg.reanchor_max_shift_px:
             stats["anchor"] = f"not re-anchored: the map fit is {shift:.1f} px from the frame's"
-            return record, arrays, state
+            return record, arrays, state, False
+        times = dict(stats.get("time_s", {}))
+        record, arrays, state = self.anchor(frame, fine, _NoCoarse(), times, t0)
+        record["stats"].update(mid_coverage=round(coverage, 3), anchor_shift_px=round(shift, 3))
+        return record, arrays, state, True
+
+    def anchor(self, frame, fine: FineResult, coarse, times: dict, t0: float):
+        """``(record, arrays, state)`` of a frame registered to the base map by ``fine``; the
+        frame is added to the mid base image where it has no content (re-anchoring on)."""
         model = fine.base_from_corrected
-        field = field_stats = None
+        field_ = field_stats = None
         if self.config.run_local and self.config.reference_local is not None:
             wb, hb = image_size(self.base)
-            field, field_stats = reference_field(fine, (wb, hb), self.config.reference_local)
-        _render_anchor(self.joint, frame, self.gamma, model, field, self.config)
-        if self.joint.mid_image is not None:
-            self.writer.write_mid_base(self.joint.mid_image, self.joint.mid_valid)
-        times = dict(stats.get("time_s", {}))
+            field_, field_stats = reference_field(fine, (wb, hb), self.config.reference_local)
+        if self.config.intra.reanchor_coverage > 0:
+            _render_anchor(self.joint, frame, self.gamma, model, field_, self.config)
         times["anchor"] = round(time.perf_counter() - t0, 4)
-        new_stats = _stats(_NoCoarse(), fine, times, field_stats)
-        new_stats.update(mid_coverage=round(coverage, 3), anchor_shift_px=round(shift, 3))
-        record = {"status": "ok", "reason": "", "stage": ANCHOR_STAGE, "stats": new_stats,
-                  "model": model.to_dict()}  # fmt: skip
+        record = {"status": "ok", "reason": "", "stage": ANCHOR_STAGE,
+                  "stats": _stats(coarse, fine, times, field_stats), "model": model.to_dict()}  # fmt: skip
         state = previous_frame_state(frame, self.gamma, model, self.config)
-        return record, _frame_arrays(fine, field, field_stats), state
+        return record, _frame_arrays(fine, field_, field_stats), state
 
 
 class _NoCoarse:
@@ -399,22 +702,6 @@ def _median_gap(a, b, frame, gamma) -> float:
 def _empty_points():
     z = np.zeros((0, 2))
     return z, z, np.zeros(0, bool), np.zeros(0), 0
-
-
-def _set_previous(joint: JointBase, frames, gamma, result: RegistrationResult, prev_k, config):
-    """Make sure ``joint.previous`` is frame ``prev_k`` (after a resume or a failed frame, the
-    nearest earlier registered frame in processing order)."""
-    if joint.previous_index == prev_k:
-        return
-    result.reload()
-    ref = result.reference_frame
-    k = prev_k
-    while k != ref and not result.is_ok(k):
-        k = previous_in_order(k, ref)
-    if joint.previous_index == k:
-        return
-    joint.previous = previous_frame_state(frames.get(k), gamma, result.model(k), config)
-    joint.previous_index = k
 
 
 def _register_one(frame, k, gamma, joint: JointBase, config: PipelineConfig):

@@ -478,7 +478,8 @@ def frame_stats(coarse, fine, times: dict[str, float], field_stats=None) -> dict
         "coarse_model": getattr(coarse, "model_kind", "projective"),
         "fine_model": getattr(fine, "model_kind", "polyprojective"),
         "fine_model_reason": getattr(fine, "model_reason", ""),
-        "residual_sigma_px": _finite_or_none(getattr(fine, "sigma_px", float("nan"))),
+        # Rounded: REQCON's unquantized final fit varies in its last bits between processes.
+        "residual_sigma_px": _finite_or_none(round(getattr(fine, "sigma_px", float("nan")), 9)),
     }
     if getattr(coarse, "heading_deg", None) is not None:
         stats["heading_deg"] = round(float(coarse.heading_deg), 3)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import sys
 import time
@@ -10,6 +11,12 @@ from pathlib import Path
 
 from app.cli import UsageError, emit_json
 from app.progress import ProgressBar
+
+# Frames per chunk with --workers/--scheduler (registration.distributed.DEFAULT_CHUNK_FRAMES,
+# repeated here so that --help does not import dask; a test checks they agree).
+DEFAULT_CHUNK_FRAMES = 100
+# More local worker processes than this is a typo (each holds the base map and a chunk's frames).
+MAX_LOCAL_WORKERS = 256
 
 NAME = "register"
 HELP = "Register every frame of a video, image folder or glob to an orthorectified base map."
@@ -85,6 +92,31 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "written by 'aerialreg register' is ever deleted)",
     )
     p.add_argument(
+        "--chunk-frames",
+        type=int,
+        metavar="M",
+        help="split the frames after the reference frame, and those before it, into chunks of at "
+        "most M consecutive frames registered independently (each chunk's first frame without "
+        "a predecessor); 0 = one chunk, the default for a run in this process; with --workers or "
+        f"--scheduler the default is {DEFAULT_CHUNK_FRAMES}. The result depends on M, not on "
+        "where chunks run. --resume takes the folder's",
+    )
+    scale = p.add_mutually_exclusive_group()
+    scale.add_argument(
+        "--workers",
+        type=int,
+        metavar="N",
+        help="run the chunks on a local Dask cluster of N worker processes (needs "
+        "'pip install aerialreg[dask]'); the result is the serial run's with the same "
+        "--chunk-frames",
+    )
+    scale.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        help="run the chunks on an existing Dask cluster, e.g. tcp://10.0.0.5:8786 (its workers "
+        "need aerialreg installed and the frames at the same path: README, 'Scale-out with Dask')",
+    )
+    p.add_argument(
         "--write-frames",
         action="store_true",
         help="also write registered frames (PNG) and an mp4 in base coordinates, cropped to the sequence's footprint",
@@ -131,7 +163,8 @@ def run(args: argparse.Namespace) -> int:
     if args.no_local:
         config = replace(config, run_local=False)
     # A file, another tool's folder or a result without --resume/--force: refused before any work.
-    check_out_dir(Path(args.out), resume=args.resume, force=args.force)
+    state = check_out_dir(Path(args.out), resume=args.resume, force=args.force)
+    config = replace(config, chunk_frames=chunk_frames(args, state))
     nodata = args.base_nodata
     if nodata not in ("auto", "file"):
         try:
@@ -155,22 +188,24 @@ def run(args: argparse.Namespace) -> int:
         bar.update(done - bar.done)
 
     try:
-        result = register_sequence(
-            frames,
-            base,
-            args.gamma,
-            Path(args.out),
-            config=config,
-            preset=args.preset,
-            base_path=Path(args.base).resolve(),
-            seed=seed,
-            reference_frame=args.reference_frame,
-            resume=args.resume,
-            force=args.force,
-            progress=progress,
-            base_georef=base_map.georef,
-            base_valid=base_map.valid_or_none,
-        )
+        with executor(args) as run_on:
+            result = register_sequence(
+                frames,
+                base,
+                args.gamma,
+                Path(args.out),
+                config=config,
+                preset=args.preset,
+                base_path=Path(args.base).resolve(),
+                seed=seed,
+                reference_frame=args.reference_frame,
+                resume=args.resume,
+                force=args.force,
+                progress=progress,
+                base_georef=base_map.georef,
+                base_valid=base_map.valid_or_none,
+                executor=run_on,
+            )
     finally:
         if bar is not None:
             bar.__exit__(None, None, None)
@@ -199,6 +234,9 @@ def run(args: argparse.Namespace) -> int:
         "time_s": round(elapsed, 3),
         "written": written,
         "base_georeferenced": base_map.georef is not None,
+        "chunk_frames": config.chunk_frames,
+        "workers": args.workers,
+        "scheduler": args.scheduler,
         "base_notes": base_map.notes,
     }
     if args.json:
@@ -211,3 +249,65 @@ def run(args: argparse.Namespace) -> int:
         for f in failed:
             sys.stdout.write(f"  frame {f['frame']} failed: {f['reason']}\n")
     return 0
+
+
+def chunk_frames(args: argparse.Namespace, state: str) -> int:
+    """The run's chunk size: ``--chunk-frames``; when resuming without it, the folder's (a
+    resumed run must be the same run); otherwise 0, or :data:`DEFAULT_CHUNK_FRAMES` with
+    ``--workers``/``--scheduler``. UsageError for bad values."""
+    distributed = args.workers is not None or args.scheduler is not None
+    if args.workers is not None and not 1 <= args.workers <= MAX_LOCAL_WORKERS:
+        raise UsageError(f"--workers must be 1..{MAX_LOCAL_WORKERS}, got {args.workers}")
+    if args.scheduler is not None and not args.scheduler.strip():
+        raise UsageError("--scheduler needs an address, e.g. tcp://10.0.0.5:8786")
+    recorded = None
+    if args.resume and state == "result":
+        from registration.pipeline import load_config
+
+        try:
+            recorded = load_config(args.out).chunk_frames
+        except (OSError, ValueError, KeyError):
+            recorded = None  # ResultWriter.create says what is wrong with the folder
+    m = args.chunk_frames
+    if m is None:
+        m = recorded if recorded is not None else (DEFAULT_CHUNK_FRAMES if distributed else 0)
+    if m < 0:
+        raise UsageError(f"--chunk-frames must be 0 (one chunk) or more, got {m}")
+    if recorded is not None and m != recorded:
+        raise UsageError(
+            f"cannot resume {args.out}: it was made with --chunk-frames {recorded}, not {m}; "
+            "drop --chunk-frames, or use --force to start over"
+        )
+    if distributed and m == 0:
+        made = f" ({args.out} was made so)" if recorded == 0 else ""
+        raise UsageError(
+            "--workers and --scheduler need chunks: --chunk-frames 0 (one chunk) leaves nothing "
+            f"to run in parallel{made}"
+        )
+    return m
+
+
+@contextlib.contextmanager
+def executor(args: argparse.Namespace):
+    """Where the chunks run: None (this process), or a Dask executor on a local cluster
+    (``--workers``) or an existing one (``--scheduler``), closed afterwards."""
+    if args.workers is None and args.scheduler is None:
+        yield None
+        return
+    import logging
+
+    from registration.distributed import (
+        DaskExecutor,
+        DaskUnavailable,
+        open_client,
+        require_distributed,
+    )
+
+    try:
+        require_distributed()  # importing it sets its loggers' levels
+        if not logging.getLogger().isEnabledFor(logging.DEBUG):  # without --verbose
+            logging.getLogger("distributed").setLevel(logging.WARNING)
+        with open_client(workers=args.workers, scheduler=args.scheduler) as client:
+            yield DaskExecutor(client)
+    except DaskUnavailable as exc:
+        raise UsageError(str(exc)) from None
