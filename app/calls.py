@@ -10,7 +10,6 @@ expects of the library is in one place (see the report to the lead: ``CoarseResu
 from __future__ import annotations
 
 import dataclasses
-import inspect
 import math
 from pathlib import Path
 
@@ -30,31 +29,24 @@ def pipeline_config(preset: str, degree: int, run_local: bool) -> rconfig.Pipeli
     return dataclasses.replace(cfg, fine=fine, run_local=bool(run_local))
 
 
-def _accepts(fn, name: str) -> bool:
-    try:
-        return name in inspect.signature(fn).parameters
-    except (TypeError, ValueError):
-        return False
+def seed_argument(seed, seed2):
+    """The library's ``seed`` argument from the analyst's pairs: None, one ``(fx, fy, bx, by)``,
+    or both (two pairs fix heading and scale)."""
+    if seed is None:
+        return None
+    return seed if seed2 is None else [tuple(seed), tuple(seed2)]
 
 
 def supports_second_seed() -> bool:
-    """Whether this library version takes a second seed pair (``seed2=``) in the coarse step."""
-    return _accepts(global_registration.coarse_register, "seed2")
+    """The coarse step takes a second seed pair (it fixes heading and scale exactly)."""
+    return True
 
 
-def coarse_register(frame, base, gamma, seed, seed2, config):
+def coarse_register(frame, base, gamma, seed, seed2, config, base_valid=None):
     """The coarse step (paper 4.3.1) with the seed pairs the analyst placed."""
-    kwargs = {}
-    if seed2 is not None and supports_second_seed():
-        kwargs["seed2"] = seed2
-    return global_registration.coarse_register(frame, base, gamma, seed, config, **kwargs)
-
-
-def register_sequence_kwargs(seed2) -> dict:
-    """Extra keyword arguments of ``pipeline.register_sequence`` for a second seed pair."""
-    if seed2 is not None and _accepts(pipeline.register_sequence, "seed2"):
-        return {"seed2": seed2}
-    return {}
+    return global_registration.coarse_register(
+        frame, base, gamma, seed_argument(seed, seed2), config, base_valid=base_valid
+    )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -126,9 +118,12 @@ def rerun_settings(result) -> dict:
     reference frame, preset name and configuration (not the app's current choices)."""
     meta = result.meta
     seed = meta.get("seed")
+    if seed is not None:
+        arr = np.asarray(seed, float)
+        seed = tuple(arr.tolist()) if arr.ndim == 1 else [tuple(row) for row in arr.tolist()]
     return {
         "gamma": float(result.gamma),
-        "seed": None if seed is None else tuple(float(v) for v in seed),
+        "seed": seed,
         "reference_frame": int(result.reference_frame),
         "preset": result.preset,
         "config": pipeline.load_config(result.out_dir),

@@ -29,7 +29,11 @@ class Inputs:
 
         self.frames_path, self.base_path = str(frames_path), str(base_path)
         self.frames = io.open_frames(frames_path)
-        self.base = io.read_image(base_path)
+        # GeoTIFFs (CRS, palette, 16-bit, no-data) and PNG/JPEG with a world file alike.
+        base_map = io.read_base_map(base_path)
+        self.base = base_map.image
+        self.base_valid = base_map.valid_or_none
+        self.base_georef = base_map.georef
         self.n_frames = len(self.frames)
         self.frame_size = tuple(int(v) for v in self.frames.size)
         self.base_size = (int(self.base.shape[1]), int(self.base.shape[0]))

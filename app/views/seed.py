@@ -354,7 +354,9 @@ class SeedView(View):
                 key = st.reference_key()
             cfg = self._config()
             progress(0, 2 if fine else 1, "coarse step")
-            coarse = calls.coarse_register(inp.frame(k), inp.base, gamma, seed, seed2, cfg)
+            coarse = calls.coarse_register(
+                inp.frame(k), inp.base, gamma, seed, seed2, cfg, base_valid=inp.base_valid
+            )
             with self.state.lock:
                 self.state.reference = ReferenceFit(key, coarse)
                 self.state.cp_edits = Edits()
@@ -400,7 +402,7 @@ class SeedView(View):
 
     def _fine(self, inp, k, gamma, coarse, key, cfg, client) -> None:
         fine = global_registration.fine_register_reference(
-            inp.frame(k), inp.base, gamma, coarse, cfg
+            inp.frame(k), inp.base, gamma, coarse, cfg, base_valid=inp.base_valid
         )
         with self.state.lock:
             ref = self.state.reference
@@ -695,13 +697,7 @@ class SeedView(View):
                 self.scene.draw_matches(coarse.frame_xy[show], coarse.base_xy[show], cols[show])
             outlines = []
             if p.show_gate.value and coarse is not None:
-                outlines = gate_outlines(
-                    coarse,
-                    self._config().coarse.gating,
-                    pairs[1][0],
-                    pairs[1][1],
-                    self.app.inputs.frame_size,
-                )
+                outlines = gate_outlines(coarse)
             self.scene.draw_gate(outlines)
             self._draw_control_points()
             self.scene.draw_manual_pending(

@@ -282,27 +282,11 @@ class SeedScene(Scene):
             self.planes["base"].overlay_image("mid", rgb)
 
 
-def gate_outlines(coarse, gating, seed_corr, seed_base, frame_size) -> list[np.ndarray]:
-    """The gate as used, as polygons on the map: the library's own outline when the coarse result
-    describes its gate (``coarse.gate.outline_base``), else the frame's outline placed by the
-    similarities the seed gate allows (scale and rotation at both ends of their ranges, through
-    the seed pair; :class:`registration.features.GatingConfig`)."""
-    own = getattr(getattr(coarse, "gate", None), "outline_base", None)
-    if own is not None:
-        return [np.asarray(own, np.float64)]
-    if seed_corr is None or seed_base is None:
-        return []
-    w, h = frame_size
-    corners = np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]], np.float64) - seed_corr
-    base_rot = np.radians(gating.expected_rotation_deg)
-    out = []
-    for ds in (-gating.max_scale_error, gating.max_scale_error):
-        for dr in (-gating.max_rotation_deg, gating.max_rotation_deg):
-            s = gating.expected_scale * (1 + ds)
-            t = base_rot + np.radians(dr)
-            rot = np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]])
-            out.append(seed_base + s * corners @ rot.T)
-    return out
+def gate_outlines(coarse) -> list[np.ndarray]:
+    """The location gate the coarse step used, as polygons on the map (base px): the region
+    where gated matches could lie (``CoarseResult.gate_outline_base``); none without a seed."""
+    own = getattr(coarse, "gate_outline_base", None)
+    return [] if own is None else [np.asarray(own, np.float64)]
 
 
 def magnifier_side() -> int:

@@ -269,15 +269,16 @@ class SequenceView(View):
                     self.submit("plot", self.draw_plot)
 
             kwargs = dict(
-                seed=seed,
+                seed=calls.seed_argument(seed, seed2),
                 reference_frame=ref,
                 config=cfg,
                 preset=preset,
                 base_path=inp.base_path,
+                base_valid=inp.base_valid,
+                base_georef=inp.base_georef,
                 resume=True,
                 progress=on_progress,
                 cancel=progress.cancel,
-                **calls.register_sequence_kwargs(seed2),
             )
             if reference is not None:
                 kwargs["reference"] = reference
@@ -354,6 +355,8 @@ class SequenceView(View):
                 config=settings["config"],
                 preset=settings["preset"],
                 base_path=inp.base_path,
+                base_valid=inp.base_valid,
+                base_georef=inp.base_georef,
                 resume=True,
                 cancel=progress.cancel,
             )
