@@ -325,7 +325,8 @@ def test_seed_clicks_are_raw_pixels_replace_and_undo(tmp_path, small_seq, make_a
     click(app, seed.scene.planes["frame"], (400.0, 80.75))
     click(app, seed.scene.planes["base"], (600.0, 250.0))
     assert app.state.seed2 is not None
-    assert "heading +0.0°" in seed.panel.seed_md.content, seed.panel.seed_md.content
+    assert "heading **0.0°**" in seed.panel.heading_md.content, seed.panel.heading_md.content
+    assert "fixed by the two pairs" in seed.panel.heading_md.content
     seed.clear_seed()
     assert app.state.seed is None and app.state.seed2 is None
 
@@ -351,7 +352,7 @@ def test_seed_drop_moves_the_fit(fitted):
 
 
 def test_control_points_disable_worst_manual_and_export(fitted):
-    from app.controlpoints import read_qgis_points
+    from registration.gis_vector import read_points_file
 
     app, truth, bxy = fitted
     seed = app.views["Seed"]
@@ -387,15 +388,15 @@ def test_control_points_disable_worst_manual_and_export(fitted):
     assert "manual" not in seed.table.source
     # Export as QGIS .points: the header, and raw (x, y) -> (x + 0.5, -(y + 0.5)).
     assert seed.export_points()
-    text = next(app.project.folder.glob("reference_frame_*.points")).read_text()
-    assert text.splitlines()[0] == "mapX,mapY,sourceX,sourceY,enable,dX,dY,residual"
-    rows = read_qgis_points(text)
+    path = next(app.project.folder.glob("reference_frame_*.points"))
+    assert path.read_text().splitlines()[0] == "mapX,mapY,sourceX,sourceY,enable,dX,dY,residual"
+    pts = read_points_file(path)
     t = seed.table
-    assert len(rows) == len(t.ids)
-    assert np.allclose(rows[:, 2], t.frame_xy[:, 0] + 0.5, atol=1e-3)
-    assert np.allclose(rows[:, 3], -(t.frame_xy[:, 1] + 0.5), atol=1e-3)
-    assert np.allclose(rows[:, 1], -(t.base_xy[:, 1] + 0.5), atol=1e-3)
-    assert int(rows[:, 4].sum()) == t.n_enabled
+    assert len(pts["map"]) == len(t.ids) and pts["crs"] is None  # a plain base: no CRS
+    assert np.allclose(pts["source"], t.frame_xy, atol=1e-9)
+    # The map side of a plain base: its pixels in the same corner/y-up convention.
+    assert np.allclose(pts["map"], t.base_xy * (1, -1) + (0.5, -0.5), atol=1e-9)
+    assert int(pts["enable"].sum()) == t.n_enabled
 
 
 def test_review_inliers_only_by_default_and_screen_sized(fitted):

@@ -92,23 +92,38 @@ def test_manual_and_deleted_points(known):
     assert Edits.from_json("garbage").empty
 
 
-def test_qgis_points_convention(known):
+def test_qgis_points_plain_and_georeferenced(known, tmp_path):
+    from registration.georef import GeoReference, parse_crs
+    from registration.gis_vector import read_points_file
+
     src, dst, kept, model = known
     harris = HarrisModel(0.0, 640, 480)
     t = controlpoints.table_from_points(
         src[:3], dst[:3], kept[:3], None, "reference", harris, model
     )
-    text = controlpoints.qgis_points(t, crs="EPSG:32612")
-    lines = text.splitlines()
-    assert lines[0] == "#CRS: EPSG:32612"
-    assert lines[1] == "mapX,mapY,sourceX,sourceY,enable,dX,dY,residual"
-    rows = controlpoints.read_qgis_points(text)
-    # Pixel centres at integers -> QGIS pixel corners, rows negative.
-    assert np.allclose(rows[:, 2], src[:3, 0] + 0.5, atol=1e-3)
-    assert np.allclose(rows[:, 3], -(src[:3, 1] + 0.5), atol=1e-3)
-    assert np.allclose(rows[:, 0], dst[:3, 0] + 0.5, atol=1e-3)
-    assert np.allclose(rows[:, 1], -(dst[:3, 1] + 0.5), atol=1e-3)
+    plain = controlpoints.write_qgis_points(t, tmp_path / "plain.points")
+    lines = plain.read_text().splitlines()
+    assert lines[0] == "mapX,mapY,sourceX,sourceY,enable,dX,dY,residual"
+    # Pixel centres at integers -> QGIS pixel corners, rows negative (source and plain map).
+    rows = np.array([[float(v) for v in line.split(",")[:5]] for line in lines[1:]])
+    assert np.allclose(rows[:, 2], src[:3, 0] + 0.5) and np.allclose(
+        rows[:, 3], -(src[:3, 1] + 0.5)
+    )
+    assert np.allclose(rows[:, 0], dst[:3, 0] + 0.5) and np.allclose(
+        rows[:, 1], -(dst[:3, 1] + 0.5)
+    )
     assert list(rows[:, 4]) == [1, 1, 1]
+    # A georeferenced base: map coordinates in its CRS, residuals in map units.
+    georef = GeoReference((0.25, 0.0, 500000.0, 0.0, -0.25, 4000000.0), "EPSG:32612")
+    t2 = controlpoints.with_residuals(t, model)
+    t2.residual_xy[:] = (2.0, -4.0)  # known residuals: 0.5 m east, 1 m north
+    geo = read_points_file(controlpoints.write_qgis_points(t2, tmp_path / "geo.points", georef))
+    assert parse_crs(geo["crs"]).to_epsg() == 32612
+    assert np.allclose(geo["map"], georef.map_from_base(dst[:3]), atol=1e-9)
+    assert np.allclose(geo["source"], t.frame_xy, atol=1e-9)
+    text = (tmp_path / "geo.points").read_text().splitlines()
+    dx, dy = (float(v) for v in text[2].split(",")[5:7])
+    assert (dx, dy) == pytest.approx((0.5, 1.0))
 
 
 def test_clip_segments_known_cases():

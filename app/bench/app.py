@@ -224,7 +224,7 @@ def run(args) -> dict:
     t_fine = time.perf_counter() - t
     ref = app.state.current_reference()
     assert ref is not None and ref.fine, app.errors
-    assert "heading" in seed.panel.seed_md.content
+    assert "heading" in seed.panel.heading_md.content
     figures.update(
         seed_click_ms=1000 * max(t_marker, t_marker2),
         seed_to_heading_s=t_coarse,

@@ -63,6 +63,9 @@ class SeedView(View):
         p.preset.on_update(lambda ev: self.set_setting("preset", str(ev.target.value)))
         p.transform.on_update(lambda ev: self.set_setting("transform", str(ev.target.value)))
         p.local.on_update(lambda ev: self.set_setting("run_local", bool(ev.target.value)))
+        p.btn_typed.on_click(
+            lambda ev: self.use_typed(float(p.heading_in.value), float(p.scale_in.value), ev.client)
+        )
         p.btn_coarse.on_click(lambda ev: self.run_fit(ev.client, fine=False))
         p.btn_fine.on_click(lambda ev: self.run_fine(ev.client))
         for h in (
@@ -161,6 +164,7 @@ class SeedView(View):
             self.state.reference_frame = int(np.clip(k, 0, self.app.inputs.n_frames - 1))
             self.state.push_undo()
             self.state.seed_frame = self.state.seed2_frame = None
+            self._follow_typed()
             self.state.revision += 1
         self._mid_cache = None
         self.app.save()
@@ -190,6 +194,7 @@ class SeedView(View):
             else:
                 self.state.push_undo()
                 self.state.seed2_frame = self.state.seed2_base = None
+                self.state.seed2_typed = None
                 if action == "Clear all":
                     self.state.seed_frame = self.state.seed_base = None
                 self.state.revision += 1
@@ -224,8 +229,53 @@ class SeedView(View):
             self.state.push_undo()
             name = ("seed" if pair == 1 else "seed2") + ("_frame" if plane == "frame" else "_base")
             setattr(self.state, name, point)
+            if pair == 2:
+                self.state.seed2_typed = None  # placed by hand: the pairs fix heading and scale
+            else:
+                self._follow_typed()
             self.state.revision += 1
         self._seeds_changed()
+
+    def _follow_typed(self) -> None:
+        """Pair 2 made from a typed heading and scale follows pair 1 (call under the lock)."""
+        st = self.state
+        if st.seed2_typed is None:
+            return
+        if st.seed is None:
+            st.seed2_frame = st.seed2_base = None
+            return
+        p2 = calls.second_seed_from_similarity(st.seed, *st.seed2_typed, st.gamma, st.frame_size)
+        st.seed2_frame, st.seed2_base = p2[:2], p2[2:]
+
+    def use_typed(self, heading_deg: float, scale: float, client=None) -> bool:
+        """Fix heading and scale to typed values: the coarse step gets them as a second seed
+        pair (:func:`app.calls.second_seed_from_similarity`), shown as pair 2."""
+        with self.state.lock:
+            if self.state.seed is None:
+                ready = False
+            else:
+                ready = True
+                try:
+                    calls.second_seed_from_similarity(
+                        self.state.seed, heading_deg, scale, self.state.gamma, self.state.frame_size
+                    )
+                except ValueError as exc:
+                    self.notify(client, "Heading and scale not used", str(exc), "red")
+                    return False
+                self.state.push_undo()
+                self.state.seed2_typed = (float(heading_deg), float(scale))
+                self._follow_typed()
+                self.state.revision += 1
+        if not ready:
+            self.notify(
+                client,
+                "Place pair 1 first",
+                "Typed heading and scale turn about the seed",
+                "yellow",
+            )
+            return False
+        self._seeds_changed()
+        return True
 
     def _seeds_changed(self, refit_reference: bool = False) -> None:
         self.app.save()
@@ -302,22 +352,32 @@ class SeedView(View):
             st = self.state
             pairs = {1: (st.seed_frame, st.seed_base), 2: (st.seed2_frame, st.seed2_base)}
             active, seed, seed2, gamma = st.seed_pair, st.seed, st.seed2, st.gamma
+            typed = st.seed2_typed
             ref = st.current_reference()
             key_ok = ref is not None
             coarse = ref.coarse if ref is not None else None
             fine = ref.fine if ref is not None else None
             edited = not st.cp_edits.empty
         size = self.app.inputs.frame_size
-        parts = []
+        lines = []
         hp = calls.heading_from_pairs(seed, seed2, gamma, size)
+        if hp is not None and typed is not None:
+            hp = calls.HeadingScale(hp.heading_deg, hp.scale, "typed: pair 2 is made from it")
         if hp is not None:
-            parts.append(hp.text())
-        hc = calls.heading_from_coarse(coarse, seed, gamma, size)
+            lines.append("Pairs: " + hp.text())
+        hc = calls.heading_from_coarse(coarse)
         if hc is not None:
-            parts.append(hc.text())
-        self.panel.show_seeds(
-            pairs, active, "  \n".join(parts), calls.supports_second_seed() or seed2 is None
-        )
+            lines.append("Coarse step: " + hc.text())
+        elif seed is not None and coarse is None:
+            lines.append("_Heading and scale appear when the coarse step has run._")
+        self.panel.show_seeds(pairs, active, typed is not None)
+        self.panel.show_heading("  \n".join(lines))
+        failures = []
+        if coarse is not None and not coarse:
+            failures.append(("Coarse step failed", coarse.reason))
+        elif fine is not None and not fine:
+            failures.append(("Fine step failed", fine.reason))
+        self.panel.show_alert(failures)
         if coarse is not None:
             gate = "no location gate (no seed)" if seed is None else "gated around the seed"
             self.panel.show_coarse(coarse, gate)
@@ -350,13 +410,17 @@ class SeedView(View):
         def job(progress) -> None:
             with self.state.lock:
                 st = self.state
+                self._follow_typed()  # a typed pair 2 for the γ of now
                 k, gamma, seed, seed2 = st.reference_frame, st.gamma, st.seed, st.seed2
                 key = st.reference_key()
             cfg = self._config()
             progress(0, 2 if fine else 1, "coarse step")
-            coarse = calls.coarse_register(
-                inp.frame(k), inp.base, gamma, seed, seed2, cfg, base_valid=inp.base_valid
-            )
+            try:
+                coarse = calls.coarse_register(
+                    inp.frame(k), inp.base, gamma, seed, seed2, cfg, base_valid=inp.base_valid
+                )
+            except ValueError as exc:  # e.g. the two pairs on one point: say it like a failure
+                coarse = calls.failed_coarse(f"coarse step: {exc}")
             with self.state.lock:
                 self.state.reference = ReferenceFit(key, coarse)
                 self.state.cp_edits = Edits()
@@ -369,6 +433,11 @@ class SeedView(View):
             self.app.state_changed()
             self.request_overlays()
             self.submit("magnifier", self.draw_magnifier)
+            hc = calls.heading_from_coarse(coarse)
+            if hc is not None and seed2 is None:
+                # The estimate is where a correction starts from.
+                self.panel.heading_in.value = round(hc.heading_deg, 1)
+                self.panel.scale_in.value = round(hc.scale, 4)
             if not coarse:
                 self.notify(client, "Coarse step failed", coarse.reason, "red")
                 return
@@ -625,17 +694,16 @@ class SeedView(View):
         self.submit("overlays", self.draw_overlays)
 
     def export_points(self, client=None) -> bool:
+        """The table as QGIS ``.points`` in the project (map coordinates for a georeferenced
+        base), sent to the browser."""
         if self.table is None:
             self.notify(client, "No control points", "Run the fine step first", "yellow")
             return False
-        text = controlpoints.qgis_points(self.table)
         with self.state.lock:
             k = self.state.reference_frame
-        name = f"reference_frame_{k:06d}.points"
-        self.app.project.write_file(name, text)
-        self.app.send_download(client, name, text.encode("utf-8"))
-        self.notify(client, name, f"saved to {self.app.project.folder / name} and sent", "green")
-        return True
+        path = self.app.project.folder / f"reference_frame_{k:06d}.points"
+        controlpoints.write_qgis_points(self.table, path, self.app.inputs.base_georef)
+        return self.app.offer_file(path, client)
 
     # ---------------------------------------------------------------- drawing (worker)
     def request_overlays(self) -> None:
