@@ -1,10 +1,10 @@
 """The app's calls into ``registration`` that need a little glue: the run's configuration from the
 app's choices, the coarse step with one or two seed pairs, the heading and scale the analyst sees
-after seeding, and re-running one frame of a result.
+after seeding (``CoarseResult.heading_deg``, ``.scale``, ``.gate``), a second seed pair made from
+a typed heading and scale, and re-running one frame of a result.
 
 Kept apart from the views so that they stay drawing and widgets, and so that what the app
-expects of the library is in one place (see the report to the lead: ``CoarseResult.heading_deg``,
-``.scale``, a second seed pair).
+expects of the library is in one place.
 """
 
 from __future__ import annotations

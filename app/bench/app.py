@@ -355,6 +355,30 @@ def run(args) -> dict:
         )
     )
 
+    # Export from the app (a job with progress) against the library call on the same result.
+    formats = ["png", "mp4", "transforms"]
+    t = time.perf_counter()
+    assert seqv.exporter.request(None, formats=formats)
+    app.jobs.join(3600)
+    app.worker.wait_idle()
+    figures["export_app_s"] = time.perf_counter() - t
+    assert seqv.exporter.summary is not None and not seqv.exporter.summary["cancelled"]
+    from registration import io as rio
+    from registration.export import export_result
+
+    t = time.perf_counter()
+    export_result(r, tmp / "export-direct", formats, frames=rio.open_frames(seq / "frames"))
+    figures["export_direct_s"] = time.perf_counter() - t
+    rows.append(
+        (
+            f"Export {', '.join(formats)} of {n_frames} frames from the app (job with progress)",
+            f"{figures['export_app_s']:.1f} s",
+            "(no export in the app)",
+            f"export_result directly in this run {figures['export_direct_s']:.1f} s "
+            f"({figures['export_app_s'] / figures['export_direct_s']:.2f}x)",
+        )
+    )
+
     app.set_mode("Seed")
     app.worker.wait_idle()
     if CHROMIUM.exists():
