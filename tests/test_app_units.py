@@ -175,3 +175,22 @@ def test_static_assets_and_event_channel():
     assert not ch.dispatch(json.dumps({"kind": "nope", "value": 1}))
     assert not ch.dispatch("not json") and not ch.dispatch(json.dumps([1, 2]))
     assert got == [12]
+
+
+def test_second_seed_from_typed_heading_round_trips():
+    from app import calls
+
+    rng = np.random.default_rng(5)
+    size = (640, 480)
+    harris = HarrisModel(0.7, *size)
+    for heading, scale in [(0.0, 1.0), (95.5, 1.09), (271.25, 0.37), (359.9, 3.2)]:
+        seed = (*rng.uniform((20, 20), (620, 460)), *rng.uniform(0, 1000, 2))
+        pair = calls.second_seed_from_similarity(seed, heading, scale, 0.7, size)
+        c1, c2 = harris.corrected_from_raw(np.array([seed[:2], pair[:2]]))
+        assert np.hypot(*(c2 - c1)) == pytest.approx(calls.TYPED_SEED_DISTANCE_PX, abs=1e-6)
+        back = calls.heading_from_pairs(seed, pair, 0.7, size)
+        assert back.scale == pytest.approx(scale, rel=1e-9)
+        assert abs((back.heading_deg - heading + 180) % 360 - 180) < 1e-7
+    for heading, scale in [(10.0, 0.0), (10.0, -1.0), (float("nan"), 1.0)]:
+        with pytest.raises(ValueError, match="scale positive"):
+            calls.second_seed_from_similarity((1.0, 2.0, 3.0, 4.0), heading, scale, 0.7, size)

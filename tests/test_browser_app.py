@@ -111,7 +111,7 @@ def live_app(tmp_path, small_seq):  # noqa: F811
 class Page:
     """A playwright page on the app, recording any request that leaves localhost."""
 
-    def __init__(self, browser, port: int, viewport=VIEWPORT) -> None:
+    def __init__(self, browser, port: int, viewport=VIEWPORT, connect_s: float = 30.0) -> None:
         self.port = port
         self.external: list[str] = []
         self.page = browser.new_page(viewport=viewport, accept_downloads=True)
@@ -120,7 +120,7 @@ class Page:
         self.page.wait_for_function(
             "() => window.__viserMutable && window.__viserMutable.nodeRefFromName "
             "&& !document.body.innerText.includes('Connecting...')",
-            timeout=30000,
+            timeout=connect_s * 1000,
         )
         self.close_notifications()
 
@@ -601,6 +601,27 @@ def test_scrub_plot_click_and_table2(browser, registered_app):
     with page.page.expect_download(timeout=15000) as dl:
         page.button("Markdown").click()
     assert "Post-Local" in Path(dl.value.path()).read_text()
+    # Export (video + transforms by default) from the Sequence view, then download the video.
+    page.view_button("Sequence").click()
+    wait_until(lambda: app.state.mode == "Sequence", what="Sequence view")
+    page.page.get_by_text("Export", exact=True).first.click()
+    page.button("Export the ticked formats").click()
+    page.page.wait_for_selector("text=Export done", timeout=120000)
+    out = app.project.folder / "exports"
+    with page.page.expect_download(timeout=30000) as dl:
+        page.button("Download").click()
+    assert dl.value.suggested_filename == "registered.mp4"
+    assert Path(dl.value.path()).read_bytes() == (out / "registered.mp4").read_bytes()
+    # Again: the files exist, so the app asks; a new numbered folder is one answer.
+    page.button("Export the ticked formats").click()
+    page.page.wait_for_selector("text=Files exist", timeout=15000)
+    page.button("Write into exports-2").click()
+    wait_until(
+        lambda: (app.project.folder / "exports-2" / "transforms.json").exists(),
+        timeout=120,
+        what="the export into exports-2",
+    )
+    page.shot("sequence_export")
 
 
 JS_OVERFLOW = """() => {

@@ -26,14 +26,14 @@ from app.security import escape_md
 
 FORMAT_LABELS = {
     "geotiff": "GeoTIFF frames",
-    "cog": "Cloud-optimised GeoTIFF frames (COG)",
-    "png": "PNG frames + world files",
-    "mosaic": "Mosaic of the sequence (COG)",
-    "mp4": "Registered video (mp4)",
-    "points": "QGIS .points per frame",
+    "cog": "COG frames",
+    "png": "PNG + world files",
+    "mosaic": "Mosaic (COG)",
+    "mp4": "Video (mp4)",
+    "points": "QGIS .points",
     "transforms": "Transforms (JSON)",
-    "geojson": "GeoJSON: control points, footprints, marks",
-    "gpkg": "GeoPackage: the same layers",
+    "geojson": "GeoJSON",
+    "gpkg": "GeoPackage",
 }
 """Format (``registration.export.FORMATS``) -> checkbox label, in the panel's order."""
 DEFAULT_FORMATS = ("mp4", "transforms")
@@ -53,10 +53,20 @@ class ExportPanel:
     """Widgets of the export (built inside the Sequence view's "Export" folder)."""
 
     def __init__(self, gui) -> None:
+        from registration.export import FORMATS
+
         self.intro = gui.add_markdown("")
         self.formats = {
-            f: gui.add_checkbox(label, f in DEFAULT_FORMATS) for f, label in FORMAT_LABELS.items()
+            f: gui.add_checkbox(
+                label, f in DEFAULT_FORMATS, hint=FORMATS[f].replace("--marks", "marks")
+            )
+            for f, label in FORMAT_LABELS.items()
         }
+        gui.add_markdown(
+            "_Frames are registered into the map's pixel grid, each cropped to its footprint; "
+            "GeoJSON and GeoPackage hold the control points, the frames' footprints and the "
+            "evaluation marks._"
+        )
         self.georef_md = gui.add_markdown("")
         with gui.add_folder("Export options", expand_by_default=False):
             self.stage = gui.add_dropdown(
@@ -80,7 +90,7 @@ class ExportPanel:
                 "sequence's footprint; with a georeferenced base it gets a world file (.wld, "
                 ".prj) that places it in map coordinates._"
             )
-        self.btn_export = gui.add_button("Export")
+        self.btn_export = gui.add_button("Export the ticked formats")
         self.result_md = gui.add_markdown("")
         self.download_pick = gui.add_dropdown("Exported files", (NO_DOWNLOAD,))
         self.btn_download = gui.add_button("Download", disabled=True)

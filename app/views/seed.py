@@ -14,8 +14,9 @@ become a second seed pair 100 px from the seed (``calls.second_seed_from_similar
 pair 2 and following pair 1.
 
 Match review: inliers only by default (outliers and matches outside the gate on toggles), the
-gate as the region where gated matches could lie (``CoarseResult.gate_outline_base``), the template control points kept by REQCON and their residual
-vectors scaled automatically, the mid base image over the map. The control-point table lists the
+gate as the region where gated matches could lie (``CoarseResult.gate_outline_base``), the
+template control points kept by REQCON and their residual vectors scaled automatically, the mid
+base image over the map. The control-point table lists the
 fine fit's points (id, frame x/y, map x/y, dx, dy, residual, source, enabled): sort, select
 (centres the view and the magnifier on it), enable / disable / delete, add a manual point, and
 the model is re-fitted at once; export as QGIS ``.points``.
@@ -255,29 +256,25 @@ class SeedView(ControlPointActions, View):
     def use_typed(self, heading_deg: float, scale: float, client=None) -> bool:
         """Fix heading and scale to typed values: the coarse step gets them as a second seed
         pair (:func:`app.calls.second_seed_from_similarity`), shown as pair 2."""
+        problem = None
         with self.state.lock:
-            if self.state.seed is None:
-                ready = False
+            st = self.state
+            if st.seed is None:
+                problem = ("Place pair 1 first", "Typed heading and scale turn about the seed")
             else:
-                ready = True
                 try:
                     calls.second_seed_from_similarity(
-                        self.state.seed, heading_deg, scale, self.state.gamma, self.state.frame_size
+                        st.seed, heading_deg, scale, st.gamma, st.frame_size
                     )
                 except ValueError as exc:
-                    self.notify(client, "Heading and scale not used", str(exc), "red")
-                    return False
-                self.state.push_undo()
-                self.state.seed2_typed = (float(heading_deg), float(scale))
+                    problem = ("Heading and scale not used", str(exc))
+            if problem is None:
+                st.push_undo()
+                st.seed2_typed = (float(heading_deg), float(scale))
                 self._follow_typed()
-                self.state.revision += 1
-        if not ready:
-            self.notify(
-                client,
-                "Place pair 1 first",
-                "Typed heading and scale turn about the seed",
-                "yellow",
-            )
+                st.revision += 1
+        if problem is not None:
+            self.notify(client, *problem, "yellow")
             return False
         self._seeds_changed()
         return True

@@ -8,7 +8,8 @@ blend, checkerboard or flicker, only over the frame's footprint; the control poi
 vectors (scaled automatically); the local displacement field's magnitude as a heat map (the
 paper's Fig. 5) with a colour bar. The per-frame residual RMS is an interactive chart: hover shows
 the values, a click jumps to the frame. Failed frames are listed with their reasons; one frame can
-be registered again; the frame's control points are listed (read-only) and exported.
+be registered again; the frame's control points are listed (read-only) and exported. The
+*Export* folder writes the result as GIS files and video (``app/views/export.py``).
 
 Scrubbing is fast because the frame is warped at display resolution from a preview of the frame
 (decoded ahead by :meth:`app.inputs.Inputs.prefetch`) and only its footprint is encoded and sent.
