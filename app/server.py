@@ -627,8 +627,8 @@ class App:
             self.notify(
                 client,
                 f"{path.name} saved",
-                f"{where} ({human_size(size)}) is over the {human_size(self.max_download_bytes)} download "
-                "limit: copy it from the project folder",
+                f"{where} ({human_size(size)}) is over the download limit "
+                f"({human_size(self.max_download_bytes)}): copy it from the project folder",
                 color="yellow",
             )
             return False
