@@ -1,6 +1,8 @@
-"""Long flights (issue 11): a flyover whose view leaves the reference frame's footprint must not
-accumulate error. Measured against the simulator's exact truth on the ``long-flight`` profile
-(40 frames at 480x360, 1.5 footprints of travel)."""
+"""Hard flights (issue 11), against the simulator's exact truth: a flyover whose view leaves the
+reference frame's footprint must not accumulate error (``long-flight`` profile, 40 frames at
+480x360, 1.5 footprints of travel), and the paper's camera at its worst (``paper-hard``: a lens
+beyond Harris, 0.15 s rolling shutter, 0.6° shake) must not fail frames nor lose most of its
+control points to an absolute REQCON target."""
 
 from __future__ import annotations
 
@@ -10,6 +12,7 @@ import numpy as np
 import pytest
 
 from registration.config import get_preset
+from registration.evaluation import evaluate_truth
 from registration.io import open_frames, read_image
 from registration.pipeline import ANCHOR_STAGE, register_sequence
 from registration.synth import PROFILES, load_truth, simulate
@@ -60,3 +63,28 @@ def test_long_flight_does_not_drift(flight, tmp_path):
     )
     _, drift = _run(flight, tmp_path / "paper-joint", paper_joint)
     assert drift[-10:].mean() > 20 * last, drift.round(1)
+
+
+@pytest.mark.slow
+def test_paper_hard_flight_has_no_failed_frame(tmp_path):
+    """``paper-hard`` at 640x480, 20 frames: no frame fails (a previous version failed one with
+    "REQCON failed: mean error 0.531 px ... still above 0.5"), REQCON keeps almost every
+    control point (measured 98.6 %; it kept 31-96 of ~150 before), and the errors stay at the
+    measured figures with a 1.3 margin: global 1.09 px, local 1.18 px mean. The local stage
+    cannot beat the reference frame's own inter-sensor error here (1.12 px), so the issue's
+    0.5 px bar is not reached (README, known limits)."""
+    sim = tmp_path / "hard"
+    simulate(sim, PROFILES["paper-hard"](frame_size=(640, 480), n_frames=20, video=False))
+    truth = load_truth(sim)
+    c = np.array([[320.0, 240.0]])
+    seed = (*c[0], *truth.frame_to_base(0, c)[0])
+    result = register_sequence(
+        open_frames(sim / "frames"), read_image(sim / "base.png"), truth.gamma, tmp_path / "out",
+        config=get_preset("default"), seed=seed,
+    )  # fmt: skip
+    assert [k for k, r in enumerate(result.records) if r["status"] != "ok"] == []
+    kept = [r["stats"]["n_inliers"] / r["stats"]["n_control_points"] for r in result.records]
+    assert np.mean(kept) >= 0.9 and min(kept) >= 0.75, np.round(kept, 2)
+    s = evaluate_truth(result, truth).summary
+    assert s["global"]["mean"] < 1.42, s["global"]
+    assert s["local"]["mean"] < 1.53, s["local"]
