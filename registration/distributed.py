@@ -20,6 +20,7 @@ Requires ``dask[distributed]`` (``pip install 'aerialreg[dask]'``); imported onl
 
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import dataclasses
 import functools
@@ -45,6 +46,11 @@ log = logging.getLogger(__name__)
 DEFAULT_CHUNK_FRAMES = 100
 # How long the driver waits for a frame before it looks at the chunks' state (s).
 POLL_S = 0.25
+# Environment of local worker processes: Dask's default without MALLOC_TRIM_THRESHOLD_=65536,
+# which makes glibc hand freed memory back at once, so every large array of a frame (templates,
+# flow, remaps) faults its pages in again: measured 1.3-2x slower fine and local steps at
+# 1280x960. One BLAS thread per worker (Dask's default): workers already fill the cores.
+WORKER_ENVIRON = {"OMP_NUM_THREADS": 1, "MKL_NUM_THREADS": 1, "OPENBLAS_NUM_THREADS": 1}
 # Connecting to a scheduler that does not answer fails after this long (s).
 CONNECT_TIMEOUT_S = 20
 
@@ -69,11 +75,13 @@ def require_distributed():
 def open_client(workers: int | None = None, scheduler: str | None = None) -> Iterator:
     """A ``distributed.Client``: on a new local cluster of ``workers`` single-threaded worker
     processes (closed on exit), or connected to the scheduler at ``scheduler`` (e.g.
-    ``tcp://10.0.0.5:8786``; the cluster stays up).
+    ``tcp://10.0.0.5:8786``; the cluster stays up). The workers are checked to run this
+    process's aerialreg and have imported it (:func:`check_workers`).
 
     Raises:
         DaskUnavailable: dask.distributed is not installed.
-        ValueError: neither or both given, ``workers`` < 1, or the scheduler does not answer.
+        ValueError: neither or both given, ``workers`` < 1, the scheduler does not answer, or a
+            worker runs another aerialreg or none.
     """
     if (workers is None) == (scheduler is None):
         raise ValueError("give either a number of local workers or a scheduler address")
@@ -85,31 +93,85 @@ def open_client(workers: int | None = None, scheduler: str | None = None) -> Ite
             raise ValueError(
                 f"cannot connect to the Dask scheduler at {scheduler}: {_first_line(exc)}"
             ) from None
+        # Not ``with client``: that makes it the current client of this thread's context, which
+        # open_executor enters in another thread than it leaves.
         try:
+            check_workers(client)
             yield client
         finally:
             client.close()
         return
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ValueError(f"the number of workers must be 1 or more, got {workers!r}")
-    # One thread per worker: frames within a chunk are sequential, and OpenCV and numpy already
-    # use the machine's cores inside a frame.
-    # On this machine only (127.0.0.1), without the dashboard; the scheduler's small HTTP
-    # server (health, metrics) takes a free port rather than 8787.
-    cluster = distributed.LocalCluster(
-        n_workers=workers,
-        threads_per_worker=1,
-        processes=True,
-        host="127.0.0.1",
-        dashboard_address=None,
-        scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
-        silence_logs=logging.ERROR,
-    )
+    import dask
+
+    # One thread per worker: a chunk's frames are sequential, and OpenCV already uses the cores
+    # inside a frame. On this machine only (127.0.0.1), without the dashboard; the scheduler's
+    # small HTTP server (health, metrics) takes a free port rather than 8787.
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": WORKER_ENVIRON}):
+        cluster = distributed.LocalCluster(
+            n_workers=workers,
+            threads_per_worker=1,
+            processes=True,
+            host="127.0.0.1",
+            dashboard_address=None,
+            scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
+            silence_logs=logging.ERROR,
+        )
     try:
-        with distributed.Client(cluster) as client:
+        client = distributed.Client(cluster)
+        try:
+            check_workers(client)
             yield client
+        finally:
+            client.close()
     finally:
         cluster.close()
+
+
+@contextlib.contextmanager
+def open_executor(workers: int | None = None, scheduler: str | None = None) -> Iterator:
+    """A :class:`DaskExecutor` on :func:`open_client`'s client. A local cluster starts in the
+    background, so that it comes up while this process registers the reference frame (its
+    errors are raised when the chunks start); a scheduler is connected to at once, so that an
+    unreachable one is refused before any work."""
+    if scheduler is not None or workers is None:
+        with open_client(workers, scheduler) as client:
+            yield DaskExecutor(client)
+        return
+    require_distributed()
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"the number of workers must be 1 or more, got {workers!r}")
+    stack = contextlib.ExitStack()
+    pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="aerialreg-dask")
+    starting = pool.submit(lambda: stack.enter_context(open_client(workers)))
+    try:
+        yield DaskExecutor(starting.result)
+    finally:
+        pool.shutdown(wait=True)  # a start still under way ends before the cluster closes
+        stack.close()
+
+
+def check_workers(client) -> None:
+    """Make every worker import aerialreg now (not in its first chunk) and check that it runs
+    this process's code (:func:`code_fingerprint`); ValueError (one line) otherwise. Workers
+    that join later are checked by each chunk task."""
+    try:
+        codes = client.run(code_fingerprint)
+    except ModuleNotFoundError as exc:
+        raise ValueError(
+            f"a Dask worker cannot import aerialreg ({_first_line(exc)}): install it, the "
+            "same version, on every worker"
+        ) from None
+    for address, code in codes.items():
+        if code != code_fingerprint():
+            raise ValueError(
+                f"the Dask worker at {address} runs another version of aerialreg than this "
+                "process (its registration package differs): install the same version on "
+                "every worker"
+            )
+    if not codes:
+        log.warning("the Dask scheduler has no workers yet: the chunks wait for some to join")
 
 
 class DaskExecutor:
@@ -122,8 +184,14 @@ class DaskExecutor:
     """
 
     def __init__(self, client, *, poll_s: float = POLL_S) -> None:
-        self.client = client
+        """``client``: a ``distributed.Client``, or a callable that returns one (waited for
+        when the chunks start)."""
+        self._client = client
         self.poll_s = poll_s
+
+    @property
+    def client(self):
+        return self._client() if callable(self._client) else self._client
 
     def run(
         self,
@@ -187,7 +255,10 @@ class DaskExecutor:
 @functools.cache
 def code_fingerprint() -> str:
     """SHA-256 of the ``registration`` package's source files: workers must run the driver's
-    code for the result to be the serial run's."""
+    code for the result to be the serial run's. Computing it imports the package's pipeline
+    (what a chunk needs), so that a worker pays the imports once, up front."""
+    import registration.pipeline  # noqa: F401
+
     root = Path(__file__).resolve().parent
     h = hashlib.sha256()
     for path in sorted(root.rglob("*.py")):
@@ -235,7 +306,7 @@ def check_frames(context: ChunkContext, job: ChunkJob) -> None:
         paths = [(None, frames.video_path, identity)]
     else:
         files = identity.get("files", [])
-        ks = [context.reference_frame, *job.todo]
+        ks = [context.reference_frame, *job.chunk.frames]  # done ones are read to replay them
         paths = [(k, frames.path(k), files[k]) for k in ks if k < len(files)]
     for k, path, want in paths:
         if "error" in want:  # unreadable on the driver too: the frame fails the same way

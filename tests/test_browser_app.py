@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from app.bench.app import CHROMIUM, LAUNCH_ARGS  # one set of browser flags for tests and bench
+from benchmarks.app import CHROMIUM, LAUNCH_ARGS  # one set of browser flags for tests and bench
 
 pytestmark = [
     pytest.mark.browser,

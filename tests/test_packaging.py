@@ -81,3 +81,23 @@ def test_installed_layout_finds_its_assets_outside_the_checkout(wheel, tmp_path)
         text=True,
     )
     assert cli.returncode == 0 and "usage: aerialreg app" in cli.stdout, cli.stderr[-2000:]
+
+
+def test_benchmarks_stay_out_of_the_wheel_and_bench_says_so(wheel, tmp_path):
+    """The benchmark suites are a developer tool of the checkout (benchmarks/), not installed;
+    ``aerialreg bench`` from an installed package says where they are in one line."""
+    names = zipfile.ZipFile(wheel).namelist()
+    assert not [n for n in names if n.startswith(("benchmarks/", "app/bench/"))]
+    site = tmp_path / "site"
+    zipfile.ZipFile(wheel).extractall(site)
+    env = dict(os.environ, PYTHONPATH=str(site))
+    out = subprocess.run(
+        [sys.executable, "-m", "app.cli", "bench", "simulate"],
+        cwd=tmp_path, env=env, capture_output=True, text=True,
+    )  # fmt: skip
+    assert out.returncode == 2
+    assert out.stderr.strip().splitlines() == [
+        "aerialreg bench: error: aerialreg bench runs from a source checkout of aerialreg: the "
+        "benchmarks/ folder is not installed with the package (clone the repository, pip install "
+        "-e it and run the command there)"
+    ]

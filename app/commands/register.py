@@ -296,18 +296,13 @@ def executor(args: argparse.Namespace):
         return
     import logging
 
-    from registration.distributed import (
-        DaskExecutor,
-        DaskUnavailable,
-        open_client,
-        require_distributed,
-    )
+    from registration.distributed import DaskUnavailable, open_executor, require_distributed
 
     try:
         require_distributed()  # importing it sets its loggers' levels
         if not logging.getLogger().isEnabledFor(logging.DEBUG):  # without --verbose
             logging.getLogger("distributed").setLevel(logging.WARNING)
-        with open_client(workers=args.workers, scheduler=args.scheduler) as client:
-            yield DaskExecutor(client)
+        with open_executor(workers=args.workers, scheduler=args.scheduler) as dask_executor:
+            yield dask_executor
     except DaskUnavailable as exc:
         raise UsageError(str(exc)) from None
