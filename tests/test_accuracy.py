@@ -4,13 +4,16 @@ any stage fails a test.
 
 Every limit is ``measured x MARGIN``; the measured figure sits beside it. They are figures of one
 fixed sequence (tests/conftest.py ``SIM_SEQUENCE``: 640x480, 6 frames, simulator seed 1), not of
-the method in general: other simulator seeds give 0.7-1.5 px global (README, Testing). Runs are
-reproducible to about 0.002 px. When a change to the pipeline moves a figure, re-measure (the
-numbers come from ``evaluate_truth``'s report: ``per_frame[k][stage]["mean"]`` and
-``summary_motion[stage]["mean"]``) and move the limit with it, in the same commit.
+the method in general: other simulator seeds give 0.7-1.5 px global (README, Testing). The same
+run repeated in new processes is not bit-identical (tests16 report: OpenCV's FLANN draws on a
+global RNG, which the tests seed, and last-bit differences remain that REQCON and the
+polyprojective's extrapolation amplify); where repeats differ, the range over 5-8 runs is given
+and the limit starts from its upper end. When a change to the pipeline moves a figure,
+re-measure (the numbers come from ``evaluate_truth``'s report: ``per_frame[k][stage]["mean"]``
+and ``summary_motion[stage]["mean"]``) and move the limit with it, in the same commit.
 
-Measured with the tests of issue 16 (removing the fine step: reference frame 0.49 -> 1.42 px, all
-frames 0.73 -> 1.22 px global, 0.55 -> 0.97 px local; every such figure is beyond its limit).
+Removing the fine step (tests16 mutation check) moves the reference frame 0.49 -> 1.42 px, all
+frames 0.73 -> 1.22 px global and 0.55 -> 0.97 px local: beyond every limit here.
 """
 
 from __future__ import annotations
@@ -34,11 +37,11 @@ DEFAULT = {
     "reference_global": 0.492,
     "reference_local": 0.403,
     # The other frames, mean of their per-frame means: intra-sensor step, then the local field.
-    "others_global": 0.778,
-    "others_local": 0.576,
+    "others_global": 0.810,  # 0.777-0.810
+    "others_local": 0.599,  # 0.576-0.599
     # The paper's Table 2 measure: motion relative to the reference frame, all other frames.
-    "motion_global": 0.567,
-    "motion_local": 0.226,
+    "motion_global": 0.586,  # 0.567-0.586
+    "motion_local": 0.242,  # 0.226-0.242
 }
 # Paper preset, first 3 frames, reference frame 0 (the paper's Table 2: 2.6 px global, 1.1 px
 # local motion at 2560x1920, hand-marked).
@@ -112,7 +115,8 @@ def test_default_preset_reference_frame_stages(default_result, default_report):
 
 def test_default_preset_local_stage_improves_every_frame(default_result, default_report):
     """The local field lowers every frame's error and removes more than half of the motion left
-    by the global stage (paper section 6: 2.6 -> 1.1 px; measured 0.567 -> 0.226 px)."""
+    by the global stage (paper section 6: 2.6 -> 1.1 px; measured 0.567 -> 0.226 px, 0.40 of
+    it; 0.58 when the mid base image lacks the reference frame's own field)."""
     for p in default_report.per_frame:
         assert p["local"]["mean"] < p["global"]["mean"], p["frame"]
     m = default_report.summary_motion

@@ -20,11 +20,11 @@ from tests.conftest import MID_REFERENCE
 
 MARGIN = 1.3
 # Mean error against the truth (base px, evaluate_truth's 16 px ground grid), measured. The frames
-# registered backwards from the reference are not reproducible run to run: their global models
-# differ by up to ~2 px at the corners (mean over frames 0-2: 1.03 or 1.41 px in 8 runs; the
-# residuals of their control points agree to 1e-4 px, so the polyprojective is undetermined
-# where the control points do not reach; tests16 report). Their limits start from the worse
-# figure; every other figure repeats to 0.005 px.
+# registered backwards from the reference are not reproducible from process to process: in 13
+# runs their global models came out in two ways (mean over frames 0-2: 1.03 or 1.41 px) whose
+# control-point residuals agree to 1e-4 px; the difference lies where the control points do not
+# reach, which the polyprojective extrapolates (tests16 report). Their limits start from the
+# worse outcome; every other figure repeats within 0.005 px.
 MEASURED = {
     "reference_global": 0.655,
     "reference_local": 0.593,
