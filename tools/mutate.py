@@ -116,7 +116,25 @@ MUTATIONS: list[Mutation] = [
         "registered overlay renders only the base map",
         "registration/render.py",
         [("overlay(image, mid, mask=mask)", "overlay(mid, mid, mask=mask)", 1)],
-        ["tests/test_render.py", "tests/test_reference_frame.py", "tests/test_export.py"],
+        [
+            "tests/test_render.py",
+            "tests/test_render_content.py",
+            "tests/test_reference_frame.py",
+            "tests/test_export.py",
+        ],  # fmt: skip
+    ),
+    _m(
+        "field_image_components_swapped",
+        "field images: the dx image shows dy and the dy image dx",
+        "registration/render.py",
+        [
+            (
+                'for c, title in ((0, "dx px"), (1, "dy px")):',
+                'for c, title in ((1, "dx px"), (0, "dy px")):',
+                1,
+            )
+        ],  # fmt: skip
+        ["tests/test_render.py", "tests/test_render_content.py"],
     ),
     _m(
         "previous_frame_fallback_disabled",
