@@ -24,8 +24,21 @@ from pathlib import Path
 
 log = logging.getLogger(__name__)
 
-STATIC_DIR = Path(__file__).resolve().parents[1] / "static"
-"""The top-level ``static/`` folder of the repository (the design card's place for assets)."""
+ASSETS = ("camera.js", "app.css", "events.js")
+
+
+def static_dir() -> Path:
+    """Where the assets are: ``app/static`` in an installed package (pyproject.toml maps the
+    repository's ``static/`` there), else the top-level ``static/`` of a source checkout (the
+    design card's place for them; also what an editable install finds)."""
+    here = Path(__file__).resolve().parent
+    for folder in (here / "static", here.parent / "static"):
+        if all((folder / name).is_file() for name in ASSETS):
+            return folder
+    return here.parent / "static"
+
+
+STATIC_DIR = static_dir()
 
 CHANNEL_LABEL = "aerialreg events"
 

@@ -1,10 +1,10 @@
 """The app's calls into ``registration`` that need a little glue: the run's configuration from the
 app's choices, the coarse step with one or two seed pairs, the heading and scale the analyst sees
-after seeding, and re-running one frame of a result.
+after seeding (``CoarseResult.heading_deg``, ``.scale``, ``.gate``), a second seed pair made from
+a typed heading and scale, and re-running one frame of a result.
 
 Kept apart from the views so that they stay drawing and widgets, and so that what the app
-expects of the library is in one place (see the report to the lead: ``CoarseResult.heading_deg``,
-``.scale``, a second seed pair).
+expects of the library is in one place.
 """
 
 from __future__ import annotations
@@ -37,11 +37,6 @@ def seed_argument(seed, seed2):
     return seed if seed2 is None else [tuple(seed), tuple(seed2)]
 
 
-def supports_second_seed() -> bool:
-    """The coarse step takes a second seed pair (it fixes heading and scale exactly)."""
-    return True
-
-
 def coarse_register(frame, base, gamma, seed, seed2, config, base_valid=None):
     """The coarse step (paper 4.3.1) with the seed pairs the analyst placed."""
     return global_registration.coarse_register(
@@ -49,22 +44,40 @@ def coarse_register(frame, base, gamma, seed, seed2, config, base_valid=None):
     )
 
 
+def failed_coarse(reason: str) -> global_registration.CoarseResult:
+    """A failed coarse result with ``reason`` (for input the library refuses with an error)."""
+    empty = np.zeros((0, 2))
+    none = np.zeros(0, bool)
+    return global_registration.CoarseResult(False, reason, None, empty, empty, none, none, 0, 0)
+
+
 @dataclasses.dataclass(frozen=True)
 class HeadingScale:
-    """Rotation frame -> base (degrees, image coordinates: x right, y down, positive = clockwise
-    on screen) and scale (base px per corrected frame px), and where they come from."""
+    """Rotation frame -> base (degrees in [0, 360), image coordinates: x right, y down, so
+    positive = clockwise on screen; the library's ``CoarseResult.heading_deg``) and scale (base
+    px per corrected frame px), and where they come from."""
 
     heading_deg: float
     scale: float
     source: str
 
     def text(self) -> str:
-        return f"heading {self.heading_deg:+.1f}°, scale {self.scale:.3f} map px per frame px ({self.source})"
+        return (
+            f"heading **{self.heading_deg:.1f}°**, scale **{self.scale:.3f}** map px per frame "
+            f"px ({self.source})"
+        )
+
+
+def _heading(angle_deg: float) -> float:
+    """An angle in [0, 360), rounded so that 360 - 1e-12 shows as 0."""
+    a = float(angle_deg) % 360.0
+    return 0.0 if a >= 360.0 - 1e-9 else a
 
 
 def heading_from_pairs(seed, seed2, gamma: float, frame_size) -> HeadingScale | None:
-    """Heading and scale that two seed pairs fix (a similarity through both pairs), from the
-    corrected frame points; None for coincident points."""
+    """Heading and scale that two seed pairs fix (the similarity through both pairs, between
+    corrected frame points and map points, as the coarse step builds it); None for coincident
+    points."""
     if seed is None or seed2 is None:
         return None
     harris = HarrisModel(gamma, *frame_size)
@@ -72,38 +85,65 @@ def heading_from_pairs(seed, seed2, gamma: float, frame_size) -> HeadingScale | 
     b = np.array([seed[2:], seed2[2:]], float)
     df, db = f[1] - f[0], b[1] - b[0]
     nf, nb = math.hypot(*df), math.hypot(*db)
-    if nf < 1e-6 or nb < 1e-6:
+    if not (np.isfinite([nf, nb]).all() and nf > 1e-6 and nb > 1e-6):
         return None
     angle = math.degrees(math.atan2(db[1], db[0]) - math.atan2(df[1], df[0]))
-    angle = (angle + 180.0) % 360.0 - 180.0
-    return HeadingScale(angle, nb / nf, "from the two seed pairs")
+    return HeadingScale(_heading(angle), nb / nf, "fixed by the two pairs")
 
 
-def heading_from_coarse(coarse, seed, gamma: float, frame_size) -> HeadingScale | None:
-    """Heading and scale of a coarse result: the library's own (``heading_deg``, ``scale``) when
-    it reports them, else the local rotation and scale of its projective model at the seed."""
-    if coarse is None or not coarse:
+GATE_SOURCES = {
+    "seed": "estimated from the click",
+    "two seeds": "fixed by the two pairs",
+    "no seed": "searched without a seed",
+}
+
+
+def heading_from_coarse(coarse) -> HeadingScale | None:
+    """The heading and scale the coarse step used (``CoarseResult.heading_deg``, ``.scale``;
+    also on a failed step when it got that far), with how it came by them; None without."""
+    if coarse is None:
         return None
-    heading = getattr(coarse, "heading_deg", None)
-    scale = getattr(coarse, "scale", None)
-    if heading is not None and scale is not None:
-        return HeadingScale(float(heading), float(scale), "coarse step")
-    model = coarse.base_from_corrected
-    if model is None:
+    heading, scale = coarse.heading_deg, coarse.scale
+    if heading is None or scale is None:
         return None
+    source = GATE_SOURCES.get(coarse.gate, coarse.gate or "coarse step")
+    if coarse.gate == "seed" and coarse.ambiguity:
+        source += f"; ambiguity {coarse.ambiguity:.2f}"
+    return HeadingScale(_heading(heading), float(scale), source)
+
+
+TYPED_SEED_DISTANCE_PX = 100.0
+"""How far (corrected frame px) from the seed the second pair made from a typed heading and
+scale lies."""
+
+
+def second_seed_from_similarity(
+    seed, heading_deg: float, scale: float, gamma: float, frame_size
+) -> tuple[float, float, float, float]:
+    """A second seed pair that fixes ``heading_deg`` and ``scale`` (as
+    :func:`heading_from_pairs` reads them): a frame point :data:`TYPED_SEED_DISTANCE_PX`
+    corrected px from the seed towards the frame centre (along +x from the centre itself), and
+    where the similarity through the seed puts it on the map. Raw frame px, base px.
+
+    Raises:
+        ValueError: scale not positive, or a value not finite.
+    """
+    if not (math.isfinite(heading_deg) and math.isfinite(scale) and scale > 0):
+        raise ValueError(
+            f"heading must be finite and scale positive, got {heading_deg!r}, {scale!r}"
+        )
     w, h = frame_size
-    at = np.array([(w - 1) / 2.0, (h - 1) / 2.0])
-    if seed is not None:
-        at = HarrisModel(gamma, w, h).corrected_from_raw(np.array([seed[:2]], float))[0]
-    eps = 1.0
-    pts = np.array([at, at + (eps, 0.0), at + (0.0, eps)])
-    q = model.apply(pts)
-    if not np.isfinite(q).all():
-        return None
-    jx, jy = (q[1] - q[0]) / eps, (q[2] - q[0]) / eps
-    scale = math.sqrt(abs(jx[0] * jy[1] - jx[1] * jy[0]))
-    heading = math.degrees(math.atan2(jx[1], jx[0]))
-    return HeadingScale(heading, scale, "coarse model at the seed")
+    harris = HarrisModel(gamma, w, h)
+    c1 = harris.corrected_from_raw(np.array([seed[:2]], float))[0]
+    towards = np.array([(w - 1) / 2.0, (h - 1) / 2.0]) - c1
+    n = math.hypot(*towards)
+    step = towards / n if n > 1.0 else np.array([1.0, 0.0])
+    c2 = c1 + TYPED_SEED_DISTANCE_PX * step
+    t = math.radians(heading_deg)
+    rot = np.array([[math.cos(t), -math.sin(t)], [math.sin(t), math.cos(t)]])
+    b2 = np.asarray(seed[2:], float) + scale * rot @ (c2 - c1)
+    f2 = harris.raw_from_corrected(c2[None])[0]
+    return (float(f2[0]), float(f2[1]), float(b2[0]), float(b2[1]))
 
 
 def forget_frame(out_dir: str | Path, k: int) -> None:

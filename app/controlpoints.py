@@ -16,8 +16,6 @@ src, dst, enabled, start, config, domain) -> FineResult`` (this module's :func:`
 
 from __future__ import annotations
 
-import csv
-import io
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -221,48 +219,29 @@ def refit(table: ControlPointTable, start, *, domain=None, optimizer: str = "lm"
     return with_residuals(table, fit), fit
 
 
-def qgis_points(table: ControlPointTable, *, crs: str | None = None) -> str:
-    """The table as a QGIS Georeferencer ``.points`` file.
+def write_qgis_points(table: ControlPointTable, path, georef=None):
+    """The table as a QGIS Georeferencer ``.points`` file at ``path`` (written atomically by
+    :func:`registration.gis_vector.write_points_file`, the format QGIS 3 saves); returns the path.
 
-    QGIS 3 format: an optional ``#CRS:`` line, the header
-    ``mapX,mapY,sourceX,sourceY,enable,dX,dY,residual``, one row per point. Source coordinates
-    are QGIS's pixel coordinates of a non-georeferenced raster: the corner of the top-left pixel
-    at (0, 0), rows counted negative, so raw pixel ``(x, y)`` (centres at integers) is
-    ``(x + 0.5, -(y + 0.5))``. Without a georeferenced base map, the map side is the base map in
-    the same pixel coordinates. ``dX``, ``dY``, ``residual`` are this app's residuals in base
-    pixels (``model(frame point) - map point``; 0 where there is no model).
+    Source: the raw frame in QGIS's pixel coordinates (corner of the top-left pixel at (0, 0),
+    rows negative: raw ``(x, y)`` is ``(x + 0.5, -(y + 0.5))``). Map: with a georeferenced base
+    (``georef``, :class:`registration.georef.GeoReference`) the points' map coordinates in its CRS
+    (``#CRS:`` line), as QGIS expects; without one the base map's pixels in the same corner/y-up
+    convention as the source. ``dX``, ``dY``, ``residual``: ``model(frame point) - map point`` in
+    map units (base px without a georeference; 0 where there is no model).
     """
-    buf = io.StringIO()
-    if crs:
-        buf.write(f"#CRS: {crs}\n")
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["mapX", "mapY", "sourceX", "sourceY", "enable", "dX", "dY", "residual"])
-    res = np.nan_to_num(table.residual_xy, nan=0.0)
-    for i in range(len(table.ids)):
-        fx, fy = table.frame_xy[i]
-        bx, by = table.base_xy[i]
-        dx, dy = res[i]
-        w.writerow(
-            [
-                f"{bx + 0.5:.4f}",
-                f"{-(by + 0.5):.4f}",
-                f"{fx + 0.5:.4f}",
-                f"{-(fy + 0.5):.4f}",
-                int(bool(table.enabled[i])),
-                f"{dx:.4f}",
-                f"{dy:.4f}",
-                f"{float(np.hypot(dx, dy)):.4f}",
-            ]
-        )
-    return buf.getvalue()
+    from registration.gis_vector import write_points_file
 
-
-def read_qgis_points(text: str) -> NDArray[np.float64]:
-    """``(N, 5)`` ``mapX, mapY, sourceX, sourceY, enable`` rows of a ``.points`` text (for tests
-    and for loading points back)."""
-    rows = []
-    for line in text.splitlines():
-        if not line.strip() or line.startswith("#") or line.lower().startswith("mapx"):
-            continue
-        rows.append([float(v) for v in line.split(",")[:5]])
-    return np.asarray(rows, np.float64).reshape(-1, 5)
+    base = np.asarray(table.base_xy, np.float64).reshape(-1, 2)
+    res = np.nan_to_num(np.asarray(table.residual_xy, np.float64).reshape(-1, 2), nan=0.0)
+    if georef is not None:
+        map_xy = georef.map_from_base(base)
+        residual = georef.map_from_base(base + res) - map_xy
+        crs = georef.crs_wkt
+    else:
+        map_xy = np.c_[base[:, 0] + 0.5, -(base[:, 1] + 0.5)]
+        residual = np.c_[res[:, 0], -res[:, 1]]
+        crs = None
+    return write_points_file(
+        path, table.frame_xy, map_xy, crs_wkt=crs, enabled=table.enabled, residual_xy=residual
+    )

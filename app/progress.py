@@ -61,3 +61,13 @@ class ProgressBar:
             )
         self._last_draw = now
         self.stream.flush()
+
+
+def human_size(n: float) -> str:
+    """Human-readable byte count (B, kB, MB, GB; 1 kB = 1024 B)."""
+    if n < 1024:
+        return f"{n:.0f} B"
+    for unit, k in (("kB", 1), ("MB", 2), ("GB", 3)):
+        if n < 1024 ** (k + 1) or unit == "GB":
+            return f"{n / 1024**k:.1f} {unit}"
+    raise AssertionError("unreachable")

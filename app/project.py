@@ -209,6 +209,12 @@ def reference_to_bytes(key: dict, coarse, fine) -> bytes:
                     else [float(v) for v in coarse.gate_center_base],
                     "time_s": float(coarse.time_s),
                     "model": model_json(coarse.base_from_corrected),
+                    # What the seeding shows (heading, scale, the gate used), not only the model.
+                    "heading_deg": _float_or_none(coarse.heading_deg),
+                    "scale": _float_or_none(coarse.scale),
+                    "gate": coarse.gate,
+                    "model_kind": coarse.model_kind,
+                    "ambiguity": _float_or_none(coarse.ambiguity),
                 }
             )
         ),
@@ -217,6 +223,8 @@ def reference_to_bytes(key: dict, coarse, fine) -> bytes:
         "c_gated": coarse.gated,
         "c_inliers": coarse.inliers,
     }
+    if coarse.gate_outline_base is not None:
+        arrays["c_gate_outline"] = np.asarray(coarse.gate_outline_base, np.float64)
     if fine is not None:
         arrays["f_meta"] = np.array(
             json.dumps(
@@ -235,6 +243,10 @@ def reference_to_bytes(key: dict, coarse, fine) -> bytes:
     buf = _io.BytesIO()
     np.savez_compressed(buf, **arrays)
     return buf.getvalue()
+
+
+def _float_or_none(v) -> float | None:
+    return None if v is None else float(v)
 
 
 def reference_from_file(path: Path):
@@ -268,6 +280,12 @@ def reference_from_file(path: Path):
             else np.asarray(cm["gate_center_base"], float),
             gate_radius_base=cm["gate_radius_base"],
             time_s=cm["time_s"],
+            heading_deg=cm.get("heading_deg"),
+            scale=cm.get("scale"),
+            gate=cm.get("gate", ""),
+            gate_outline_base=a.get("c_gate_outline"),
+            model_kind=cm.get("model_kind", "projective"),
+            ambiguity=cm.get("ambiguity"),
         )
         fine = None
         if "f_meta" in a:

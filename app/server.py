@@ -38,6 +38,7 @@ import viser
 
 from app import assets, scene2d, security
 from app.inputs import Inputs
+from app.progress import human_size
 from app.project import Project, default_project_dir, input_identity, upload_name
 from app.security import escape_md, resolve_allowed
 from app.state import MODES, STEPS, AppState
@@ -75,6 +76,8 @@ class App:
         frames, base: input paths; None for both = the saved inputs or the built-in demo.
         allowed_dirs: folders the browser's path field may open from (the project is added).
         max_upload_mb: uploads larger than this are refused while they arrive.
+        max_download_mb: files (and zipped exports) larger than this are not sent to the browser
+            (they are in the project folder); the whole file is held in memory while sent.
         display_max: longest side in pixels of images sent to the browser for frames;
             the base map is sent at up to twice that.
         demo_builder: returns the demo folder (frames/, base.png); default
@@ -93,6 +96,7 @@ class App:
         base: str | None = None,
         allowed_dirs: list[Path] | None = None,
         max_upload_mb: float = 500.0,
+        max_download_mb: float = 1024.0,
         display_max: int = 1024,
         demo_builder: Callable[..., Path] | None = None,
         project_is_explicit: bool = True,
@@ -110,6 +114,7 @@ class App:
             on_finish=self._job_finished,
         )
         self.max_upload_bytes = int(max_upload_mb * 1024 * 1024)
+        self.max_download_bytes = int(max_download_mb * 1024 * 1024)
         self.display_max = int(display_max)
         self.allowed_dirs = [Path(p).expanduser().resolve() for p in (allowed_dirs or [])]
         self.inputs: Inputs | None = None
@@ -221,7 +226,7 @@ class App:
         allowed = ", ".join(escape_md(p) for p in self.allowed_roots())
         self.inputs_md.content = (
             f"Project: {escape_md(self.project.folder)}  \nPaths may lie under: {allowed}  \n"
-            f"Uploads up to {_size(self.max_upload_bytes)}; upload both inputs, or one and "
+            f"Uploads up to {human_size(self.max_upload_bytes)}; upload both inputs, or one and "
             "press *Open paths*."
         )
 
@@ -347,7 +352,7 @@ class App:
         self.notify(
             client,
             "Upload refused",
-            f"{name} is {_size(size)}; the limit is {_size(self.max_upload_bytes)} (--max-upload-mb)",
+            f"{name} is {human_size(size)}; the limit is {human_size(self.max_upload_bytes)} (--max-upload-mb)",
             color="red",
         )
 
@@ -361,8 +366,8 @@ class App:
             self.notify(
                 client,
                 "Upload refused",
-                f"{name} is {_size(len(content))}; the limit is "
-                f"{_size(self.max_upload_bytes)} (--max-upload-mb)",
+                f"{name} is {human_size(len(content))}; the limit is "
+                f"{human_size(self.max_upload_bytes)} (--max-upload-mb)",
                 color="red",
             )
             return
@@ -612,6 +617,25 @@ class App:
         target = client if client is not None else self.server
         target.send_file_download(name, data, save_immediately=True)
 
+    def offer_file(self, path: Path, client=None, *, name: str | None = None) -> bool:
+        """Send a file the app wrote into the project to the browser (saved there at once) and
+        say where it is; files over the download limit stay on disk only (the notice says so)."""
+        path = Path(path)
+        size = path.stat().st_size
+        where = str(path)
+        if size > self.max_download_bytes:
+            self.notify(
+                client,
+                f"{path.name} saved",
+                f"{where} ({human_size(size)}) is over the download limit "
+                f"({human_size(self.max_download_bytes)}): copy it from the project folder",
+                color="yellow",
+            )
+            return False
+        self.send_download(client, name or path.name, path.read_bytes())
+        self.notify(client, name or path.name, f"saved to {where} and sent", color="green")
+        return True
+
     def record_error(self, message: str) -> None:
         """Log an error and keep it for tests and the benchmark (the last 20)."""
         log.warning("%s", message)
@@ -660,16 +684,6 @@ class App:
         if self.inputs is not None:
             self.inputs.close()
         self.server.stop()
-
-
-def _size(n: float) -> str:
-    """Human-readable byte count (B, kB, MB, GB; 1 kB = 1024 B)."""
-    if n < 1024:
-        return f"{n:.0f} B"
-    for unit, k in (("kB", 1), ("MB", 2), ("GB", 3)):
-        if n < 1024 ** (k + 1) or unit == "GB":
-            return f"{n / 1024**k:.1f} {unit}"
-    raise AssertionError("unreachable")
 
 
 def bound_address(host: str, port: int) -> str:

@@ -65,6 +65,8 @@ class AppState:
         line_open: True while the last polyline still takes clicks.
         seed_frame, seed_base: the seed correspondence: raw reference-frame pixel, base pixel;
             ``seed2_frame``, ``seed2_base``: an optional second pair (heading and scale).
+        seed2_typed: ``(heading_deg, scale)`` the analyst typed, or None; pair 2 is then computed
+            from it (:func:`app.calls.second_seed_from_similarity`) and follows pair 1.
         seed_pair: which pair the next clicks place (1 or 2).
         reference_frame: index of the reference frame (paper: the first).
         preset: registration.config preset name; ``transform`` a :data:`TRANSFORMS` name;
@@ -101,6 +103,7 @@ class AppState:
     seed_base: tuple[float, float] | None = None
     seed2_frame: tuple[float, float] | None = None
     seed2_base: tuple[float, float] | None = None
+    seed2_typed: tuple[float, float] | None = None
     seed_pair: int = 1
     reference_frame: int = 0
     preset: str = "default"
@@ -138,6 +141,7 @@ class AppState:
         "seed_base",
         "seed2_frame",
         "seed2_base",
+        "seed2_typed",
         "reference_frame",
         "preset",
         "transform",
@@ -155,7 +159,14 @@ class AppState:
         "eval_frame",
         "anchor",
     )
-    _UNDOABLE = ("seed_frame", "seed_base", "seed2_frame", "seed2_base", "cp_edits")
+    _UNDOABLE = (
+        "seed_frame",
+        "seed_base",
+        "seed2_frame",
+        "seed2_base",
+        "seed2_typed",
+        "cp_edits",
+    )
 
     # ------------------------------------------------------------------ derived
     @property
@@ -185,6 +196,14 @@ class AppState:
             "reference_frame": int(self.reference_frame),
             "preset": self.preset,
             "degree": self.degree,
+        }
+
+    def confirmed_marks(self) -> dict[str, dict[int, tuple[float, float]]]:
+        """The evaluation marks without pending proposals: what counts (call under the lock)."""
+        pending = set(self.pending)
+        return {
+            p: {k: xy for k, xy in m.items() if (p, k) not in pending}
+            for p, m in self.points.items()
         }
 
     def current_reference(self) -> ReferenceFit | None:
@@ -272,7 +291,13 @@ class AppState:
                     value = {(str(p), int(k)): float(s) for p, k, s in value}
                 elif name == "lines":
                     value = [[(float(x), float(y)) for x, y in line] for line in value]
-                elif name in ("seed_frame", "seed_base", "seed2_frame", "seed2_base"):
+                elif name in (
+                    "seed_frame",
+                    "seed_base",
+                    "seed2_frame",
+                    "seed2_base",
+                    "seed2_typed",
+                ):
                     value = None if value is None else (float(value[0]), float(value[1]))
                 elif name in ("gamma", "opacity", "vector_scale"):
                     value = float(value)

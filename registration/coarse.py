@@ -13,9 +13,12 @@ matches, RANSAC (4 points, 5 px, 1000 iterations) with Nelder-Mead. The paper's 
 3. With ``match_base_scale`` the base's coarse scale follows the estimated scale, so both coarse
    images have about the same ground resolution (a map at 0.5x or 2x the frame's).
 4. RANSAC (paper), then ``refine_rounds`` of guided re-matching around the fitted model, and a
-   choice among similarity, affine and projective by BIC (``models``): a projective whose two
-   perspective terms are not supported by the points extrapolates badly at the frame's corners.
-5. A result that contradicts the clicked seed by more than the click can be off is refused with a
+   choice among similarity, affine and projective (``models``) by spatial cross-validation and
+   how much of the frame the points span: a projective whose two perspective terms are not
+   supported by the points extrapolates badly at the frame's corners.
+5. With ``correlation`` rounds, gradient-magnitude template correlation at reduced scale refines
+   the result, or rescues a seeded one SIFT could not find (:mod:`registration.correlation`).
+6. A result that contradicts the clicked seed by more than the click can be off is refused with a
    message that says so, never returned silently.
 
 All models are ``base_from_corrected``: corrected-frame pixels to base pixels. The intra-sensor
@@ -40,7 +43,7 @@ from registration.correlation import CorrelationConfig, agreement, refine_by_cor
 from registration.distortion import HarrisModel, undistort_image
 from registration.features import Keypoints, SiftConfig
 from registration.heading import HeadingConfig, SimilarityPrior
-from registration.models import Affine, Projective, Similarity
+from registration.models import Affine, Projective, Similarity, quantized
 from registration.robust import RansacConfig, ransac, simplest_supported
 
 Seed = tuple[float, float, float, float]
@@ -360,7 +363,7 @@ def _select_model(src, dst, kinds: Sequence[str], current: Projective, probes) -
 class _Attempt:
     """One prior's outcome, in coarse pixels: every ratio match plus the guided ones (``gated``
     marks those the gate let through), the inliers of the kept model among them, and ``score``:
-    the number of pairs the final model was fitted on."""
+    how many gated candidates the kept model fits (its support)."""
 
     model: Projective | None
     kind: str
@@ -384,11 +387,13 @@ def _attempt(
 ) -> _Attempt:
     """Gate (and guide) the matches with a coarse-pixel prior, RANSAC, refine (module doc).
 
-    Two consensus searches when ``guided``: on the gated ratio matches (the paper; right
-    matches are then often the majority, and a strongly tilted frame's perspective survives),
-    and on those plus the guided matches, pre-filtered by a similarity through the anchor (more
-    right matches when the ratio test keeps few, as across years and sensors). Each is refined;
-    the one the final model fits more pairs of is kept. ``domain``: the frame's outline in
+    Consensus searches (:func:`_consensus`) on two sets of pairs when ``guided``: the gated
+    ratio matches (the paper; right matches are then often the majority, and a strongly tilted
+    frame's perspective survives), and those plus the guided matches, pre-filtered by a
+    similarity through the anchor (more right matches when the ratio test keeps few, as across
+    years and sensors); each from a projective and from an affine RANSAC. The search whose
+    model fits the most gated candidates wins, the simplest model among those within
+    ``_NEAR_BEST`` of it. ``domain``: centres of a 10 x 10 grid of cells over the frame in
     coarse corrected pixels (for the model choice).
     """
     hcfg = config.heading
@@ -475,10 +480,11 @@ _COMPLEXITY = {"similarity": 0, "affine": 1, "projective": 2}
 
 
 def _consensus(p, q, fk, bk, prior, config, rng, domain, first=Projective):
-    """RANSAC (projective) on the pairs, the model the points support (:func:`_select_model`),
-    then ``refine_rounds`` of guided re-matching within ``refine_radius_px`` of that model and
-    again; a round that fits fewer of the original pairs is undone. Returns ``(model, kind,
-    fitted frame px, fitted base px)`` or None."""
+    """RANSAC on the pairs (the ``first`` model: projective, or affine then refitted as a
+    projective), the model the points support (:func:`_select_model`), then ``refine_rounds``
+    of guided re-matching within ``refine_radius_px`` of that model and a projective RANSAC on
+    those matches; a round that fits fewer of the original pairs is undone. Returns ``(model,
+    kind, fitted frame px, fitted base px)`` or None."""
     fit = ransac(p, q, first, _ransac_config(config, sample_size=first.min_samples), rng)
     if not fit:
         return None
@@ -576,7 +582,7 @@ def fit_coarse(
         result.reason = f"coarse step: RANSAC failed: {fit.reason}"
         return result
     inliers[idx[fit.inliers]] = True
-    result.base_from_corrected = fit.model.rescaled(1.0 / s, 1.0 / s)
+    result.base_from_corrected = quantized(fit.model.rescaled(1.0 / s, 1.0 / s))
     result.success = True
     return result
 
@@ -683,13 +689,14 @@ def coarse_register(
             2 * cfg.min_inliers_unseeded, 2 * cfg.decisive_ratio * priors[i + 1].votes
         ):
             break
-    result = _decide(attempts, priors, seeds, frame, base_c, cfg, w, h)
+    result = _decide(attempts, priors, seeds, frame, base_c, cfg, w, h, harris)
     result.n_keypoints_frame = len(frame.keypoints)
     result.n_keypoints_base = len(base_c.keypoints)
     if cfg.correlation.rounds and (result.success or (seeds and priors)):
         _correlate(result, view, cbase, priors, seeds, s_f, cfg, rng, domain, base_c.scale)
     if seeds and result.success:
-        _check_seed(result, seeds, harris, cfg, priors[0] if priors else None)
+        _check_seed(result, seeds, harris, cfg)
+    result.base_from_corrected = quantized(result.base_from_corrected)
     result.time_s = time.perf_counter() - t0
     return result
 
@@ -742,8 +749,16 @@ def _correlate(result, view, cbase, priors, seeds, s_f, cfg, rng, probes, s_b) -
         result.gate = result.gate or "seed"
 
 
+# The reference frame's matches are exact (brute force) below this many descriptor pairs (~1 s
+# per 40 M here): a one-off per sequence, and FLANN's approximate neighbours change with its
+# random trees, which moved the reference frame's registration by up to 0.3 px between seeds.
+_EXACT_MAX_PAIRS = 400_000_000
+
+
 def _priors(seeds, harris, frame, base_c, cfg, w, h):
-    matches = features.match_ratio(frame.keypoints, base_c.keypoints, cfg.ratio)
+    n_pairs = len(frame.keypoints) * len(base_c.keypoints)
+    method = "bf" if n_pairs <= _EXACT_MAX_PAIRS else "flann"
+    matches = features.match_ratio(frame.keypoints, base_c.keypoints, cfg.ratio, method=method)
     attr = heading.attribute_differences(frame.keypoints, base_c.keypoints, matches)
     if seeds:
         priors = _seed_priors(seeds, harris, frame, base_c, matches, attr, cfg)
@@ -758,7 +773,7 @@ def _priors(seeds, harris, frame, base_c, cfg, w, h):
     return priors, matches, attr
 
 
-def _decide(attempts, priors, seeds, frame, base_c, cfg, w, h) -> CoarseResult:
+def _decide(attempts, priors, seeds, frame, base_c, cfg, w, h, harris) -> CoarseResult:
     """Build the result from the best attempt (or say why there is none)."""
     sf, sb = frame.scale, base_c.scale
     empty = np.zeros((0, 2))
@@ -783,7 +798,6 @@ def _decide(attempts, priors, seeds, frame, base_c, cfg, w, h) -> CoarseResult:
     result.ambiguity = prior.ambiguity
     result.gate_center_base = full.anchor_base
     if seeds:
-        harris = None  # the outline is drawn from the corrected frame's outline
         outline = _gate_outline(full, w, h, harris, cfg)
         result.gate_outline_base = outline
         result.gate_radius_base = float(np.max(np.hypot(*(outline - full.anchor_base).T)))
@@ -820,7 +834,7 @@ def _decide(attempts, priors, seeds, frame, base_c, cfg, w, h) -> CoarseResult:
     return result
 
 
-def _check_seed(result: CoarseResult, seeds, harris, cfg: CoarseConfig, prior) -> None:
+def _check_seed(result: CoarseResult, seeds, harris, cfg: CoarseConfig) -> None:
     """Refuse a registration that puts a seed's frame point far from its clicked base point."""
     model = result.base_from_corrected
     for fx, fy, bx, by in seeds:

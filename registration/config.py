@@ -116,6 +116,9 @@ REFERENCE_LOCAL = LocalConfig(
 # ground points: global 1.78 px; with the field from templates every 50 px 1.15 px (p95 4.7),
 # every 25 px 0.54 px (p95 1.2).
 REFERENCE_TEMPLATE_SPACING_PX = 25
+# Re-anchoring (global_registration.IntraConfig.reanchor_coverage): a frame less than 75 % on the
+# mid base image is registered to the base map again and fills the mid base image's holes.
+REANCHOR_COVERAGE = 0.75
 # Coarse SIFT keypoints per intra-sensor frame in the default preset (IntraConfig).
 INTRA_COARSE_NFEATURES = 2000
 # Intra-sensor templates of the default preset: every 100 px without the dithered
@@ -181,6 +184,8 @@ def _default() -> PipelineConfig:
                 **INTRA_TEMPLATE,
             ),
             reqcon=lm_reqcon,
+            reanchor_coverage=REANCHOR_COVERAGE,
+            base_fallback=True,
         ),
         local=replace(paper.local, **{**FLOW_OVERRIDES, **LOCAL_FLOW}),
         reference_local=REFERENCE_LOCAL,

@@ -129,15 +129,9 @@ def refine_by_correlation(
     # Gradient magnitude at full resolution, then area-averaged per round: the density of fine
     # edges (lane markings, kerbs, cars, roof texture) survives the reduction, which the
     # gradient of the reduced image loses (on the OrthoLoC pair: 2.7 px against 42 px).
-    grey = gradient_magnitude(frame_grey)
-    base_grey = gradient_magnitude(base)
-    w, h = image_size(grey)
+    images = _Gradients(frame_grey, base, base_valid, to_corrected, from_corrected)
     for side, search in config.rounds:
-        s = min(1.0, side / max(w, h))
-        scale = _model_scale(out.model, to_corrected, w, h)
-        s_b = min(1.0, s / scale) if np.isfinite(scale) and scale > 0 else s
-        found = _one_round(grey, to_corrected, from_corrected, base_grey, base_valid, out.model,
-                           s, s_b, search, config, rng)  # fmt: skip
+        found = _one_round(images, out.model, side, search, config, rng)
         if found is None:
             continue
         src, dst, model = found
@@ -156,31 +150,50 @@ def _model_scale(model, to_corrected, w: int, h: int) -> float:
     return float(np.hypot(*(b[1] - b[0])) / max(np.hypot(*(c[1] - c[0])), 1e-9))
 
 
-def _one_round(grey, to_corrected, from_corrected, base_grey, base_valid, model, s, s_b, search,
-               config, rng):  # fmt: skip
-    """One round at frame scale ``s`` and base scale ``s_b``: ``(frame_xy, base_xy, model)`` of
-    the RANSAC inliers (full-scale), or None."""
-    small = downscale(grey, s)
-    base_small = downscale(base_grey, s_b)
+class _Gradients:
+    """Both images' full-resolution gradient magnitude and the frame's pixel link."""
+
+    def __init__(self, frame_grey, base, base_valid, to_corrected, from_corrected):
+        self.frame, self.base = gradient_magnitude(frame_grey), gradient_magnitude(base)
+        self.valid = base_valid
+        self.to_corrected, self.from_corrected = to_corrected, from_corrected
+
+
+def _match_round(images: _Gradients, model, side: int, search: int, config: CorrelationConfig):
+    """The templates of one round: ``(control points at the round's scale, s, s_b,
+    base_from_small)`` with the frame resampled to ``side`` px (scale ``s``) and the base to the
+    same ground resolution under ``model`` (``s_b``)."""
+    w, h = image_size(images.frame)
+    s = min(1.0, side / max(w, h))
+    scale = _model_scale(model, images.to_corrected, w, h)
+    s_b = min(1.0, s / scale) if np.isfinite(scale) and scale > 0 else s
+    small, base_small = downscale(images.frame, s), downscale(images.base, s_b)
     valid_small = None
-    if base_valid is not None:
-        valid_small = downscale(np.asarray(base_valid, np.uint8) * 255, s_b) > 250
+    if images.valid is not None:
+        valid_small = downscale(np.asarray(images.valid, np.uint8) * 255, s_b) > 250
 
     def base_from_small(xy: NDArray) -> NDArray:
-        return rescale(model.apply(to_corrected(rescale(xy, 1.0 / s))), s_b)
+        return rescale(model.apply(images.to_corrected(rescale(xy, 1.0 / s))), s_b)
 
     def small_from_base(xy: NDArray) -> NDArray:
-        return rescale(from_corrected(model.inverse(rescale(xy, 1.0 / s_b))), s)
+        return rescale(images.from_corrected(model.inverse(rescale(xy, 1.0 / s_b))), s)
 
     tcfg = dataclasses.replace(config.template, search_px=int(search))
     cps = template_control_points(
         small, base_small, base_from_small, small_from_base, tcfg, ref_valid=valid_small
     )
+    return cps, s, s_b, base_from_small
+
+
+def _one_round(images: _Gradients, model, side, search, config, rng):
+    """One round: ``(frame_xy, base_xy, model)`` of the RANSAC inliers (full-scale corrected
+    and base px), or None."""
+    cps, s, s_b, _ = _match_round(images, model, side, search, config)
     if len(cps) < config.min_inliers:
         return None
     # RANSAC in corrected pixels (at the round's scale): a raw frame's lens distortion is not
     # projective.
-    src_small = rescale(to_corrected(rescale(cps.src, 1.0 / s)), s)
+    src_small = rescale(images.to_corrected(rescale(cps.src, 1.0 / s)), s)
     fit = ransac(src_small, cps.dst, Projective, config.ransac, rng)
     if not fit or fit.n_inliers < config.min_inliers:
         return None
@@ -205,27 +218,8 @@ def agreement(
     an image-based check of a model, independent of the SIFT matches it may come from."""
     if not config.rounds:
         return 0
-    grey, base_grey = gradient_magnitude(frame_grey), gradient_magnitude(base)
-    w, h = image_size(grey)
-    side, search = config.rounds[-1]
-    s = min(1.0, side / max(w, h))
-    scale = _model_scale(model, to_corrected, w, h)
-    s_b = min(1.0, s / scale) if np.isfinite(scale) and scale > 0 else s
-    small, base_small = downscale(grey, s), downscale(base_grey, s_b)
-    valid_small = None
-    if base_valid is not None:
-        valid_small = downscale(np.asarray(base_valid, np.uint8) * 255, s_b) > 250
-
-    def base_from_small(xy: NDArray) -> NDArray:
-        return rescale(model.apply(to_corrected(rescale(xy, 1.0 / s))), s_b)
-
-    def small_from_base(xy: NDArray) -> NDArray:
-        return rescale(from_corrected(model.inverse(rescale(xy, 1.0 / s_b))), s)
-
-    tcfg = dataclasses.replace(config.template, search_px=int(search))
-    cps = template_control_points(
-        small, base_small, base_from_small, small_from_base, tcfg, ref_valid=valid_small
-    )
+    images = _Gradients(frame_grey, base, base_valid, to_corrected, from_corrected)
+    cps, _, _, base_from_small = _match_round(images, model, *config.rounds[-1], config)
     if not len(cps):
         return 0
     pred = base_from_small(cps.src)

@@ -316,6 +316,7 @@ class Matches:
 # Below this many descriptor pairs (|a| * |b|) exact brute force beats building FLANN trees
 # (measured here: ~5 ns per pair for brute force, FLANN ~0.5 s for 22 k x 18 k).
 _BF_MAX_PAIRS = 4_000_000
+_FLANN_SEED = 0x5EED
 
 
 def _descriptors(kp: Keypoints | NDArray) -> NDArray[np.float32]:
@@ -360,6 +361,9 @@ def match_ratio(
     if method == "bf":
         matcher = cv2.BFMatcher(cv2.NORM_L2)
     else:
+        # FLANN's randomised kd-trees draw from OpenCV's (thread-local) RNG: seeding it here
+        # makes the approximate matches, and everything after them, reproducible.
+        cv2.setRNGSeed(_FLANN_SEED)
         matcher = cv2.FlannBasedMatcher({"algorithm": 1, "trees": 4}, {"checks": 64})
     knn = matcher.knnMatch(da, db, k=2)
     rows = [
@@ -512,12 +516,15 @@ class GriddedReference:
         frame_from_ref: reference px -> frame px (accepted for symmetry; not needed here).
         keypoints: precomputed keypoints of ``image`` (e.g. of the mid base image, computed
             once per sequence); None = detect them inside the needed windows only.
+        valid: ``(H, W)`` bool, where ``image`` has content (None = everywhere); used by the
+            template matcher's fallbacks.
     """
 
     image: NDArray
     ref_from_frame: PointFunction
     frame_from_ref: PointFunction | None = None
     keypoints: Keypoints | None = None
+    valid: NDArray | None = None
 
 
 Reference = GriddedReference  # short alias used by the pipeline

@@ -41,7 +41,7 @@ from registration.coarse import (
 from registration.coords import bbox_of, frame_outline, image_size, rescale
 from registration.distortion import HarrisModel
 from registration.features import ControlPoints, GriddedSiftConfig, Keypoints
-from registration.models import Affine, PolyProjective, Projective, Similarity
+from registration.models import Affine, PolyProjective, Projective, Similarity, quantized
 from registration.robust import FitResult, ReqconConfig, reqcon, simplest_supported
 from registration.templates import TemplateConfig, template_control_points
 
@@ -62,6 +62,9 @@ __all__ = [
     "frame_view",
     "make_joint_base",
     "previous_frame_state",
+    "add_to_mid_base",
+    "mid_coverage",
+    "register_anchor",
     "register_intra",
 ]
 
@@ -113,6 +116,21 @@ class IntraConfig:
         use_previous_frame: also match against the previously registered frame (paper 4.4's
             joint base), which keeps control points available when the helicopter drifts away
             from the mid base image's footprint.
+        reanchor_coverage: beyond the paper (0 = never, the paper): when less than this share
+            of a registered frame lies on the mid base image, the frame is registered to the
+            base map itself again (an inter-sensor fine step started from its intra-sensor
+            model, no click: :func:`register_anchor`) and added to the mid base image where it
+            has no content. Once a frame has left the reference frame's footprint, the paper's
+            joint base leaves it only the previous frame, and errors accumulate frame after
+            frame; anchors bound them by the inter-sensor accuracy.
+        reanchor_max_shift_px: an anchor whose model differs from the frame's intra-sensor
+            model by more than this (base px, median over the frame) is not trusted: the
+            frame keeps its intra-sensor registration.
+        base_fallback: beyond the paper (template control points only): templates that
+            neither the mid base image nor the previous frame cover are matched in the base
+            map itself (source 2). A frame flying over new ground has a leading edge that no
+            earlier frame saw; without control points there, the polyprojective extrapolates
+            (on a flyover at 480x360, hundreds of px at the leading corners).
     """
 
     prediction_gate_px: float = 150.0
@@ -122,8 +140,15 @@ class IntraConfig:
     template: TemplateConfig = field(default_factory=TemplateConfig)
     reqcon: ReqconConfig = field(default_factory=ReqconConfig)
     use_previous_frame: bool = True
+    reanchor_coverage: float = 0.0
+    reanchor_max_shift_px: float = 20.0
+    base_fallback: bool = False
 
     def __post_init__(self) -> None:
+        if not 0 <= self.reanchor_coverage <= 1:
+            raise ValueError(
+                f"IntraConfig.reanchor_coverage must be in [0, 1], got {self.reanchor_coverage}"
+            )
         if self.control_points not in ("gridded_sift", "template"):
             raise ValueError(
                 f"IntraConfig.control_points must be 'gridded_sift' or 'template', "
@@ -231,6 +256,10 @@ def _fit_fine(
     )
     if fit and check_support and degree > 1 and domain is not None:
         _fall_back_if_unsupported(result, degree, domain, probes)
+    if result.success:
+        # The model as recorded (reproducible runs, models.quantized) and its residuals.
+        result.base_from_corrected = quantized(result.base_from_corrected)
+        result.residuals = np.asarray(result.base_from_corrected.residuals(cps.src, cps.dst))
     result.time_s = time.perf_counter() - t0
     return result
 
@@ -281,7 +310,6 @@ def _fall_back_if_unsupported(
     result.base_from_corrected = PolyProjective.from_projective(
         proj, degree, poly.src_norm, poly.dst_norm
     )
-    result.residuals = np.asarray(proj.residuals(result.src, result.dst), float)
     result.model_reason = (
         f"the {kind} predicts held-out parts of the {len(src)} kept control points at least as "
         "well as the richer models, whose extra terms the points do not determine"
@@ -305,11 +333,33 @@ def fine_register_reference(
     the projective is kept where the points do not support the polyprojective
     (``FineResult.model_kind`` and ``model_reason`` say which and why).
     """
-    t0 = time.perf_counter()
     if not coarse:
         raise ValueError("fine_register_reference needs a successful coarse result")
+    return _fine_against_base(
+        frame_raw, base, gamma, coarse.base_from_corrected, config, base_valid
+    )
+
+
+def register_anchor(
+    frame_raw: NDArray,
+    base: NDArray,
+    gamma: float,
+    start,
+    config,
+    *,
+    base_valid: NDArray | None = None,
+) -> FineResult:
+    """Re-anchor a frame to the base map (beyond the paper; ``IntraConfig.reanchor_coverage``):
+    the inter-sensor fine step of the reference frame (templates against the base map, REQCON),
+    started from ``start``, the frame's intra-sensor ``base_from_corrected`` (no click needed:
+    it is accurate to a few pixels)."""
+    return _fine_against_base(frame_raw, base, gamma, start, config, base_valid)
+
+
+def _fine_against_base(frame_raw, base, gamma, model, config, base_valid) -> FineResult:
+    """Template control points of the frame in the base map around ``model``, then REQCON."""
+    t0 = time.perf_counter()
     cfg: FineConfig = config.fine
-    model = coarse.base_from_corrected
     view = frame_view(frame_raw, gamma, config.match_in)
     cps = _template_points(view, features.to_grey(base), model, cfg.template, ref_valid=base_valid)
     w, h = image_size(frame_raw)
@@ -370,6 +420,10 @@ class JointBase:
             False.
         mid_valid: (Hb, Wb) bool, where the mid base image has content.
         mid_coarse: coarse SIFT of the mid base image.
+        mid_image: the mid base image as rendered (colour), for writing it out.
+        base_grey, base_valid: the base map (grey) and its content mask, searched by the
+            templates that neither the mid base image nor the previous frame can take
+            (``IntraConfig.base_fallback``).
         mid_sift: full-scale SIFT of the mid base image (gridded-SIFT control points), lazily.
         previous: the previously registered frame, or None.
         previous_index: that frame's index in the sequence.
@@ -380,6 +434,9 @@ class JointBase:
     mid_grey: NDArray[np.uint8]
     mid_valid: NDArray[np.bool_]
     mid_coarse: CoarseFeatures
+    mid_image: NDArray[np.uint8] | None = None
+    base_grey: NDArray[np.uint8] | None = None
+    base_valid: NDArray[np.bool_] | None = None
     mid_sift: Keypoints | None = None
     previous: PreviousFrame | None = None
     previous_index: int | None = None
@@ -421,7 +478,42 @@ def make_joint_base(mid_base: NDArray, mid_valid: NDArray[np.bool_], config) -> 
     """Prepare the mid base image for intra-sensor registration (computes its coarse SIFT once)."""
     grey = features.to_grey(mid_base)
     grey = np.where(mid_valid, grey, 0).astype(np.uint8)
-    return JointBase(grey, mid_valid, coarse_features(grey, config.coarse, mask=mid_valid))
+    coarse = coarse_features(grey, config.coarse, mask=mid_valid)
+    return JointBase(grey, mid_valid, coarse, mid_image=mid_base)
+
+
+def add_to_mid_base(
+    joint: JointBase, image: NDArray, valid: NDArray[np.bool_], box, config
+) -> None:
+    """Fill the mid base image's empty pixels inside ``box`` = ``(x0, y0, x1, y1)`` from
+    ``image`` (a re-anchored frame rendered into that box, with its ``valid`` mask); content
+    already there (the reference frame, earlier anchors) is kept, so a run's mid base image
+    depends only on which frames were anchors and in which order. Features and the prepared
+    local-stage references are recomputed or dropped."""
+    x0, y0, x1, y1 = box
+    hole = np.asarray(valid, bool) & ~joint.mid_valid[y0:y1, x0:x1]
+    if not hole.any():
+        return
+    joint.mid_grey[y0:y1, x0:x1][hole] = features.to_grey(image)[hole]
+    if joint.mid_image is not None:
+        joint.mid_image[y0:y1, x0:x1][hole] = image[hole]
+    joint.mid_valid[y0:y1, x0:x1] |= hole
+    joint.mid_coarse = coarse_features(joint.mid_grey, config.coarse, mask=joint.mid_valid)
+    joint.mid_sift = joint.local_keypoints = joint.flow_reference = None
+
+
+def mid_coverage(joint: JointBase, frame_raw: NDArray, gamma: float, model) -> float:
+    """Share of the frame (a 16 x 12 grid of raw pixels) that ``model`` puts on content of the
+    mid base image."""
+    w, h = image_size(frame_raw)
+    gx, gy = np.meshgrid((np.arange(16) + 0.5) * w / 16 - 0.5, (np.arange(12) + 0.5) * h / 12 - 0.5)
+    b = model.apply(HarrisModel(gamma, w, h).corrected_from_raw(np.c_[gx.ravel(), gy.ravel()]))
+    hb, wb = joint.mid_valid.shape
+    xi, yi = np.round(b[:, 0]), np.round(b[:, 1])
+    ok = np.isfinite(b).all(axis=1) & (xi >= 0) & (xi < wb) & (yi >= 0) & (yi < hb)
+    inside = np.zeros(len(b), bool)
+    inside[ok] = joint.mid_valid[yi[ok].astype(int), xi[ok].astype(int)]
+    return float(inside.mean())
 
 
 def register_intra(
@@ -505,14 +597,19 @@ def register_intra(
         )
         cps = _points_to_corrected(cps, view)
     else:
-        fallback = None
+        fallbacks = []
         if prev is not None:
             p, pv = prev.base_from_corrected, prev.view
-            fallback = features.Reference(
+            fallbacks.append(features.Reference(
                 pv.grey, lambda xy: pv.from_corrected(p.inverse(model.apply(view.to_corrected(xy))))
-            )
+            ))  # fmt: skip
+        if cfg.base_fallback and joint.base_grey is not None:
+            fallbacks.append(features.Reference(
+                joint.base_grey, lambda xy: model.apply(view.to_corrected(xy)),
+                valid=joint.base_valid,
+            ))  # fmt: skip
         cps = _template_points(
-            view, joint.mid_grey, model, cfg.template, ref_valid=joint.mid_valid, fallback=fallback
+            view, joint.mid_grey, model, cfg.template, ref_valid=joint.mid_valid, fallback=fallbacks
         )
     if prev is not None and len(cps.src):
         # Points found in the previous frame (source 1) are in its raw pixels: to base pixels.

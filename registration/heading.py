@@ -478,7 +478,7 @@ def guided_matches(
     within ``radius_px`` whose orientation and size differences agree with ``heading_deg`` and
     ``scale`` (``attribute_tolerance_*``); the nearest descriptor wins when it passes the ratio
     test against the second nearest candidate (``ratio``, default ``guided_ratio``; a lone
-    candidate passes). Ties go to the lower base index.
+    candidate passes). Of equal descriptor distances, the candidate nearest the prediction wins.
 
     Args:
         frame_kp, base_kp: keypoints (frame and base pixels).

@@ -1283,3 +1283,66 @@ __all__ = [
     "neighbour_check",
     "flow_matches",
 ]
+
+
+def reference_field(fine, base_size: tuple[int, int], config: LocalConfig):
+    """The reference frame's inter-sensor displacement field (beyond the paper) from its template
+    control points: each match says where the base map shows what the global model puts at
+    ``model(src)``, i.e. a sample ``d(dst) = model(src) - dst`` of the field of
+    :mod:`registration.local`. The per-cell REQCON and the moving-car guard of the local stage
+    turn them into a field; mismatches are outvoted by their neighbourhood.
+
+    Returns ``(field, stats)``, or ``(None, None)`` without control points.
+    """
+    ok = np.isfinite(fine.src).all(axis=1) & np.isfinite(fine.dst).all(axis=1)
+    if not ok.any():
+        return None, None
+    dst = fine.dst[ok]
+    disp = fine.base_from_corrected.apply(fine.src[ok]) - dst
+    wb, hb = base_size
+    x0, y0 = np.clip(np.floor(dst.min(axis=0)).astype(int), 0, (wb - 1, hb - 1))
+    x1, y1 = np.clip(np.ceil(dst.max(axis=0)).astype(int) + 1, (x0 + 1, y0 + 1), (wb, hb))
+    return estimate_field_from_matches(dst, disp, x1 - x0, y1 - y0, config, origin=(x0, y0))
+
+
+def frame_field(frame, gamma: float, model, joint, config: LocalConfig):
+    """The displacement field of an intra-sensor frame against the mid base image (paper
+    section 5): ``frame`` raw (H, W[, 3]), ``model`` its ``base_from_corrected``, ``joint`` the
+    :class:`registration.global_registration.JointBase` (its flow reference or keypoints are
+    prepared once and kept there). Returns ``(field, stats)`` or ``(None, None)``."""
+    from registration.distortion import HarrisModel
+    from registration.render import render_to_base
+
+    hb, wb = joint.mid_grey.shape
+    h, w = frame.shape[:2]
+    harris = HarrisModel(gamma, w, h)
+
+    def base_from_raw(q):
+        return model.apply(harris.corrected_from_raw(q))
+
+    grey = features.to_grey(frame)
+    if config.method == "flow":
+        # Measured in the frame's geometry: no rendering of the frame into base pixels.
+        if joint.flow_reference is None:
+            joint.flow_reference = prepare_flow_reference(
+                joint.mid_grey, joint.mid_valid, flow_scale(w, config)
+            )
+        return estimate_field_in_frame(grey, base_from_raw, joint.flow_reference, config)
+    box = bbox_of(base_from_raw(frame_outline(w, h)), (wb, hb), 2)
+    x0, y0, x1, y1 = box
+    if x1 - x0 < 2 or y1 - y0 < 2:
+        return None, None
+    registered, valid = render_to_base(grey, gamma, model, box)
+    reference = joint.mid_grey[y0:y1, x0:x1]
+    both = valid & joint.mid_valid[y0:y1, x0:x1]
+    # The mid base image is the reference of every frame: detect its keypoints once.
+    if joint.local_keypoints is None:
+        joint.local_keypoints = detect_keypoints(joint.mid_grey, config, mask=joint.mid_valid)
+    return estimate_field(
+        registered,
+        reference,
+        config,
+        valid_mask=both,
+        origin=(x0, y0),
+        reference_keypoints=joint.local_keypoints,
+    )

@@ -53,6 +53,7 @@ __all__ = [
     "Translation",
     "model_from_dict",
     "n_polyprojective_params",
+    "quantized",
 ]
 
 OPTIMIZERS = ("lstsq", "lm", "nelder-mead")
@@ -449,6 +450,27 @@ def _geometric_fun(
         return out
 
     return fun, jac
+
+
+# A stage's output model is rounded to multiples of 2^-34 (~6e-11) in its parameters (of order
+# one in normalised coordinates, so ~1e-7 px): MINPACK's result depends in its last bits on the
+# memory alignment of its work arrays (vectorised loops peel differently), which differs from
+# one call to the next; unrounded, those ~1e-13 differences decide which control points REQCON
+# drops and which cells the local stage keeps downstream, and two identical runs drift apart by
+# pixels. Rounding the outputs (not the optimiser's steps) makes runs reproducible except when
+# a parameter falls within ~1e-13 of a rounding boundary.
+_QUANTUM_EXP = 34
+
+
+def quantize(params: Array) -> Array:
+    """``params`` rounded to multiples of ``2**-34`` (see above)."""
+    p = np.asarray(params, np.float64)
+    return np.ldexp(np.round(np.ldexp(p, _QUANTUM_EXP)), -_QUANTUM_EXP)
+
+
+def quantized(model: Any) -> Any:
+    """``model`` with its parameters rounded by :func:`quantize` (None stays None)."""
+    return None if model is None else model.with_params(quantize(model.params))
 
 
 def _refine(

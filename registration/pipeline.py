@@ -23,24 +23,27 @@ from numpy.typing import NDArray
 from registration import features
 from registration.coarse import normalise_seeds
 from registration.config import PipelineConfig, config_from_dict
-from registration.coords import image_size
+from registration.coords import bbox_of, frame_outline, image_size
 from registration.distortion import HarrisModel, check_harris_gamma
 from registration.global_registration import (
     CoarseResult,
     FineResult,
     JointBase,
+    add_to_mid_base,
     coarse_register,
     fine_register_reference,
-    footprint_bbox,
     make_joint_base,
+    mid_coverage,
     previous_frame_state,
+    register_anchor,
     register_intra,
 )
 from registration.io import FrameSource
+from registration.local import frame_field, reference_field
+from registration.render import render_to_base
 from registration.result import RegistrationResult, ResultWriter, make_metadata
 from registration.result import frame_arrays as _frame_arrays
 from registration.result import frame_stats as _stats
-from registration.warp import warp_image
 
 log = logging.getLogger(__name__)
 
@@ -102,31 +105,6 @@ def validate_inputs(frames: FrameSource, base: NDArray, gamma, seed, reference_f
                 f"scale, got frame ({f0:g}, {g0:g}) and ({f1:g}, {g1:g}), base ({b0:g}, {c0:g}) "
                 f"and ({b1:g}, {c1:g})"
             )
-
-
-def render_to_base(
-    frame_raw: NDArray,
-    gamma: float,
-    base_from_corrected,
-    box: tuple[int, int, int, int],
-    field=None,
-) -> tuple[NDArray, NDArray[np.bool_]]:
-    """The raw frame resampled once into the base-pixel box ``(x0, y0, x1, y1)``.
-
-    Returns the image and its validity mask; base pixels map to raw pixels through the
-    displacement field (when given: ``x + d(x)``, :mod:`registration.local`), the model's
-    inverse and the Harris model, so the frame is interpolated only once.
-    """
-    w, h = image_size(frame_raw)
-    harris = HarrisModel(gamma, w, h)
-    x0, y0, x1, y1 = box
-
-    def raw_from_base(b):
-        if field is not None:
-            b = b + field.sample(b, outside="clamp")
-        return harris.raw_from_corrected(base_from_corrected.inverse(b))
-
-    return warp_image(frame_raw, raw_from_base, x1 - x0, y1 - y0, origin=(x0, y0))
 
 
 def register_sequence(
@@ -202,6 +180,7 @@ def register_sequence(
         joint = _reference_step(
             frames, base, gamma, seed, reference_frame, config, writer, reference, base_valid
         )
+        anchors = _Anchoring(base, base_valid, gamma, config, writer, joint)
         n_done = sum(writer.done(k) for k in order)
         if progress:
             progress(n_done, n)
@@ -221,6 +200,7 @@ def register_sequence(
                 prev = previous_in_order(k, reference_frame)
                 _set_previous(joint, frames, gamma, result, prev, config)
                 record, arrays, state = _register_one(frame, k, gamma, joint, config)
+                record, arrays, state = anchors.maybe(frame, k, record, arrays, state)
                 writer.write_frame(k, record, arrays)
                 if state is not None:
                     joint.previous = state
@@ -258,20 +238,15 @@ def _reference_step(
     frame, problem = read_frame(frames, ref)
     if frame is None:
         raise ValueError(f"{problem}; choose another --reference-frame")
-    # Redone when its record or the mid base image is damaged or missing.
-    mid_base = writer.read_mid_base() if writer.done(ref) else None
     if writer.done(ref):
         rec = RegistrationResult(out_dir)
         if not rec.is_ok(ref):
             raise RegistrationFailed(
                 f"the reference frame {ref} failed before: {rec.records[ref].get('reason')}"
             )
-    if mid_base is not None:
-        mid, valid = mid_base
-        joint = make_joint_base(mid, valid, config)
-        joint.previous = previous_frame_state(frame, gamma, rec.model(ref), config)
-        joint.previous_index = ref
-        return joint
+        # Resuming: the mid base image is rebuilt from the records (the reference frame, then
+        # the anchors in processing order), exactly as the uninterrupted run built it.
+        return _rebuild_joint(frames, base, gamma, rec, config, base_valid)
 
     t0 = time.perf_counter()
     if reference is not None:
@@ -308,32 +283,117 @@ def _reference_step(
         "model": model.to_dict(),
     }
     writer.write_frame(ref, record, _frame_arrays(fine, field, field_stats))
-    joint = make_joint_base(mid, valid, config)
+    joint = _joint_base(mid, valid, base, base_valid, config)
     joint.previous = previous_frame_state(frame, gamma, model, config)
     joint.previous_index = ref
     return joint
 
 
-def reference_field(fine: FineResult, base_size: tuple[int, int], config):
-    """The reference frame's inter-sensor displacement field (beyond the paper) from its template
-    control points: each match says where the base map shows what the global model puts at
-    ``model(src)``, i.e. a sample ``d(dst) = model(src) - dst`` of the field of
-    :mod:`registration.local`. The per-cell REQCON and the moving-car guard of the local stage
-    turn them into a field; mismatches are outvoted by their neighbourhood.
+def _joint_base(mid, valid, base, base_valid, config) -> JointBase:
+    joint = make_joint_base(mid, valid, config)
+    if config.intra.base_fallback:
+        joint.base_grey = features.to_grey(base)
+        joint.base_valid = base_valid
+    return joint
 
-    Returns ``(field, stats)``, or ``(None, None)`` without control points.
-    """
-    from registration.local import estimate_field_from_matches
 
-    ok = np.isfinite(fine.src).all(axis=1) & np.isfinite(fine.dst).all(axis=1)
-    if not ok.any():
-        return None, None
-    dst = fine.dst[ok]
-    disp = fine.base_from_corrected.apply(fine.src[ok]) - dst
-    wb, hb = base_size
-    x0, y0 = np.clip(np.floor(dst.min(axis=0)).astype(int), 0, (wb - 1, hb - 1))
-    x1, y1 = np.clip(np.ceil(dst.max(axis=0)).astype(int) + 1, (x0 + 1, y0 + 1), (wb, hb))
-    return estimate_field_from_matches(dst, disp, x1 - x0, y1 - y0, config, origin=(x0, y0))
+def _rebuild_joint(frames, base, gamma, rec: RegistrationResult, config, base_valid) -> JointBase:
+    """The joint base of a resumed run, from the records alone: the reference frame rendered
+    with its model and field, then each anchor frame's pixels where the mid base image is still
+    empty, in processing order."""
+    ref = rec.reference_frame
+    wb, hb = image_size(base)
+    frame = frames.get(ref)
+    mid, valid = render_to_base(frame, gamma, rec.model(ref), (0, 0, wb, hb), rec.field(ref))
+    joint = _joint_base(mid, valid, base, base_valid, config)
+    for k in processing_order(rec.n_frames, ref)[1:]:
+        r = rec.records[k]
+        if r.get("status") == "ok" and r.get("stage") == ANCHOR_STAGE:
+            _render_anchor(joint, frames.get(k), gamma, rec.model(k), rec.field(k), config)
+    joint.previous = previous_frame_state(frame, gamma, rec.model(ref), config)
+    joint.previous_index = ref
+    return joint
+
+
+ANCHOR_STAGE = "inter-sensor anchor"
+
+
+def _render_anchor(joint: JointBase, frame, gamma, model, field, config) -> None:
+    """Add a re-anchored frame to the mid base image (where it is empty)."""
+    hb, wb = joint.mid_valid.shape
+    w, h = image_size(frame)
+    harris = HarrisModel(gamma, w, h)
+    box = bbox_of(model.apply(harris.corrected_from_raw(frame_outline(w, h))), (wb, hb), 2)
+    x0, y0, x1, y1 = box
+    if x1 - x0 < 2 or y1 - y0 < 2:
+        return
+    image, valid = render_to_base(frame, gamma, model, box, field)
+    add_to_mid_base(joint, image, valid, box, config)
+
+
+class _Anchoring:
+    """Re-anchoring of long flights (``IntraConfig.reanchor_coverage``, beyond the paper)."""
+
+    def __init__(self, base, base_valid, gamma, config, writer, joint: JointBase):
+        self.base, self.base_valid, self.gamma = base, base_valid, gamma
+        self.config, self.writer, self.joint = config, writer, joint
+
+    def maybe(self, frame, k, record, arrays, state):
+        """``(record, arrays, state)`` of frame ``k``: its intra-sensor result, or, when too
+        little of it lies on the mid base image, its registration to the base map itself."""
+        cfg = self.config.intra
+        if cfg.reanchor_coverage <= 0 or state is None:
+            return record, arrays, state
+        intra = state.base_from_corrected
+        coverage = mid_coverage(self.joint, frame, self.gamma, intra)
+        if coverage >= cfg.reanchor_coverage:
+            return record, arrays, state
+        t0 = time.perf_counter()
+        fine = register_anchor(frame, self.base, self.gamma, intra, self.config,
+                               base_valid=self.base_valid)  # fmt: skip
+        stats = record.setdefault("stats", {})
+        stats["mid_coverage"] = round(coverage, 3)
+        if not fine:
+            stats["anchor"] = f"not re-anchored: {fine.reason}"
+            return record, arrays, state
+        shift = _median_gap(fine.base_from_corrected, intra, frame, self.gamma)
+        if not shift <= cfg.reanchor_max_shift_px:
+            stats["anchor"] = f"not re-anchored: the map fit is {shift:.1f} px from the frame's"
+            return record, arrays, state
+        model = fine.base_from_corrected
+        field = field_stats = None
+        if self.config.run_local and self.config.reference_local is not None:
+            wb, hb = image_size(self.base)
+            field, field_stats = reference_field(fine, (wb, hb), self.config.reference_local)
+        _render_anchor(self.joint, frame, self.gamma, model, field, self.config)
+        if self.joint.mid_image is not None:
+            self.writer.write_mid_base(self.joint.mid_image, self.joint.mid_valid)
+        times = dict(stats.get("time_s", {}))
+        times["anchor"] = round(time.perf_counter() - t0, 4)
+        new_stats = _stats(_NoCoarse(), fine, times, field_stats)
+        new_stats.update(mid_coverage=round(coverage, 3), anchor_shift_px=round(shift, 3))
+        record = {"status": "ok", "reason": "", "stage": ANCHOR_STAGE, "stats": new_stats,
+                  "model": model.to_dict()}  # fmt: skip
+        state = previous_frame_state(frame, self.gamma, model, self.config)
+        return record, _frame_arrays(fine, field, field_stats), state
+
+
+class _NoCoarse:
+    """Coarse counts of a frame that had no coarse step of its own (an anchor)."""
+
+    n_keypoints_frame = n_keypoints_base = n_matches = n_inliers = 0
+    gated = np.zeros(0, bool)
+    model_kind = "none"
+    heading_deg = None
+
+
+def _median_gap(a, b, frame, gamma) -> float:
+    """Median distance (base px) between two ``base_from_corrected`` models over the frame."""
+    w, h = image_size(frame)
+    gx, gy = np.meshgrid(np.linspace(0, w - 1, 9), np.linspace(0, h - 1, 7))
+    c = HarrisModel(gamma, w, h).corrected_from_raw(np.c_[gx.ravel(), gy.ravel()])
+    d = np.hypot(*(a.apply(c) - b.apply(c)).T)
+    return float(np.median(d)) if np.isfinite(d).any() else float("inf")
 
 
 def _empty_points():
@@ -375,7 +435,7 @@ def _register_one(frame, k, gamma, joint: JointBase, config: PipelineConfig):
     field, field_stats = None, None
     if config.run_local:
         t1 = time.perf_counter()
-        field, field_stats = _local_field(frame, gamma, model, joint, config)
+        field, field_stats = frame_field(frame, gamma, model, joint, config.local)
         times["local"] = time.perf_counter() - t1
     times["total"] = time.perf_counter() - t0
     record = {
@@ -386,51 +446,6 @@ def _register_one(frame, k, gamma, joint: JointBase, config: PipelineConfig):
         "model": model.to_dict(),
     }
     return record, _frame_arrays(fine, field, field_stats), state
-
-
-def _local_field(frame, gamma, model, joint: JointBase, config: PipelineConfig):
-    """The frame's displacement field against the mid base image (paper section 5)."""
-    from registration.local import (
-        detect_keypoints,
-        estimate_field,
-        estimate_field_in_frame,
-        flow_scale,
-        prepare_flow_reference,
-    )
-
-    hb, wb = joint.mid_grey.shape
-    h, w = frame.shape[:2]
-    harris = HarrisModel(gamma, w, h)
-
-    def base_from_raw(q):
-        return model.apply(harris.corrected_from_raw(q))
-
-    grey = features.to_grey(frame)
-    if config.local.method == "flow":
-        # Measured in the frame's geometry: no rendering of the frame into base pixels.
-        if joint.flow_reference is None:
-            joint.flow_reference = prepare_flow_reference(
-                joint.mid_grey, joint.mid_valid, flow_scale(w, config.local)
-            )
-        return estimate_field_in_frame(grey, base_from_raw, joint.flow_reference, config.local)
-    box = footprint_bbox(base_from_raw, w, h, (wb, hb))
-    x0, y0, x1, y1 = box
-    if x1 - x0 < 2 or y1 - y0 < 2:
-        return None, None
-    registered, valid = render_to_base(grey, gamma, model, box)
-    reference = joint.mid_grey[y0:y1, x0:x1]
-    both = valid & joint.mid_valid[y0:y1, x0:x1]
-    # The mid base image is the reference of every frame: detect its keypoints once.
-    if joint.local_keypoints is None:
-        joint.local_keypoints = detect_keypoints(joint.mid_grey, config.local, mask=joint.mid_valid)
-    return estimate_field(
-        registered,
-        reference,
-        config.local,
-        valid_mask=both,
-        origin=(x0, y0),
-        reference_keypoints=joint.local_keypoints,
-    )
 
 
 def load_config(out_dir: str | Path) -> PipelineConfig:

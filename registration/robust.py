@@ -103,13 +103,14 @@ class ReqconConfig:
         stop: ``"mean"`` (the paper): drop the worst ``drop_fraction`` each round until the mean
             residual is below ``target_mean_error_px``; failure when the guard is reached first.
             ``"outliers"`` (beyond the paper): a model that cannot represent the data exactly
-            (a lens beyond its model, a rolling shutter) never reaches an absolute target, and
-            the paper's rule then drops good points until the guard fails the frame. Here each
-            round drops only the kept points beyond ``outlier_sigmas`` robust standard
-            deviations (at most ``drop_fraction`` of them, worst first), and REQCON stops
-            successfully when none is left (or when the mean is below the target). The robust
-            scale is the Rayleigh one of 2-D residuals, ``median / sqrt(2 ln 2)``. The final
-            spread is reported as the fit's quality (``FitResult.sigma_px``).
+            (a lens beyond its model, a rolling shutter) may never reach an absolute target,
+            and the paper's rule then drops good points until the guard fails the frame. Here
+            REQCON also stops, successfully, once no kept point lies beyond
+            ``outlier_sigmas`` robust standard deviations (so dropping no longer removes
+            outliers), drops only such points (at most ``drop_fraction`` of them per round,
+            worst first), and succeeds at the guard too. The robust scale is the Rayleigh one
+            of 2-D residuals, ``median / sqrt(2 ln 2)``, also reported as the fit's quality
+            (``FitResult.sigma_px``). Where the mean target is met first, both rules agree.
         outlier_sigmas: the ``"outliers"`` rule's threshold in robust standard deviations; None
             = ``sqrt(2 ln(n / 0.01))``, beyond which a Rayleigh sample of ``n`` right points
             reaches with probability ~1 % only (4.9 for 2000 points).
@@ -511,13 +512,13 @@ def reqcon(
         history.append(mean_kept)
         n_kept = int(kept.sum())
         n_drop = max(1, math.ceil(config.drop_fraction * n_kept))
+        if mean_kept < config.target_mean_error_px:
+            return FitResult(model, kept.copy(), r, it, True, "", tuple(history), sigma)
         if config.stop == "outliers":
             n_out = int(np.count_nonzero(r[kept] > k_sigma * sigma))
             if n_out == 0:
                 return FitResult(model, kept.copy(), r, it, True, "", tuple(history), sigma)
             n_drop = min(n_drop, n_out)
-        if mean_kept < config.target_mean_error_px:
-            return FitResult(model, kept.copy(), r, it, True, "", tuple(history), sigma)
         if config.stop == "outliers" and n_kept - n_drop < guard:
             # The guard protects against collapse; reaching it is the answer, not a failure.
             return FitResult(model, kept.copy(), r, it, True, "", tuple(history), sigma)

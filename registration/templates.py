@@ -392,7 +392,7 @@ def template_control_points(
     *,
     centres: NDArray[np.int64] | None = None,
     ref_valid: NDArray | None = None,
-    fallback: GriddedReference | None = None,
+    fallback: GriddedReference | list[GriddedReference] | None = None,
 ) -> ControlPoints:
     """Template grid control points (paper 4.3.2 steps 1, 3, 4; module doc for the steps).
 
@@ -426,16 +426,22 @@ def template_control_points(
             fully inside the frame); the edge ring is then not added.
         ref_valid: ``(Hr, Wr)`` bool, where the reference has content (e.g. the mid base
             image); a template whose search window touches anything else is not searched there.
-        fallback: a second reference (image and its ``ref_from_frame``), searched by the
-            templates the first cannot take (paper 4.4: the previous frame completes the mid
-            base image). Only with ``warp_reference``; warped only when some template needs it.
+        fallback: further references (image, ``ref_from_frame`` and optional ``valid``), or a
+            list of them, each searched by the templates that the ones before cannot take
+            (paper 4.4: the previous frame completes the mid base image; beyond the paper, the
+            base map itself completes both at a flight's leading edge). Only with
+            ``warp_reference``; each is warped only when some template needs it.
 
     Returns:
         :class:`ControlPoints`: ``src`` frame px (template centres or their structure centroids,
-        ``config.anchor``), ``dst`` reference px (of the fallback where ``source == 1``),
+        ``config.anchor``), ``dst`` reference px (``source`` = 0 for ``ref_grey``, ``i + 1``
+        for the ``i``-th fallback, in that reference's pixels),
         ``score`` = NCC peak value; empty when nothing matched.
     """
-    if fallback is not None and not config.warp_reference:
+    fallbacks = (
+        [] if fallback is None else [fallback] if not isinstance(fallback, list) else fallback
+    )
+    if fallbacks and not config.warp_reference:
         raise ValueError("template_control_points: a fallback reference needs warp_reference=True")
     frame = _signal(frame_grey, config)
     ref = _signal(ref_grey, config)
@@ -447,11 +453,11 @@ def template_control_points(
             (ring, replace(config, template_px=config.edge_template_px, edge_template_px=0))
         )
     # The grid and the ring search the same warped references: prepare each at most once.
-    searches = _Searches(ref, ref_from_frame, ref_valid, fallback, (fw, fh), config)
+    searches = _Searches(ref, ref_from_frame, ref_valid, fallbacks, (fw, fh), config)
     return ControlPoints.concatenate(
         [
             _match_set(
-                frame, c, cfg, ref, ref_from_frame, frame_from_ref, ref_valid, fallback, searches
+                frame, c, cfg, ref, ref_from_frame, frame_from_ref, ref_valid, fallbacks, searches
             )
             for c, cfg in sets
         ]  # fmt: skip
@@ -459,26 +465,29 @@ def template_control_points(
 
 
 class _Searches:
-    """The warped reference and fallback, prepared on first use and shared by template sets
+    """The warped reference and fallbacks, prepared on first use and shared by template sets
     (their padding is the search radius, the same for every set)."""
 
-    def __init__(self, ref, ref_from_frame, ref_valid, fallback, frame_size, config):
-        self._args = (ref, ref_from_frame, ref_valid, fallback, frame_size, config)
+    def __init__(self, ref, ref_from_frame, ref_valid, fallbacks, frame_size, config):
+        self._args = (ref, ref_from_frame, ref_valid, frame_size, config)
+        self.fallbacks = fallbacks
         self._ref: SearchImage | None = None
-        self._fallback: SearchImage | None = None
+        self._fallback: dict[int, SearchImage] = {}
 
     def ref(self) -> SearchImage:
         if self._ref is None:
-            ref, fn, valid, _, size, cfg = self._args
+            ref, fn, valid, size, cfg = self._args
             self._ref = prepare_search(ref, fn, size, cfg.search_radius, cfg, valid)
         return self._ref
 
-    def fallback(self) -> SearchImage:
-        if self._fallback is None:
-            _, _, _, fb, size, cfg = self._args
-            image = _signal(fb.image, cfg)
-            self._fallback = prepare_search(image, fb.ref_from_frame, size, cfg.search_radius, cfg)
-        return self._fallback
+    def fallback(self, i: int) -> SearchImage:
+        if i not in self._fallback:
+            _, _, _, size, cfg = self._args
+            fb = self.fallbacks[i]
+            self._fallback[i] = prepare_search(
+                _signal(fb.image, cfg), fb.ref_from_frame, size, cfg.search_radius, cfg, fb.valid
+            )
+        return self._fallback[i]
 
 
 def _usable_centres(centres, ref_from_frame, frame_from_ref, config):
@@ -493,10 +502,10 @@ def _usable_centres(centres, ref_from_frame, frame_from_ref, config):
     return centres[keep], pred[keep]
 
 
-def _assign_windows(centres, pred, ref, ref_valid, fallback, searches, config):
+def _assign_windows(centres, pred, ref, ref_valid, fallbacks, searches, config):
     """Step 2: for each template, the image it is searched in and its window's centre there:
     ``(images, window_centres, which)`` where ``which`` is -1 (not searched), 0 (the
-    reference) or 1 (the fallback)."""
+    reference) or ``i + 1`` (the ``i``-th fallback)."""
     half, rad = config.half_template, config.search_radius
     win = half + rad  # half-size of the searched window
     which = np.full(len(centres), -1, np.int64)
@@ -504,11 +513,13 @@ def _assign_windows(centres, pred, ref, ref_valid, fallback, searches, config):
         ref_search = searches.ref()
         win_centres = centres + rad
         which[~_box_any(ref_search.invalid, win_centres, win)] = 0
-        images = [ref_search.image, None]
-        if fallback is not None and (which < 0).any():
-            fb = searches.fallback()
-            which[(which < 0) & ~_box_any(fb.invalid, win_centres, win)] = 1
-            images[1] = fb.image
+        images = [ref_search.image] + [None] * len(fallbacks)
+        for i in range(len(fallbacks)):
+            if not (which < 0).any():
+                break
+            fb = searches.fallback(i)
+            which[(which < 0) & ~_box_any(fb.invalid, win_centres, win)] = i + 1
+            images[i + 1] = fb.image
         return images, win_centres, which
     rw, rh = coords.image_size(ref)
     win_centres = np.round(pred).astype(np.int64)
@@ -524,7 +535,7 @@ def _assign_windows(centres, pred, ref, ref_valid, fallback, searches, config):
     return [ref, None], win_centres, which
 
 
-def _match_set(frame, centres, config, ref, ref_from_frame, frame_from_ref, ref_valid, fallback,
+def _match_set(frame, centres, config, ref, ref_from_frame, frame_from_ref, ref_valid, fallbacks,
                searches) -> ControlPoints:  # fmt: skip
     """Steps 1-4 for one set of template centres of one size."""
     if len(centres) == 0:
@@ -533,7 +544,7 @@ def _match_set(frame, centres, config, ref, ref_from_frame, frame_from_ref, ref_
     if len(centres) == 0:
         return ControlPoints.empty()
     images, win_centres, which = _assign_windows(
-        centres, pred, ref, ref_valid, fallback, searches, config
+        centres, pred, ref, ref_valid, fallbacks, searches, config
     )
     idx = np.flatnonzero(which >= 0)
     if len(idx) == 0:
@@ -548,7 +559,7 @@ def _match_set(frame, centres, config, ref, ref_from_frame, frame_from_ref, ref_
     source = which[idx]
     if config.warp_reference:
         dst = np.full_like(src, np.nan)
-        for k, fn in enumerate((ref_from_frame, fallback and fallback.ref_from_frame)):
+        for k, fn in enumerate([ref_from_frame] + [fb.ref_from_frame for fb in fallbacks]):
             sel = source == k
             if sel.any():
                 dst[sel] = _call_points(fn, src[sel] + offset[sel], "ref_from_frame")

@@ -198,6 +198,29 @@ def seed_at_truth(app, truth, fxy=(320.0, 240.0)):
     return bxy
 
 
+def true_heading(truth, k: int, fxy) -> tuple[float, float]:
+    """The truth's heading (degrees in [0, 360), clockwise on screen) and scale (map px per
+    corrected frame px) at raw frame point ``fxy`` of frame ``k``: the local similarity there."""
+    w, h = truth.frame_size
+    harris = HarrisModel(truth.gamma, w, h)
+    c = harris.corrected_from_raw(np.array([fxy], float))[0]
+    q = truth.frame_to_base(k, harris.raw_from_corrected(np.array([c, c + (1.0, 0.0)])))
+    d = q[1] - q[0]
+    return float(np.degrees(np.arctan2(d[1], d[0])) % 360.0), float(np.hypot(*d))
+
+
+def heading_shown(text: str, where: str = "Coarse step") -> float | None:
+    """The heading a line of the Seed view's heading text shows (None when absent)."""
+    import re
+
+    m = re.search(where + r"[^\n]*?heading \*{0,2}([0-9.]+)°", text)
+    return float(m.group(1)) if m else None
+
+
+def angle_gap(a: float, b: float) -> float:
+    return abs((a - b + 180.0) % 360.0 - 180.0)
+
+
 @pytest.fixture
 def fitted(tmp_path, small_seq, make_app):
     """An app with γ set, the reference frame seeded and fitted (coarse + fine)."""
@@ -325,9 +348,78 @@ def test_seed_clicks_are_raw_pixels_replace_and_undo(tmp_path, small_seq, make_a
     click(app, seed.scene.planes["frame"], (400.0, 80.75))
     click(app, seed.scene.planes["base"], (600.0, 250.0))
     assert app.state.seed2 is not None
-    assert "heading +0.0°" in seed.panel.seed_md.content, seed.panel.seed_md.content
+    assert "heading **0.0°**" in seed.panel.heading_md.content, seed.panel.heading_md.content
+    assert "fixed by the two pairs" in seed.panel.heading_md.content
     seed.clear_seed()
     assert app.state.seed is None and app.state.seed2 is None
+
+
+def test_seed_heading_typed_correction_and_failure_reason(tmp_path, small_seq, make_app):
+    from registration.synth import load_truth
+
+    truth = load_truth(small_seq)
+    app = make_app(tmp_path / "proj", small_seq)
+    app.views["Calibrate"].set_gamma(truth.gamma)
+    app.set_mode("Seed")
+    seed = app.views["Seed"]
+    seed.panel.auto_fit.value = False  # coarse steps only, run below
+
+    def coarse():
+        assert seed.run_fit(None, fine=False)
+        app.jobs.join(120)
+        app.worker.wait_idle()
+        return app.state.current_reference().coarse
+
+    fxy = (320.0, 240.0)
+    bxy = truth.frame_to_base(0, np.array([fxy]))[0]
+    seed.place_seed("frame", fxy)
+    seed.place_seed("base", tuple(bxy))
+    c = coarse()
+    # After one click: the heading and scale the library estimated, labelled as such, and the
+    # correction boxes start from them.
+    want, scale = true_heading(truth, 0, fxy)
+    text = seed.panel.heading_md.content
+    assert c and "estimated from the click" in text, text
+    assert angle_gap(heading_shown(text), want) < 5.0
+    assert seed.panel.heading_in.value == pytest.approx(c.heading_deg % 360, abs=0.06)
+    assert seed.panel.scale_in.value == pytest.approx(c.scale, abs=1e-4)
+    # A typed heading and scale become pair 2 (100 px away) and reach the library exactly.
+    assert seed.use_typed(want + 3.0, 1.1 * scale)
+    assert app.state.seed2_typed == pytest.approx((want + 3.0, 1.1 * scale))
+    f2 = np.array(app.state.seed2_frame)
+    harris = HarrisModel(truth.gamma, *truth.frame_size)
+    c1, c2 = harris.corrected_from_raw(np.array([fxy, f2]))
+    assert np.hypot(*(c2 - c1)) == pytest.approx(100.0, abs=1e-6)
+    assert "(typed)" in seed.panel.seed_md.content
+    c = coarse()
+    assert c.gate == "two seeds" and c.heading_deg == pytest.approx((want + 3.0) % 360, abs=1e-6)
+    assert c.scale == pytest.approx(1.1 * scale, rel=1e-9)
+    assert heading_shown(seed.panel.heading_md.content) == pytest.approx(
+        (want + 3.0) % 360, abs=0.06
+    )
+    # Pair 2 follows pair 1 while the typed values hold; placing pair 2 by hand ends them.
+    b2 = np.array(app.state.seed2_base)
+    seed.place_seed("base", tuple(bxy + (4.0, -2.0)), pair=1)
+    assert np.array(app.state.seed2_base) == pytest.approx(b2 + (4.0, -2.0), abs=1e-9)
+    hp = heading_shown(seed.panel.heading_md.content, "Pairs")
+    assert hp == pytest.approx((want + 3.0) % 360, abs=0.06)
+    seed.place_seed("base", tuple(np.array(app.state.seed2_base) + (0.0, 30.0)), pair=2)
+    assert app.state.seed2_typed is None and "(typed)" not in seed.panel.seed_md.content
+    # A click that contradicts the registration found: the reason, prominently.
+    seed.seed_edit("Clear pair 2")
+    seed.place_seed("base", tuple(bxy + (150.0, 0.0)), pair=1)
+    c = coarse()
+    assert not c and "check the click" in c.reason
+    assert "Coarse step failed" in seed.panel.alert.content
+    assert "check the click" in seed.panel.alert.content
+    # The saved fit keeps what the panel shows (heading, gate outline) across a restart.
+    from app.project import REFERENCE_FILE, reference_from_file
+
+    seed.place_seed("base", tuple(bxy), pair=1)
+    good = coarse()
+    _, back, _ = reference_from_file(app.project.folder / REFERENCE_FILE)
+    assert back.heading_deg == pytest.approx(good.heading_deg) and back.gate == "seed"
+    assert np.allclose(back.gate_outline_base, good.gate_outline_base)
 
 
 def test_seed_drop_moves_the_fit(fitted):
@@ -351,7 +443,7 @@ def test_seed_drop_moves_the_fit(fitted):
 
 
 def test_control_points_disable_worst_manual_and_export(fitted):
-    from app.controlpoints import read_qgis_points
+    from registration.gis_vector import read_points_file
 
     app, truth, bxy = fitted
     seed = app.views["Seed"]
@@ -387,15 +479,15 @@ def test_control_points_disable_worst_manual_and_export(fitted):
     assert "manual" not in seed.table.source
     # Export as QGIS .points: the header, and raw (x, y) -> (x + 0.5, -(y + 0.5)).
     assert seed.export_points()
-    text = next(app.project.folder.glob("reference_frame_*.points")).read_text()
-    assert text.splitlines()[0] == "mapX,mapY,sourceX,sourceY,enable,dX,dY,residual"
-    rows = read_qgis_points(text)
+    path = next(app.project.folder.glob("reference_frame_*.points"))
+    assert path.read_text().splitlines()[0] == "mapX,mapY,sourceX,sourceY,enable,dX,dY,residual"
+    pts = read_points_file(path)
     t = seed.table
-    assert len(rows) == len(t.ids)
-    assert np.allclose(rows[:, 2], t.frame_xy[:, 0] + 0.5, atol=1e-3)
-    assert np.allclose(rows[:, 3], -(t.frame_xy[:, 1] + 0.5), atol=1e-3)
-    assert np.allclose(rows[:, 1], -(t.base_xy[:, 1] + 0.5), atol=1e-3)
-    assert int(rows[:, 4].sum()) == t.n_enabled
+    assert len(pts["map"]) == len(t.ids) and pts["crs"] is None  # a plain base: no CRS
+    assert np.allclose(pts["source"], t.frame_xy, atol=1e-9)
+    # The map side of a plain base: its pixels in the same corner/y-up convention.
+    assert np.allclose(pts["map"], t.base_xy * (1, -1) + (0.5, -0.5), atol=1e-9)
+    assert int(pts["enable"].sum()) == t.n_enabled
 
 
 def test_review_inliers_only_by_default_and_screen_sized(fitted):

@@ -92,23 +92,38 @@ def test_manual_and_deleted_points(known):
     assert Edits.from_json("garbage").empty
 
 
-def test_qgis_points_convention(known):
+def test_qgis_points_plain_and_georeferenced(known, tmp_path):
+    from registration.georef import GeoReference, parse_crs
+    from registration.gis_vector import read_points_file
+
     src, dst, kept, model = known
     harris = HarrisModel(0.0, 640, 480)
     t = controlpoints.table_from_points(
         src[:3], dst[:3], kept[:3], None, "reference", harris, model
     )
-    text = controlpoints.qgis_points(t, crs="EPSG:32612")
-    lines = text.splitlines()
-    assert lines[0] == "#CRS: EPSG:32612"
-    assert lines[1] == "mapX,mapY,sourceX,sourceY,enable,dX,dY,residual"
-    rows = controlpoints.read_qgis_points(text)
-    # Pixel centres at integers -> QGIS pixel corners, rows negative.
-    assert np.allclose(rows[:, 2], src[:3, 0] + 0.5, atol=1e-3)
-    assert np.allclose(rows[:, 3], -(src[:3, 1] + 0.5), atol=1e-3)
-    assert np.allclose(rows[:, 0], dst[:3, 0] + 0.5, atol=1e-3)
-    assert np.allclose(rows[:, 1], -(dst[:3, 1] + 0.5), atol=1e-3)
+    plain = controlpoints.write_qgis_points(t, tmp_path / "plain.points")
+    lines = plain.read_text().splitlines()
+    assert lines[0] == "mapX,mapY,sourceX,sourceY,enable,dX,dY,residual"
+    # Pixel centres at integers -> QGIS pixel corners, rows negative (source and plain map).
+    rows = np.array([[float(v) for v in line.split(",")[:5]] for line in lines[1:]])
+    assert np.allclose(rows[:, 2], src[:3, 0] + 0.5) and np.allclose(
+        rows[:, 3], -(src[:3, 1] + 0.5)
+    )
+    assert np.allclose(rows[:, 0], dst[:3, 0] + 0.5) and np.allclose(
+        rows[:, 1], -(dst[:3, 1] + 0.5)
+    )
     assert list(rows[:, 4]) == [1, 1, 1]
+    # A georeferenced base: map coordinates in its CRS, residuals in map units.
+    georef = GeoReference((0.25, 0.0, 500000.0, 0.0, -0.25, 4000000.0), "EPSG:32612")
+    t2 = controlpoints.with_residuals(t, model)
+    t2.residual_xy[:] = (2.0, -4.0)  # known residuals: 0.5 m east, 1 m north
+    geo = read_points_file(controlpoints.write_qgis_points(t2, tmp_path / "geo.points", georef))
+    assert parse_crs(geo["crs"]).to_epsg() == 32612
+    assert np.allclose(geo["map"], georef.map_from_base(dst[:3]), atol=1e-9)
+    assert np.allclose(geo["source"], t.frame_xy, atol=1e-9)
+    text = (tmp_path / "geo.points").read_text().splitlines()
+    dx, dy = (float(v) for v in text[2].split(",")[5:7])
+    assert (dx, dy) == pytest.approx((0.5, 1.0))
 
 
 def test_clip_segments_known_cases():
@@ -160,3 +175,22 @@ def test_static_assets_and_event_channel():
     assert not ch.dispatch(json.dumps({"kind": "nope", "value": 1}))
     assert not ch.dispatch("not json") and not ch.dispatch(json.dumps([1, 2]))
     assert got == [12]
+
+
+def test_second_seed_from_typed_heading_round_trips():
+    from app import calls
+
+    rng = np.random.default_rng(5)
+    size = (640, 480)
+    harris = HarrisModel(0.7, *size)
+    for heading, scale in [(0.0, 1.0), (95.5, 1.09), (271.25, 0.37), (359.9, 3.2)]:
+        seed = (*rng.uniform((20, 20), (620, 460)), *rng.uniform(0, 1000, 2))
+        pair = calls.second_seed_from_similarity(seed, heading, scale, 0.7, size)
+        c1, c2 = harris.corrected_from_raw(np.array([seed[:2], pair[:2]]))
+        assert np.hypot(*(c2 - c1)) == pytest.approx(calls.TYPED_SEED_DISTANCE_PX, abs=1e-6)
+        back = calls.heading_from_pairs(seed, pair, 0.7, size)
+        assert back.scale == pytest.approx(scale, rel=1e-9)
+        assert abs((back.heading_deg - heading + 180) % 360 - 180) < 1e-7
+    for heading, scale in [(10.0, 0.0), (10.0, -1.0), (float("nan"), 1.0)]:
+        with pytest.raises(ValueError, match="scale positive"):
+            calls.second_seed_from_similarity((1.0, 2.0, 3.0, 4.0), heading, scale, 0.7, size)

@@ -111,7 +111,7 @@ def live_app(tmp_path, small_seq):  # noqa: F811
 class Page:
     """A playwright page on the app, recording any request that leaves localhost."""
 
-    def __init__(self, browser, port: int, viewport=VIEWPORT) -> None:
+    def __init__(self, browser, port: int, viewport=VIEWPORT, connect_s: float = 30.0) -> None:
         self.port = port
         self.external: list[str] = []
         self.page = browser.new_page(viewport=viewport, accept_downloads=True)
@@ -120,7 +120,7 @@ class Page:
         self.page.wait_for_function(
             "() => window.__viserMutable && window.__viserMutable.nodeRefFromName "
             "&& !document.body.innerText.includes('Connecting...')",
-            timeout=30000,
+            timeout=connect_s * 1000,
         )
         self.close_notifications()
 
@@ -415,6 +415,97 @@ def test_seed_click_drag_and_disable_worst(browser, live_app, small_seq):  # noq
     page.shot("seed_control_points")
 
 
+@pytest.fixture(scope="module")
+def turned_seq(small_seq, tmp_path_factory):  # noqa: F811
+    """The small sequence over its map turned by 90° (``registration.synth.rebase``)."""
+    from registration.synth.basemap import rebase
+
+    return rebase(small_seq, tmp_path_factory.mktemp("turned") / "seq", 90.0, 1.0)
+
+
+@pytest.mark.slow
+def test_one_click_on_a_turned_map_shows_heading_and_second_pair_fixes_it(
+    browser, turned_seq, tmp_path
+):
+    from app import calls
+    from registration.synth import load_truth
+    from tests.test_app import angle_gap, heading_shown, true_heading
+
+    truth = load_truth(turned_seq)
+    server = make_server("127.0.0.1", 0, verbose=False)
+    app = App(
+        server,
+        Project(tmp_path / "proj"),
+        frames=str(turned_seq / "frames"),
+        base=str(turned_seq / "base.png"),
+        allowed_dirs=[tmp_path, turned_seq],
+    )
+    try:
+        app.start()
+        app.views["Calibrate"].set_gamma(truth.gamma)
+        app.worker.wait_idle()
+        page = Page(browser, app.server.get_port())
+        page.view_button("Seed").click()
+        wait_until(lambda: app.state.mode == "Seed", what="Seed view")
+        app.worker.wait_idle()
+        seed = app.views["Seed"]
+        page.wait_node("/seed/frame")
+        page.wait_node("/seed/base")
+        fgeom, bgeom = seed.scene.planes["frame"].geom, seed.scene.planes["base"].geom
+        harris = HarrisModel(truth.gamma, *app.inputs.frame_size)
+
+        def click_pair(raw):
+            corrected = harris.corrected_from_raw(np.array([raw]))[0]
+            base = truth.frame_to_base(0, np.array([raw]))[0]
+            zoom_to(app, fgeom, corrected, page=page, node="/seed/frame")
+            page.click_pixel("/seed/frame", fgeom, corrected)
+            zoom_to(app, bgeom, base, page=page, node="/seed/base")
+            page.click_pixel("/seed/base", bgeom, base)
+
+        def shown(where: str, source: str) -> float | None:
+            text = page.text()
+            line = next((ln for ln in text.splitlines() if ln.startswith(where)), "")
+            return heading_shown(line, where) if source in line else None
+
+        # One click pair: the heading the library estimated appears, close to the truth (~90°).
+        raw1 = (300.0, 220.0)
+        click_pair(raw1)
+        wait_until(lambda: app.state.seed is not None, what="pair 1")
+        one = wait_until(
+            lambda: shown("Coarse step", "estimated from the click"),
+            timeout=120,
+            what="the heading estimated from one click",
+        )
+        want, _ = true_heading(truth, 0, raw1)
+        assert 80.0 < want < 100.0
+        assert angle_gap(one, want) < 5.0, (one, want)
+        assert app.state.current_reference().coarse, app.errors
+        page.shot("seed_turned_one_click")
+        # A second pair fixes heading and scale exactly: the panel shows the pairs' heading,
+        # and the coarse step's (which the library took from the two pairs).
+        app.jobs.join(120)
+        page.button("Pair 2").click()
+        wait_until(lambda: app.state.seed_pair == 2, what="pair 2 active")
+        click_pair((460.0, 330.0))
+        wait_until(lambda: app.state.seed2 is not None, what="pair 2")
+        exact = calls.heading_from_pairs(
+            app.state.seed, app.state.seed2, truth.gamma, app.inputs.frame_size
+        ).heading_deg
+        two = wait_until(
+            lambda: shown("Coarse step", "fixed by the two pairs"),
+            timeout=120,
+            what="the heading fixed by two pairs",
+        )
+        assert two == pytest.approx(exact, abs=0.051)
+        assert shown("Pairs", "fixed by the two pairs") == pytest.approx(exact, abs=0.051)
+        assert app.state.current_reference().coarse.heading_deg == pytest.approx(exact, abs=1e-6)
+        assert angle_gap(exact, want) < 2.0
+        page.shot("seed_turned_two_pairs")
+        app.jobs.join(120)
+    finally:
+        app.stop()
+
+
 @pytest.fixture
 def registered_app(live_app, small_seq):  # noqa: F811
     """A live app with the reference fitted and the 4 frames registered (in process)."""
@@ -510,6 +601,27 @@ def test_scrub_plot_click_and_table2(browser, registered_app):
     with page.page.expect_download(timeout=15000) as dl:
         page.button("Markdown").click()
     assert "Post-Local" in Path(dl.value.path()).read_text()
+    # Export (video + transforms by default) from the Sequence view, then download the video.
+    page.view_button("Sequence").click()
+    wait_until(lambda: app.state.mode == "Sequence", what="Sequence view")
+    page.page.get_by_text("Export", exact=True).first.click()
+    page.button("Export the ticked formats").click()
+    page.page.wait_for_selector("text=Export done", timeout=120000)
+    out = app.project.folder / "exports"
+    with page.page.expect_download(timeout=30000) as dl:
+        page.button("Download").click()
+    assert dl.value.suggested_filename == "registered.mp4"
+    assert Path(dl.value.path()).read_bytes() == (out / "registered.mp4").read_bytes()
+    # Again: the files exist, so the app asks; a new numbered folder is one answer.
+    page.button("Export the ticked formats").click()
+    page.page.wait_for_selector("text=Files exist", timeout=15000)
+    page.button("Write into exports-2").click()
+    wait_until(
+        lambda: (app.project.folder / "exports-2" / "transforms.json").exists(),
+        timeout=120,
+        what="the export into exports-2",
+    )
+    page.shot("sequence_export")
 
 
 JS_OVERFLOW = """() => {

@@ -224,7 +224,7 @@ def run(args) -> dict:
     t_fine = time.perf_counter() - t
     ref = app.state.current_reference()
     assert ref is not None and ref.fine, app.errors
-    assert "heading" in seed.panel.seed_md.content
+    assert "heading" in seed.panel.heading_md.content
     figures.update(
         seed_click_ms=1000 * max(t_marker, t_marker2),
         seed_to_heading_s=t_coarse,
@@ -352,6 +352,30 @@ def run(args) -> dict:
             f"{figures['plot_click_ms']:.0f} ms",
             BEFORE["plot_click_ms"][0],
             "",
+        )
+    )
+
+    # Export from the app (a job with progress) against the library call on the same result.
+    formats = ["png", "mp4", "transforms"]
+    t = time.perf_counter()
+    assert seqv.exporter.request(None, formats=formats)
+    app.jobs.join(3600)
+    app.worker.wait_idle()
+    figures["export_app_s"] = time.perf_counter() - t
+    assert seqv.exporter.summary is not None and not seqv.exporter.summary["cancelled"]
+    from registration import io as rio
+    from registration.export import export_result
+
+    t = time.perf_counter()
+    export_result(r, tmp / "export-direct", formats, frames=rio.open_frames(seq / "frames"))
+    figures["export_direct_s"] = time.perf_counter() - t
+    rows.append(
+        (
+            f"Export {', '.join(formats)} of {n_frames} frames from the app (job with progress)",
+            f"{figures['export_app_s']:.1f} s",
+            "(no export in the app)",
+            f"export_result directly in this run {figures['export_direct_s']:.1f} s "
+            f"({figures['export_app_s'] / figures['export_direct_s']:.2f}x)",
         )
     )
 

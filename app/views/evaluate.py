@@ -326,11 +326,7 @@ class EvaluateView(View):
     def confirmed_marks(self) -> dict[str, dict[int, tuple[float, float]]]:
         """The marks without pending proposals: what counts."""
         with self.state.lock:
-            pending = set(self.state.pending)
-            return {
-                p: {k: xy for k, xy in m.items() if (p, k) not in pending}
-                for p, m in self.state.points.items()
-            }
+            return self.state.confirmed_marks()
 
     def points_rows(self) -> list[tuple[int, str, float, float]]:
         """Confirmed marks as ``(frame, point, x, y)`` rows sorted by point then frame."""

@@ -7,11 +7,16 @@ places an optional second pair that fixes heading and scale); each marker can be
 refine it, and *Undo* takes back the last change. Markers differ in shape (frame: ring, map:
 square) and carry their pair's number; the magnifier shows both places enlarged. Once pair 1 is
 placed the coarse and fine steps run (``global_registration.coarse_register`` and
-``fine_register_reference``), and the panel shows the heading and scale they found.
+``fine_register_reference``), and the panel shows the heading and scale the coarse step used
+(estimated from one click, or fixed by two pairs) and, when a step fails, its one-line reason in a
+red box. The analyst corrects heading and scale by placing pair 2, or by typing them: typed values
+become a second seed pair 100 px from the seed (``calls.second_seed_from_similarity``), drawn as
+pair 2 and following pair 1.
 
 Match review: inliers only by default (outliers and matches outside the gate on toggles), the
-gate as the footprints it allows, the template control points kept by REQCON and their residual
-vectors scaled automatically, the mid base image over the map. The control-point table lists the
+gate as the region where gated matches could lie (``CoarseResult.gate_outline_base``), the
+template control points kept by REQCON and their residual vectors scaled automatically, the mid
+base image over the map. The control-point table lists the
 fine fit's points (id, frame x/y, map x/y, dx, dy, residual, source, enabled): sort, select
 (centres the view and the magnifier on it), enable / disable / delete, add a manual point, and
 the model is re-fitted at once; export as QGIS ``.points``.
@@ -25,6 +30,7 @@ from app import calls, controlpoints, scene2d
 from app.controlpoints import Edits
 from app.state import ReferenceFit
 from app.views.base import View
+from app.views.seed_points import ControlPointActions
 from app.views.seed_ui import (
     INLIER,
     KEPT,
@@ -44,7 +50,7 @@ from app.views.seed_ui import (
 from registration import distortion, global_registration
 
 
-class SeedView(View):
+class SeedView(ControlPointActions, View):
     MODE = "Seed"
     CLICKABLE = ("frame", "base")
 
@@ -63,6 +69,9 @@ class SeedView(View):
         p.preset.on_update(lambda ev: self.set_setting("preset", str(ev.target.value)))
         p.transform.on_update(lambda ev: self.set_setting("transform", str(ev.target.value)))
         p.local.on_update(lambda ev: self.set_setting("run_local", bool(ev.target.value)))
+        p.btn_typed.on_click(
+            lambda ev: self.use_typed(float(p.heading_in.value), float(p.scale_in.value), ev.client)
+        )
         p.btn_coarse.on_click(lambda ev: self.run_fit(ev.client, fine=False))
         p.btn_fine.on_click(lambda ev: self.run_fine(ev.client))
         for h in (
@@ -161,6 +170,7 @@ class SeedView(View):
             self.state.reference_frame = int(np.clip(k, 0, self.app.inputs.n_frames - 1))
             self.state.push_undo()
             self.state.seed_frame = self.state.seed2_frame = None
+            self._follow_typed()
             self.state.revision += 1
         self._mid_cache = None
         self.app.save()
@@ -190,6 +200,7 @@ class SeedView(View):
             else:
                 self.state.push_undo()
                 self.state.seed2_frame = self.state.seed2_base = None
+                self.state.seed2_typed = None
                 if action == "Clear all":
                     self.state.seed_frame = self.state.seed_base = None
                 self.state.revision += 1
@@ -224,8 +235,49 @@ class SeedView(View):
             self.state.push_undo()
             name = ("seed" if pair == 1 else "seed2") + ("_frame" if plane == "frame" else "_base")
             setattr(self.state, name, point)
+            if pair == 2:
+                self.state.seed2_typed = None  # placed by hand: the pairs fix heading and scale
+            else:
+                self._follow_typed()
             self.state.revision += 1
         self._seeds_changed()
+
+    def _follow_typed(self) -> None:
+        """Pair 2 made from a typed heading and scale follows pair 1 (call under the lock)."""
+        st = self.state
+        if st.seed2_typed is None:
+            return
+        if st.seed is None:
+            st.seed2_frame = st.seed2_base = None
+            return
+        p2 = calls.second_seed_from_similarity(st.seed, *st.seed2_typed, st.gamma, st.frame_size)
+        st.seed2_frame, st.seed2_base = p2[:2], p2[2:]
+
+    def use_typed(self, heading_deg: float, scale: float, client=None) -> bool:
+        """Fix heading and scale to typed values: the coarse step gets them as a second seed
+        pair (:func:`app.calls.second_seed_from_similarity`), shown as pair 2."""
+        problem = None
+        with self.state.lock:
+            st = self.state
+            if st.seed is None:
+                problem = ("Place pair 1 first", "Typed heading and scale turn about the seed")
+            else:
+                try:
+                    calls.second_seed_from_similarity(
+                        st.seed, heading_deg, scale, st.gamma, st.frame_size
+                    )
+                except ValueError as exc:
+                    problem = ("Heading and scale not used", str(exc))
+            if problem is None:
+                st.push_undo()
+                st.seed2_typed = (float(heading_deg), float(scale))
+                self._follow_typed()
+                st.revision += 1
+        if problem is not None:
+            self.notify(client, *problem, "yellow")
+            return False
+        self._seeds_changed()
+        return True
 
     def _seeds_changed(self, refit_reference: bool = False) -> None:
         self.app.save()
@@ -302,22 +354,32 @@ class SeedView(View):
             st = self.state
             pairs = {1: (st.seed_frame, st.seed_base), 2: (st.seed2_frame, st.seed2_base)}
             active, seed, seed2, gamma = st.seed_pair, st.seed, st.seed2, st.gamma
+            typed = st.seed2_typed
             ref = st.current_reference()
             key_ok = ref is not None
             coarse = ref.coarse if ref is not None else None
             fine = ref.fine if ref is not None else None
             edited = not st.cp_edits.empty
         size = self.app.inputs.frame_size
-        parts = []
+        lines = []
         hp = calls.heading_from_pairs(seed, seed2, gamma, size)
+        if hp is not None and typed is not None:
+            hp = calls.HeadingScale(hp.heading_deg, hp.scale, "typed: pair 2 is made from it")
         if hp is not None:
-            parts.append(hp.text())
-        hc = calls.heading_from_coarse(coarse, seed, gamma, size)
+            lines.append("Pairs: " + hp.text())
+        hc = calls.heading_from_coarse(coarse)
         if hc is not None:
-            parts.append(hc.text())
-        self.panel.show_seeds(
-            pairs, active, "  \n".join(parts), calls.supports_second_seed() or seed2 is None
-        )
+            lines.append("Coarse step: " + hc.text())
+        elif seed is not None and coarse is None:
+            lines.append("_Heading and scale appear when the coarse step has run._")
+        self.panel.show_seeds(pairs, active, typed is not None)
+        self.panel.show_heading("  \n".join(lines))
+        failures = []
+        if coarse is not None and not coarse:
+            failures.append(("Coarse step failed", coarse.reason))
+        elif fine is not None and not fine:
+            failures.append(("Fine step failed", fine.reason))
+        self.panel.show_alert(failures)
         if coarse is not None:
             gate = "no location gate (no seed)" if seed is None else "gated around the seed"
             self.panel.show_coarse(coarse, gate)
@@ -350,13 +412,17 @@ class SeedView(View):
         def job(progress) -> None:
             with self.state.lock:
                 st = self.state
+                self._follow_typed()  # a typed pair 2 for the γ of now
                 k, gamma, seed, seed2 = st.reference_frame, st.gamma, st.seed, st.seed2
                 key = st.reference_key()
             cfg = self._config()
             progress(0, 2 if fine else 1, "coarse step")
-            coarse = calls.coarse_register(
-                inp.frame(k), inp.base, gamma, seed, seed2, cfg, base_valid=inp.base_valid
-            )
+            try:
+                coarse = calls.coarse_register(
+                    inp.frame(k), inp.base, gamma, seed, seed2, cfg, base_valid=inp.base_valid
+                )
+            except ValueError as exc:  # e.g. the two pairs on one point: say it like a failure
+                coarse = calls.failed_coarse(f"coarse step: {exc}")
             with self.state.lock:
                 self.state.reference = ReferenceFit(key, coarse)
                 self.state.cp_edits = Edits()
@@ -369,6 +435,11 @@ class SeedView(View):
             self.app.state_changed()
             self.request_overlays()
             self.submit("magnifier", self.draw_magnifier)
+            hc = calls.heading_from_coarse(coarse)
+            if hc is not None and seed2 is None:
+                # The estimate is where a correction starts from.
+                self.panel.heading_in.value = round(hc.heading_deg, 1)
+                self.panel.scale_in.value = round(hc.scale, 4)
             if not coarse:
                 self.notify(client, "Coarse step failed", coarse.reason, "red")
                 return
@@ -421,221 +492,6 @@ class SeedView(View):
             self.panel.mid_opacity.value = 0.5
         else:
             self.submit("mid", self.draw_mid)
-
-    # ---------------------------------------------------------------- control points
-    def refit(self, save: bool = True) -> None:
-        """The table for the current fine fit plus the analyst's edits; re-fit when edited."""
-        inp = self.app.inputs
-        with self.state.lock:
-            ref = self.state.current_reference()
-            edits = self.state.cp_edits.copy()
-            gamma, k = self.state.gamma, self.state.reference_frame
-        if inp is None or ref is None or ref.fine_auto is None:
-            self.table = None
-            self.show_table()
-            self.request_overlays()
-            return
-        auto = ref.fine_auto
-        harris = distortion.HarrisModel(gamma, *inp.frame_size)
-        table = controlpoints.table_from_points(
-            auto.src,
-            auto.dst,
-            auto.kept,
-            auto.source,
-            "reference",
-            harris,
-            auto.base_from_corrected,
-            edits,
-        )
-        fine = auto
-        if not edits.empty and auto.base_from_corrected is not None:
-            domain = global_registration.frame_domain(inp.frame(k), gamma)
-            table, model = controlpoints.refit(table, auto.base_from_corrected, domain=domain)
-            fine = global_registration.FineResult(
-                success=model is not None,
-                reason=table.reason,
-                base_from_corrected=model,
-                src=table.corrected_xy,
-                dst=table.base_xy,
-                kept=table.enabled.copy(),
-                residuals=table.residual,
-                iterations=0,
-            )
-        with self.state.lock:
-            if self.state.reference is ref:
-                ref.fine = fine
-                self.state.revision += 1
-        self.table = table
-        self._mid_cache = None
-        if save:
-            self.app.save()
-        self.show_table()
-        self.refresh_text()
-        self.app.state_changed()
-        self.request_overlays()
-        self.submit("mid", self.draw_mid)
-
-    def show_table(self) -> None:
-        note = "" if self.table is not None else "Run the fine step to list its control points."
-        if self.manual_mode:
-            self.panel.cps.manual_md.content = (
-                "**Adding a manual point:** click it on the frame, then on the map."
-                if self.manual_frame is None
-                else "**Adding a manual point:** now click the same place on the map."
-            )
-        else:
-            self.panel.cps.manual_md.content = ""
-        self.panel.cps.show(self.table, self.selected, note)
-
-    def turn_page(self, direction: int) -> None:
-        if self.table is not None:
-            self.panel.cps.turn(direction, len(self.table.ids))
-            self.show_table()
-
-    def select_point(self, row_id: int, client=None) -> None:
-        """Select a control point (row click, id box): highlight it, page to it, centre the view
-        and the magnifier on it."""
-        table = self.table
-        if table is None or row_id < 0 or table.row(row_id) is None:
-            return
-        self.selected = int(row_id)
-        offset = self.panel.cps.offset_for(table, row_id)
-        if offset is not None:
-            self.panel.cps.offset = offset
-        if int(self.panel.cps.selected.value) != row_id:
-            self.panel.cps.selected.value = row_id  # runs select_point again: returns here
-        self.show_table()
-        self.request_overlays()
-        self.submit("magnifier", self.draw_magnifier)
-        self.centre_on_selected(client)
-
-    def centre_on_selected(self, client=None) -> None:
-        table = self.table
-        i = None if table is None or self.selected is None else table.row(self.selected)
-        if i is None:
-            return
-        fp, bp = self.scene.planes["frame"].geom, self.scene.planes["base"].geom
-        a = fp.world_from_pixel(table.corrected_xy[i])
-        b = bp.world_from_pixel(table.base_xy[i])
-        span = 150 * scene2d.WORLD_PER_PX
-        lo = np.minimum(a[:2], b[:2]) - span
-        hi = np.maximum(a[:2], b[:2]) + span
-        region = scene2d.PlaneGeometry(
-            int((hi[0] - lo[0]) / scene2d.WORLD_PER_PX),
-            int((hi[1] - lo[1]) / scene2d.WORLD_PER_PX),
-            position=((lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, 0.0),
-        )
-        self.app.focus([region], client)
-
-    def point_action(self, action: str, client=None) -> None:
-        if self.table is None or self.selected is None or self.table.row(self.selected) is None:
-            self.notify(client, "No point selected", "Click a row of the table first", "yellow")
-            return
-        if action == "Centre":
-            self.centre_on_selected(client)
-            return
-        rid = self.selected
-        n_auto = self._n_auto()
-        with self.state.lock:
-            self.state.push_undo()
-            edits = self.state.cp_edits
-            if action == "Delete":
-                if rid < n_auto:
-                    edits.deleted.add(rid)
-                else:
-                    del edits.manual[rid - n_auto]
-                    edits.manual_enabled = {
-                        (i if i < rid else i - 1): v
-                        for i, v in edits.manual_enabled.items()
-                        if i != rid
-                    }
-                self.selected = None
-            else:
-                on = bool(self.table.enabled[self.table.row(rid)])
-                if rid < n_auto:
-                    edits.enabled[rid] = not on
-                else:
-                    edits.manual_enabled[rid] = not on
-            self.state.revision += 1
-        self.submit("refit", self.refit)
-
-    def _n_auto(self) -> int:
-        with self.state.lock:
-            ref = self.state.current_reference()
-        return 0 if ref is None or ref.fine_auto is None else len(ref.fine_auto.src)
-
-    def bulk_action(self, action: str, client=None) -> None:
-        if action == "Add manual":
-            with self.state.lock:
-                ok = self.state.current_reference() is not None
-            if not ok:
-                self.notify(
-                    client,
-                    "Fit the reference frame first",
-                    "Manual points refine a fine fit",
-                    "yellow",
-                )
-                return
-            self.manual_mode = not self.manual_mode
-            self.manual_frame = None
-            self.submit("overlays", self.draw_overlays)
-            self.show_table()
-            return
-        if self.table is None:
-            return
-        with self.state.lock:
-            self.state.push_undo()
-            if action == "Reset edits":
-                self.state.cp_edits = Edits()
-            elif action == "Disable worst":
-                worst = self.table.worst_enabled()
-                if worst is None:
-                    return
-                if worst < self._n_auto():
-                    self.state.cp_edits.enabled[worst] = False
-                else:
-                    self.state.cp_edits.manual_enabled[worst] = False
-            self.state.revision += 1
-        self.submit("refit", self.refit)
-
-    def disable_worst(self) -> int | None:
-        """Disable the enabled point with the largest residual and re-fit (returns its id)."""
-        worst = None if self.table is None else self.table.worst_enabled()
-        if worst is not None:
-            self.bulk_action("Disable worst")
-        return worst
-
-    def manual_click(self, plane: str, point, client) -> None:
-        if plane == "frame":
-            self.manual_frame = point
-        elif self.manual_frame is None:
-            self.notify(
-                client, "Frame first", "Click the point on the frame, then on the map", "yellow"
-            )
-            return
-        else:
-            with self.state.lock:
-                self.state.push_undo()
-                self.state.cp_edits.manual.append((*self.manual_frame, *point))
-                self.state.revision += 1
-            self.manual_mode = False
-            self.manual_frame = None
-            self.submit("refit", self.refit)
-        self.show_table()
-        self.submit("overlays", self.draw_overlays)
-
-    def export_points(self, client=None) -> bool:
-        if self.table is None:
-            self.notify(client, "No control points", "Run the fine step first", "yellow")
-            return False
-        text = controlpoints.qgis_points(self.table)
-        with self.state.lock:
-            k = self.state.reference_frame
-        name = f"reference_frame_{k:06d}.points"
-        self.app.project.write_file(name, text)
-        self.app.send_download(client, name, text.encode("utf-8"))
-        self.notify(client, name, f"saved to {self.app.project.folder / name} and sent", "green")
-        return True
 
     # ---------------------------------------------------------------- drawing (worker)
     def request_overlays(self) -> None:

@@ -7,6 +7,7 @@ import cv2
 import numpy as np
 
 from app import scene2d
+from app.calls import TYPED_SEED_DISTANCE_PX
 from app.security import escape_md
 from app.state import TRANSFORMS
 from app.views.base import GAP_PX, Scene
@@ -23,6 +24,10 @@ MANUAL = (255, 120, 255)
 RESIDUAL = (255, 220, 0)
 GATE = (255, 0, 255)
 SELECTED = (255, 255, 255)
+ALERT_STYLE = (
+    "background:#fff0f0;border-left:4px solid #e03131;color:#8a1c1c;padding:6px 8px;"
+    "margin:4px 0;font-size:0.85rem;white-space:normal"
+)
 MAGNIFIER_PX = 48
 """Half-size (image pixels) of the magnifier's crops around a seed or selected point."""
 MAGNIFIER_ZOOM = 3
@@ -35,7 +40,21 @@ class SeedPanel:
         self.ref_slider = gui.add_slider("Reference frame", 0, 1, 1, 0)
         self.pair = gui.add_button_group("Place seed pair", ("Pair 1", "Pair 2"))
         self.seed_md = gui.add_markdown("")
+        self.alert = gui.add_html("")
+        self.heading_md = gui.add_markdown("")
         self.edit = gui.add_button_group("Seed", ("Undo", "Clear pair 2", "Clear all"))
+        with gui.add_folder("Correct heading and scale", expand_by_default=False):
+            self.heading_in = gui.add_number("Heading (°)", 0.0, min=-360.0, max=360.0, step=0.1)
+            self.scale_in = gui.add_number(
+                "Scale (map px per frame px)", 1.0, min=1e-3, max=1e3, step=1e-4
+            )
+            self.btn_typed = gui.add_button("Use typed heading and scale")
+            gui.add_markdown(
+                f"_Typed values reach the coarse step as a second seed pair "
+                f"{TYPED_SEED_DISTANCE_PX:.0f} px from the seed (drawn as pair 2, it follows "
+                "pair 1). Placing pair 2 by hand instead fixes heading and scale exactly too. "
+                "Heading: clockwise on screen from the frame to the map._"
+            )
         self.fit = gui.add_button_group("Fit view to", ("Frame", "Map", "Both"))
         self.magnifier = gui.add_image(
             np.full(
@@ -71,24 +90,32 @@ class SeedPanel:
         with gui.add_folder("Control points"):
             self.cps = ControlPointPanel(gui, editable=True, scope="seed")
 
-    def show_seeds(self, pairs: dict, active: int, heading: str, second_ok: bool) -> None:
+    def show_seeds(self, pairs: dict, active: int, typed: bool) -> None:
         rows = ["| pair | frame (raw px) | map (px) |", "|---|---|---|"]
         for i in (1, 2):
             f, b = pairs[i]
             ft = f"({f[0]:.1f}, {f[1]:.1f})" if f else "—"
             bt = f"({b[0]:.1f}, {b[1]:.1f})" if b else "—"
             mark = " ◀" if i == active else ""
-            rows.append(f"| {i}{mark} | {ft} | {bt} |")
+            how = " (typed)" if i == 2 and typed and f else ""
+            rows.append(f"| {i}{mark}{how} | {ft} | {bt} |")
         text = "\n".join(rows)
         f1, b1 = pairs[1]
         if not f1 or not b1:
             nxt = "frame (left)" if not f1 else "map (right)"
             text += f"\n\n_Click the {nxt} to place pair 1; drag a marker to refine it._"
-        if heading:
-            text += f"\n\n{heading}"
-        if pairs[2][0] and pairs[2][1] and not second_ok:
-            text += "\n\n_This library version takes one seed pair: pair 2 only sets the heading shown._"
         self.seed_md.content = text
+
+    def show_heading(self, text: str) -> None:
+        self.heading_md.content = text
+
+    def show_alert(self, failures: list[tuple[str, str]]) -> None:
+        """Failed steps, prominently (red box under the seed table): ``(title, reason)``."""
+        self.alert.content = "".join(
+            f'<div class="aerialreg-alert" style="{ALERT_STYLE}"><b>{escape_md(title)}:</b> '
+            f"{escape_md(reason)}</div>"
+            for title, reason in failures
+        )
 
     def show_coarse(self, c, gate_text: str) -> None:
         if c is None:
@@ -97,8 +124,7 @@ class SeedPanel:
         self.coarse_md.content = (
             "| keypoints frame | keypoints map | matches | gated | inliers |\n|---|---|---|---|---|\n"
             f"| {c.n_keypoints_frame} | {c.n_keypoints_base} | {c.n_matches} | {int(c.gated.sum())} "
-            f"| {c.n_inliers} |\n\n{gate_text}; {c.time_s:.2f} s"
-            + ("" if c else f"\n\n**Failed:** {escape_md(c.reason)}")
+            f"| {c.n_inliers} |\n\n{gate_text}; {c.time_s:.2f} s" + ("" if c else "; **failed**")
         )
 
     def show_fine(self, fine, edited: bool) -> None:
@@ -113,7 +139,7 @@ class SeedPanel:
         )
         self.fine_md.content = (
             f"{n} control points; {how}; residual RMS {fine.residual_rms_px:.2f} px; "
-            f"{fine.time_s:.2f} s" + ("" if fine else f"\n\n**Failed:** {escape_md(fine.reason)}")
+            f"{fine.time_s:.2f} s" + ("" if fine else "; **failed**")
         )
 
 

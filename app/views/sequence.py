@@ -8,7 +8,8 @@ blend, checkerboard or flicker, only over the frame's footprint; the control poi
 vectors (scaled automatically); the local displacement field's magnitude as a heat map (the
 paper's Fig. 5) with a colour bar. The per-frame residual RMS is an interactive chart: hover shows
 the values, a click jumps to the frame. Failed frames are listed with their reasons; one frame can
-be registered again; the frame's control points are listed (read-only) and exported.
+be registered again; the frame's control points are listed (read-only) and exported. The
+*Export* folder writes the result as GIS files and video (``app/views/export.py``).
 
 Scrubbing is fast because the frame is warped at display resolution from a preview of the frame
 (decoded ahead by :meth:`app.inputs.Inputs.prefetch`) and only its footprint is encoded and sent.
@@ -27,6 +28,7 @@ from app import calls, controlpoints, scene2d
 from app.security import escape_md
 from app.state import OVERLAYS
 from app.views.base import View
+from app.views.export import Exporter
 from app.views.sequence_ui import (
     FLICKER_S,
     PLAY_S,
@@ -75,6 +77,7 @@ class SequenceView(View):
         cps.selected.on_update(lambda ev: self.select_point(int(ev.target.value), ev.client))
         cps.actions.on_click(lambda ev: self.centre_on_selected(ev.client))
         cps.export.on_click(lambda ev: self.export_points(ev.client))
+        self.exporter = Exporter(self.app, p.export)
         self.app.events.on("cp-select:seq", lambda v, client: self.select_point(int(v), client))
         self.app.events.on("plot-frame", lambda v, client: self.set_frame(int(v)))
         self.app.events.on("seq-frame", lambda v, client: self.set_frame(int(v)))
@@ -224,6 +227,7 @@ class SequenceView(View):
             f"Result: {done}; {seed_txt}; {ref_txt}.  \nRun settings: preset {escape_md(preset)}, "
             f"{escape_md(transform)}, local field {'on' if local else 'off'} (Seed view)."
         )
+        self.exporter.refresh()
         if r is not None:
             failed = [
                 (k, str(rec.get("reason", "")))
@@ -479,17 +483,15 @@ class SequenceView(View):
         self.app.focus([region], client)
 
     def export_points(self, client=None) -> bool:
+        """This frame's table as QGIS ``.points`` (see the Seed view's), sent to the browser."""
         if self.table is None:
             self.notify(client, "No control points", "This frame has none", "yellow")
             return False
         with self.state.lock:
             k = self.state.seq_frame
-        name = f"frame_{k:06d}.points"
-        text = controlpoints.qgis_points(self.table)
-        self.app.project.write_file(name, text)
-        self.app.send_download(client, name, text.encode("utf-8"))
-        self.notify(client, name, f"saved to {self.app.project.folder / name} and sent", "green")
-        return True
+        path = self.app.project.folder / f"frame_{k:06d}.points"
+        controlpoints.write_qgis_points(self.table, path, self.app.inputs.base_georef)
+        return self.app.offer_file(path, client)
 
     # ---------------------------------------------------------------- drawing (worker)
     def request_render(self) -> None:

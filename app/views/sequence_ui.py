@@ -11,6 +11,7 @@ from app.security import escape_md
 from app.state import OVERLAYS
 from app.views.base import Scene
 from app.views.cptable import ControlPointPanel
+from app.views.export import ExportPanel
 from registration import evaluation
 
 RESIDUAL_OK = (255, 220, 0)
@@ -98,6 +99,8 @@ class SequencePanel:
             )
         with gui.add_folder("Control points of this frame", expand_by_default=False):
             self.cps = ControlPointPanel(gui, editable=False, scope="seq")
+        with gui.add_folder("Export", expand_by_default=False):
+            self.export = ExportPanel(gui)
 
     def show_plot(self, values, flags, failed, current) -> None:
         """The chart: RMS per frame, excursions, failed frames, the frame shown.

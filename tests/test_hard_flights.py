@@ -1,0 +1,90 @@
+"""Hard flights (issue 11), against the simulator's exact truth: a flyover whose view leaves the
+reference frame's footprint must not accumulate error (``long-flight`` profile, 40 frames at
+480x360, 1.5 footprints of travel), and the paper's camera at its worst (``paper-hard``: a lens
+beyond Harris, 0.15 s rolling shutter, 0.6° shake) must not fail frames nor lose most of its
+control points to an absolute REQCON target."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from registration.config import get_preset
+from registration.evaluation import evaluate_truth
+from registration.io import open_frames, read_image
+from registration.pipeline import ANCHOR_STAGE, register_sequence
+from registration.synth import PROFILES, load_truth, simulate
+
+W, H, N = 480, 360, 40
+
+
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory):
+    out = tmp_path_factory.mktemp("long") / "sim"
+    simulate(out, PROFILES["long-flight"](frame_size=(W, H), n_frames=N, video=False))
+    return out
+
+
+def _run(flight, out, config):
+    truth = load_truth(flight)
+    c = np.array([[W / 2, H / 2]])
+    seed = (*c[0], *truth.frame_to_base(0, c)[0])
+    result = register_sequence(
+        open_frames(flight / "frames"), read_image(flight / "base.png"), truth.gamma, out,
+        config=config, seed=seed,
+    )  # fmt: skip
+    gx, gy = np.meshgrid(np.linspace(0, W - 1, 9), np.linspace(0, H - 1, 7))
+    grid = np.c_[gx.ravel(), gy.ravel()]
+    err = np.array(
+        [np.mean(np.hypot(*(result.frame_to_base(k, grid) - truth.frame_to_base(k, grid)).T))
+         for k in range(N)]
+    )  # fmt: skip
+    return result, err
+
+
+@pytest.mark.slow
+def test_long_flight_does_not_drift(flight, tmp_path):
+    """Default preset (re-anchoring and the base map behind the joint base): the last 10 frames
+    are no worse than 1.5x the first 10 (measured 0.93 -> 1.09 px mean after the local stage)
+    and every frame stays within 3 px (measured max 2.25 px); without either, the chain of
+    intra-sensor frames drifts off (measured 7.7 px over the first 10, 719 px over the last)."""
+    result, err = _run(flight, tmp_path / "default", get_preset("default"))
+    assert all(r["status"] == "ok" for r in result.records)
+    assert any(r.get("stage") == ANCHOR_STAGE for r in result.records)
+    first, last = err[:10].mean(), err[-10:].mean()
+    assert last <= 1.5 * first, f"first 10 {first:.2f} px, last 10 {last:.2f} px"
+    assert last < 1.5 and err.max() < 3.0, err.round(2)
+
+    cfg = get_preset("default")
+    paper_joint = dataclasses.replace(
+        cfg, intra=dataclasses.replace(cfg.intra, reanchor_coverage=0.0, base_fallback=False)
+    )
+    _, drift = _run(flight, tmp_path / "paper-joint", paper_joint)
+    assert drift[-10:].mean() > 20 * last, drift.round(1)
+
+
+@pytest.mark.slow
+def test_paper_hard_flight_has_no_failed_frame(tmp_path):
+    """``paper-hard`` at 640x480, 20 frames: no frame fails (a previous version failed one with
+    "REQCON failed: mean error 0.531 px ... still above 0.5"), REQCON keeps almost every
+    control point (measured 98.6 %; it kept 31-96 of ~150 before), and the errors stay at the
+    measured figures with a 1.3 margin: global 1.09 px, local 1.18 px mean. The local stage
+    cannot beat the reference frame's own inter-sensor error here (1.12 px), so the issue's
+    0.5 px bar is not reached (README, known limits)."""
+    sim = tmp_path / "hard"
+    simulate(sim, PROFILES["paper-hard"](frame_size=(640, 480), n_frames=20, video=False))
+    truth = load_truth(sim)
+    c = np.array([[320.0, 240.0]])
+    seed = (*c[0], *truth.frame_to_base(0, c)[0])
+    result = register_sequence(
+        open_frames(sim / "frames"), read_image(sim / "base.png"), truth.gamma, tmp_path / "out",
+        config=get_preset("default"), seed=seed,
+    )  # fmt: skip
+    assert [k for k, r in enumerate(result.records) if r["status"] != "ok"] == []
+    kept = [r["stats"]["n_inliers"] / r["stats"]["n_control_points"] for r in result.records]
+    assert np.mean(kept) >= 0.9 and min(kept) >= 0.75, np.round(kept, 2)
+    s = evaluate_truth(result, truth).summary
+    assert s["global"]["mean"] < 1.42, s["global"]
+    assert s["local"]["mean"] < 1.53, s["local"]
