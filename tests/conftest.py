@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
 
@@ -23,15 +22,6 @@ def shared_data(*parts: str) -> Path:
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(12345)
-
-
-@pytest.fixture(autouse=True)
-def opencv_rng():
-    """OpenCV's FLANN matcher (``features.match_ratio`` above 4 M descriptor pairs) draws its
-    random trees from OpenCV's global RNG, so without this a test's matches would depend on
-    which tests ran before it in the process (test_coarse.py's reproducibility test, tests16
-    report). Every test starts from the same state."""
-    cv2.setRNGSeed(0)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -65,7 +55,6 @@ def register(sim: Path, out: Path, preset: str = "default", frames_dir: Path | N
     from registration.pipeline import register_sequence
     from registration.synth import load_truth
 
-    cv2.setRNGSeed(0)  # the same FLANN trees whichever tests ran before (opencv_rng)
     return register_sequence(
         open_frames(frames_dir or sim / "frames"),
         read_image(sim / "base.png"),

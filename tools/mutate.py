@@ -142,8 +142,8 @@ MUTATIONS: list[Mutation] = [
         "registration/global_registration.py",
         [
             (
-                "ref_valid=joint.mid_valid, fallback=fallback\n",
-                "ref_valid=joint.mid_valid, fallback=None\n",
+                "        fallbacks = []\n        if prev is not None:\n",
+                "        fallbacks = []\n        if False:\n",
                 1,
             )
         ],  # fmt: skip
@@ -213,8 +213,8 @@ MUTATIONS: list[Mutation] = [
         "registration/correlation.py",
         [
             (
-                "    grey = gradient_magnitude(frame_grey)\n    base_grey = gradient_magnitude(base)\n",
-                "    grey = to_grey(frame_grey)\n    base_grey = to_grey(base)\n",
+                "gradient_magnitude(frame_grey), gradient_magnitude(base)",
+                "to_grey(frame_grey), to_grey(base)",
                 1,
             ),
             (
