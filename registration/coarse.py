@@ -91,6 +91,10 @@ class CoarseConfig:
             that gives both images the same ground resolution once the scale is estimated
             (only when it differs from the frame's by more than 1.5x).
         models: candidate models, chosen on the final inliers by BIC (paper: projective only).
+        prefilter_slope: beyond the paper, with ``guided``: the threshold of the similarity
+            pre-filter through the anchor grows by this times the estimated scale times the
+            matches' extent (coarse px), so that a frame whose perspective a similarity cannot
+            follow keeps its far matches (0: the RANSAC threshold plus the anchor's error).
         correlation: beyond the paper: rounds of gradient-magnitude template correlation at
             reduced scale that refine the result (and, with a seed, rescue a failed SIFT step
             from the seed's heading and scale): :mod:`registration.correlation`. None by

@@ -236,11 +236,16 @@ def config_from_dict(data: dict, cls: type = PipelineConfig, path: str = "config
         sub = _dataclass_in(tp)
         if sub is not None and isinstance(value, dict):
             kwargs[name] = config_from_dict(value, sub, f"{path}.{name}")
-        elif isinstance(value, list):
-            kwargs[name] = tuple(value)
+        elif sub is not None and value is not None:
+            raise ValueError(f"{path}.{name} must be an object, got {type(value).__name__}")
         else:
-            kwargs[name] = value
+            kwargs[name] = _tuples(value)
     return cls(**kwargs)
+
+
+def _tuples(value):
+    """JSON lists back to the tuples the dataclasses hold (nested: correlation rounds)."""
+    return tuple(_tuples(v) for v in value) if isinstance(value, list) else value
 
 
 def _dataclass_in(tp) -> type | None:

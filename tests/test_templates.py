@@ -8,7 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from registration.features import ControlPoints, Reference
+from registration.features import ControlPoints, Reference, to_grey
+from registration.io import read_image
 from registration.templates import (
     TemplateConfig,
     subpixel_peak,
@@ -98,6 +99,22 @@ def test_dithered_correlation_reduces_subpixel_bias():
     assert errs[1] < 0.15 and errs[1] < 0.7 * errs[0], errs
 
 
+def test_dithered_correlation_reduces_subpixel_bias_simulated(sim_seq):
+    """Synthetic twin of the test above (runs without ../shared): the simulator's base map, a
+    fractional shift; the dithered re-correlation halves the 90th percentile error (measured
+    0.0515 -> 0.0232 px; the real image: 0.32 -> 0.05 px)."""
+    ref = to_grey(read_image(sim_seq / "base.png"))[100:640, 200:1160]
+    shift = np.array([3.3, -2.6])
+    frame = warp_into(ref, lambda xy: xy + shift + 100, 560, 340)
+    model = lambda xy: xy + 100.0  # noqa: E731
+    errs = []
+    for n in (0, 1):
+        cp = template_control_points(frame, ref, model, None, TemplateConfig(dither_iterations=n))
+        assert len(cp) >= 50
+        errs.append(np.percentile(np.linalg.norm(cp.dst - (cp.src + shift + 100), axis=1), 90))
+    assert errs[1] < 0.0232 * 1.3 and errs[1] < 0.6 * errs[0], errs
+
+
 def test_template_grid_and_jitter():
     cfg = TemplateConfig()
     grid = template_grid(400, 300, cfg)
@@ -139,7 +156,11 @@ def test_structure_anchor_follows_the_texture_and_reduces_error():
         on_grid = np.isin(cp.src, template_grid(*frame_size)).all()
         assert on_grid == (anchor == "centre")
     assert med["structure"] < 0.9 * med["centre"], med
-    # A frame textured only right of x = 200: templates straddling it anchor right of centre.
+
+
+def test_structure_anchor_moves_to_the_textured_side():
+    """A frame textured only right of x = 200: templates straddling it anchor right of their
+    centre, where the texture that carries the match is (runs without ../shared)."""
     tex = texture(400, 200, seed=8)
     tex[:, :200] = 128
     model = lambda xy: xy + 0.0  # noqa: E731

@@ -1,0 +1,83 @@
+"""Model choice by spatial cross-validation (registration.robust.simplest_supported), which the
+coarse and fine steps use to keep the simplest model the control points support: known models
+with noise must be recognised, richer ones kept only when the data need them, and none chosen
+beyond the share of the frame its points span."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from registration.models import Affine, PolyProjective, Projective, Similarity
+from registration.robust import cross_validated_error, hull_coverage, simplest_supported
+
+W, H = 640, 480
+
+
+def _frame_probes(cells: int = 10) -> np.ndarray:
+    t = (np.arange(cells) + 0.5) / cells
+    gx, gy = np.meshgrid(t * W, t * H)
+    return np.c_[gx.ravel(), gy.ravel()]
+
+
+def _fits(src, dst):
+    proj = Projective.estimate(src, dst)
+    poly = PolyProjective.estimate(src, dst, initial=proj, optimizer="lm")
+    return [
+        ("similarity", Similarity.estimate(src, dst)),
+        ("affine", Affine.estimate(src, dst)),
+        ("projective", proj),
+        ("polyprojective", poly),
+    ]
+
+
+def _apply(matrix, src):
+    p = np.c_[src, np.ones(len(src))] @ np.asarray(matrix).T
+    return p[:, :2] / p[:, 2:]
+
+
+TRUE = {
+    "similarity": [[0.9, -0.2, 30.0], [0.2, 0.9, -12.0], [0, 0, 1]],
+    "affine": [[1.1, 0.25, 30.0], [-0.05, 0.8, -12.0], [0, 0, 1]],
+    "projective": [[1.0, 0.1, 30.0], [0.05, 1.0, -12.0], [4e-4, -3e-4, 1]],
+}
+
+
+@pytest.mark.parametrize("kind", sorted(TRUE))
+def test_the_model_that_made_the_points_is_chosen(kind, rng):
+    """Points over the whole frame, 0.3 px noise: the true model, not a richer one (which fits
+    the noise) and not a simpler one (which cannot follow the data)."""
+    src = rng.uniform([0, 0], [W - 1, H - 1], (150, 2))
+    dst = _apply(TRUE[kind], src) + rng.normal(0, 0.3, (150, 2))
+    name, model = simplest_supported(_fits(src, dst), src, dst, probes=_frame_probes())
+    assert name == kind
+    assert np.median(model.residuals(src, dst)) < 0.6
+
+
+def test_no_model_beyond_the_share_of_the_frame_its_points_span(rng):
+    """Points in the left quarter of the frame only: a projective (needing half of it) is not a
+    candidate, even on projective data; the affine is kept."""
+    src = rng.uniform([0, 0], [W / 4, H - 1], (150, 2))
+    dst = _apply(TRUE["projective"], src) + rng.normal(0, 0.3, (150, 2))
+    probes = _frame_probes()
+    assert hull_coverage(src, probes) < 0.3
+    coverage = {"projective": 0.5, "polyprojective": 0.8}
+    name, _ = simplest_supported(_fits(src, dst), src, dst, probes=probes, min_coverage=coverage)
+    assert name == "affine"
+    # Without the coverage rule the projective would win here.
+    name, _ = simplest_supported(_fits(src, dst), src, dst)
+    assert name == "projective"
+
+
+def test_cross_validated_error_and_hull_coverage_known_values(rng):
+    src = rng.uniform([0, 0], [W - 1, H - 1], (200, 2))
+    dst = _apply(TRUE["affine"], src)
+    exact = Affine.estimate(src, dst)
+    assert cross_validated_error(exact, src, dst) < 1e-6
+    # A similarity cannot hold the shear: held-out cells are predicted several px off.
+    assert cross_validated_error(Similarity.estimate(src, dst), src, dst) > 5.0
+    square = np.array([[0.0, 0.0], [W / 2, 0.0], [W / 2, H], [0.0, H]])
+    assert hull_coverage(square, _frame_probes()) == pytest.approx(0.5)
+    assert hull_coverage(square[:2], _frame_probes()) == 0.0
+    with pytest.raises(ValueError, match="at least one"):
+        simplest_supported([], src, dst)
