@@ -44,7 +44,7 @@ from registration.lens_fit import check_one_parameter, fit_center, fit_division_
 from registration.warp import remap
 
 TITLE = "Radial distortion (paper section 3): correction speed and γ estimation"
-SHARED = Path(__file__).resolve().parents[2].parent / "shared" / "data"
+SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 SPEED_SIZE = (2560, 1920)
 GAMMAS = (0.3, 0.7, 1.0)
 FRAME = (960, 720)  # raw frame size for the synthetic-lens accuracy runs

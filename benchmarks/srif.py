@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 
 TITLE = "Inter-sensor registration on 200 real SRIF pairs"
-DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "srif-optical-optical"
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "srif-optical-optical"
 THRESHOLDS_PX = (10.0, 5.0)
 SEED_ERROR_PX = 2.0
 

@@ -19,26 +19,25 @@ from registration.synth import load_truth
 from tests.conftest import MID_REFERENCE
 
 MARGIN = 1.3
-# Mean error against the truth (base px, evaluate_truth's 16 px ground grid), measured. The frames
-# registered backwards from the reference are not reproducible from process to process: in 13
-# runs their global models came out in two ways (mean over frames 0-2: 1.03 or 1.41 px) whose
-# control-point residuals agree to 1e-4 px; the difference lies where the control points do not
-# reach, which the polyprojective extrapolates (tests16 report). Their limits start from the
-# worse outcome; every other figure repeats within 0.005 px.
+# Mean error against the truth (base px, evaluate_truth's 16 px ground grid), measured (main at
+# 8fce5dd; runs are bit-reproducible since FLANN and RANSAC are seeded per frame).
 MEASURED = {
-    "reference_global": 0.655,
-    "reference_local": 0.593,
-    # Frames 0-2, registered backwards from the reference frame (worse of the two outcomes).
-    "before_global": 1.414,
-    "before_local": 1.027,
+    "reference_global": 0.528,
+    "reference_local": 0.461,
+    # Frames 0-2, registered backwards from the reference frame.
+    "before_global": 0.892,
+    "before_local": 0.690,
     # Frames 4-5.
-    "after_global": 0.801,
-    "after_local": 0.606,
-    # Motion relative to the reference frame, all other frames (the paper's Table 2 measure;
-    # worse outcome).
-    "motion_global": 0.726,
-    "motion_local": 0.347,
+    "after_global": 0.638,
+    "after_local": 0.472,
+    # Motion relative to the reference frame, all other frames (the paper's Table 2 measure).
+    "motion_global": 0.546,
+    "motion_local": 0.255,
 }
+# The local stage may not make a frame worse by more than this (base px). A frame whose global
+# model is already at the reference frame's floor gains nothing: frame 4 measured 0.448 px
+# global, 0.464 px local (the reference frame itself: 0.461 px local).
+LOCAL_NO_WORSE_PX = 0.05
 
 
 @pytest.fixture(scope="module")
@@ -86,7 +85,7 @@ def test_frames_before_and_after_a_middle_reference_frame_are_registered(
     }
     assert not over, over
     for k in range(res.n_frames):
-        assert per[k]["local"]["mean"] < per[k]["global"]["mean"], k
+        assert per[k]["local"]["mean"] < per[k]["global"]["mean"] + LOCAL_NO_WORSE_PX, k
 
 
 def _independent_motion(res, truth, k, stage):

@@ -12,7 +12,7 @@ from app.cli import UsageError, emit_json, parse_size
 NAME = "bench"
 HELP = "Measure speed and accuracy against in-run baselines and print the figures (markdown or --json)."
 # benchmarks.SUITES, repeated so that --help works without the checkout (a test checks they agree).
-SUITES = ("distortion", "simulate", "register", "scaleout", "srif", "export", "app")
+SUITES = ("distortion", "simulate", "register", "heading", "scaleout", "srif", "export", "app")
 MAX_FRAMES = 1000
 
 
