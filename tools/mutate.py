@@ -282,7 +282,7 @@ MUTATIONS: list[Mutation] = [
         "registration/pipeline.py",
         [
             (
-                "mid, valid = render_to_base(frame, gamma, model, (0, 0, wb, hb), field)",
+                "mid, valid = render_to_base(frame, gamma, model, (0, 0, wb, hb), field_)",
                 "mid, valid = render_to_base(frame, gamma, model, (0, 0, wb, hb))",
                 1,
             )
