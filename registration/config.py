@@ -25,6 +25,7 @@ from dataclasses import dataclass, field, replace
 from registration.coarse import CoarseConfig
 from registration.global_registration import FineConfig, IntraConfig
 from registration.local import FLOW_OVERRIDES, LocalConfig
+from registration.templates import TemplateConfig
 
 
 @dataclass(frozen=True)
@@ -76,7 +77,14 @@ class PipelineConfig:
 
 
 def _paper() -> PipelineConfig:
-    return PipelineConfig()
+    # The dataclass defaults are the paper's values except the template matching, whose defaults
+    # carry the checks beyond the paper that every other preset uses (TemplateConfig.paper()).
+    base = PipelineConfig()
+    return replace(
+        base,
+        fine=replace(base.fine, template=TemplateConfig.paper()),
+        intra=replace(base.intra, template=TemplateConfig.paper()),
+    )
 
 
 # Side of the default preset's border templates (templates.TemplateConfig.edge_template_px).

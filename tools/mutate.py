@@ -155,8 +155,8 @@ MUTATIONS: list[Mutation] = [
         "registration/config.py",
         [
             (
-                "def _paper() -> PipelineConfig:\n    return PipelineConfig()",
-                "def _paper() -> PipelineConfig:\n    return _default()",
+                "def _paper() -> PipelineConfig:\n",
+                "def _paper() -> PipelineConfig:\n    return _default()\n",
                 1,
             )
         ],  # fmt: skip
