@@ -270,7 +270,9 @@ def run_chunk(context: ChunkContext, job: ChunkJob) -> Iterator[FrameOutput]:
                 frame = ctx.frames.get(k)
                 _render_anchor(joint, frame, ctx.gamma, models[k], done.field, cfg)
             continue
+        t_read = time.perf_counter()
         frame, problem = read_frame(ctx.frames, k)
+        t_read = time.perf_counter() - t_read
         if frame is None:
             # Unreadable or of another size: marked failed, the chunk goes on (the next frame
             # takes the last good one as its previous frame).
@@ -287,6 +289,8 @@ def run_chunk(context: ChunkContext, job: ChunkJob) -> Iterator[FrameOutput]:
         models[k] = state.base_from_corrected if state is not None else None
         if state is not None:
             joint.previous, joint.previous_index = state, k
+        if "time_s" in record.get("stats", {}):
+            record["stats"]["time_s"]["read"] = round(t_read, 4)
         yield k, record, arrays
 
 
