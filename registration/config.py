@@ -11,8 +11,9 @@ provenance); this module only collects them. Presets:
 * ``default``: the fastest configuration found that is at least as accurate (see README,
   "Presets"): Levenberg-Marquardt instead of Nelder-Mead (same minimum, ~60x faster), templates
   correlated after warping the reference into frame geometry, template control points for
-  intra-sensor frames instead of full-resolution SIFT, and the local field from those same kinds of
-  matches.
+  intra-sensor frames instead of full-resolution SIFT, the local field from those same kinds of
+  matches, and the intra-sensor coarse step predicted from the previous frame and confirmed by
+  correlation, with the paper's SIFT step as the fallback (:mod:`registration.fast_coarse`).
 """
 
 from __future__ import annotations
@@ -200,6 +201,7 @@ def _default() -> PipelineConfig:
             reqcon=lm_reqcon,
             reanchor_coverage=REANCHOR_COVERAGE,
             base_fallback=True,
+            fast_coarse=True,
         ),
         local=replace(paper.local, **{**FLOW_OVERRIDES, **LOCAL_FLOW}),
         reference_local=REFERENCE_LOCAL,

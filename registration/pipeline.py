@@ -666,6 +666,10 @@ class _Anchoring:
         times = dict(stats.get("time_s", {}))
         record, arrays, state = self.anchor(frame, fine, _NoCoarse(), times, t0)
         record["stats"].update(mid_coverage=round(coverage, 3), anchor_shift_px=round(shift, 3))
+        # How the intra-sensor step that the anchor confirmed found the frame.
+        for key in ("coarse_path", "fast_path_reason"):
+            if key in stats:
+                record["stats"][key] = stats[key]
         return record, arrays, state, True
 
     def anchor(self, frame, fine: FineResult, coarse, times: dict, t0: float):

@@ -153,7 +153,9 @@ def test_intra_frames_follow_motion_beyond_the_prediction_gate(sim, tmp_path):
     gate = 12.0
     assert min(moves) > 1.5 * gate, moves  # measured 22-39 px at 640x480
     cfg = get_preset("default")
-    cfg = replace(cfg, run_local=False, intra=replace(cfg.intra, prediction_gate_px=gate))
+    # The SIFT coarse step's gate (the fast path, tests/test_fast_coarse.py, has none).
+    intra = replace(cfg.intra, prediction_gate_px=gate, fast_coarse=False)
+    cfg = replace(cfg, run_local=False, intra=intra)
     frames = tmp_path / "frames"
     frames.mkdir()
     for k in range(4):
