@@ -12,8 +12,9 @@ provenance); this module only collects them. Presets:
   "Presets"): Levenberg-Marquardt instead of Nelder-Mead (same minimum, ~60x faster), templates
   correlated after warping the reference into frame geometry, template control points for
   intra-sensor frames instead of full-resolution SIFT, the local field from those same kinds of
-  matches, and the intra-sensor coarse step predicted from the previous frame and confirmed by
-  correlation, with the paper's SIFT step as the fallback (:mod:`registration.fast_coarse`).
+  matches. The intra-sensor coarse step's fast path (:mod:`registration.fast_coarse`,
+  ``IntraConfig.fast_coarse``) is opt-in until runs with it are bit-reproducible across processes
+  on a loaded machine (see that module).
 """
 
 from __future__ import annotations
@@ -201,7 +202,6 @@ def _default() -> PipelineConfig:
             reqcon=lm_reqcon,
             reanchor_coverage=REANCHOR_COVERAGE,
             base_fallback=True,
-            fast_coarse=True,
         ),
         local=replace(paper.local, **{**FLOW_OVERRIDES, **LOCAL_FLOW}),
         reference_local=REFERENCE_LOCAL,

@@ -182,11 +182,12 @@ def test_intra_uses_the_previous_frame_where_the_mid_base_has_no_content(scene, 
     if fine_alone:
         # Measured 34.8 px over the blanked half.
         assert _model_error(scene, fine_alone.base_from_corrected, 2, raw)[right].mean() > 5.0
-    # The default's fast coarse path (its coarse model 0.82 px here, SIFT's 2.33) places the
+    # The fast coarse path (its coarse model 0.82 px here, SIFT's 2.33) places the
     # templates a little differently: the same sources, the fine model within its margin except
     # near the blanked half's far corners, where the polyprojective extrapolates (measured 0.783
     # px over the blanked half, 0.851 over the frame; SIFT: 0.558, 0.730).
-    coarse, fine, _ = _register_frame_2(scene, mid, valid, model1, scene["config"])
+    fast = dataclasses.replace(config, intra=dataclasses.replace(config.intra, fast_coarse=True))
+    coarse, fine, _ = _register_frame_2(scene, mid, valid, model1, fast)
     assert coarse.path == "fast" and (fine.source == 1).sum() >= 50
     err = _model_error(scene, fine.base_from_corrected, 2, raw)
     assert err[right].mean() < 0.783 * MARGIN and err.mean() < 0.851 * MARGIN
