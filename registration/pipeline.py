@@ -319,6 +319,8 @@ def run_chunk(context: ChunkContext, job: ChunkJob) -> Iterator[FrameOutput]:
                     joint.previous, joint.previous_index = glob.state, k
                     yield from finish_pending()
                     pending.append((k, glob, frame))
+                    if not ctx.overlap:  # done already: written before the next frame starts
+                        yield from finish_pending()
                     continue
                 yield from finish_pending()
                 field_out = _local_stage(frame, ctx.gamma, glob, joint, cfg) if glob.ok else ()
