@@ -150,7 +150,10 @@ class CoarseResult:
     estimate the gate used (rotation frame -> base in degrees, clockwise on screen; base px per
     frame px), ``gate`` says what it was built from, ``gate_outline_base`` is the region of the
     base where gated matches can lie (a polygon, ``(M, 2)`` base px), and ``model_kind`` which
-    model was kept.
+    model was kept. For intra-sensor frames, ``path`` is the step that produced the model
+    (``"fast"``: :mod:`registration.fast_coarse`, ``"sift"``: the SIFT step) and
+    ``fast_reason`` why the fast path was not used (``"off"`` when it is disabled or there is no
+    previous frame; empty when it was used).
     """
 
     success: bool
@@ -172,6 +175,8 @@ class CoarseResult:
     model_kind: str = "projective"
     ambiguity: float | None = None
     correlation_inliers: int = 0
+    path: str = ""
+    fast_reason: str = ""
 
     @property
     def n_matches(self) -> int:

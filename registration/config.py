@@ -11,8 +11,10 @@ provenance); this module only collects them. Presets:
 * ``default``: the fastest configuration found that is at least as accurate (see README,
   "Presets"): Levenberg-Marquardt instead of Nelder-Mead (same minimum, ~60x faster), templates
   correlated after warping the reference into frame geometry, template control points for
-  intra-sensor frames instead of full-resolution SIFT, and the local field from those same kinds of
-  matches.
+  intra-sensor frames instead of full-resolution SIFT, the local field from those same kinds of
+  matches. The intra-sensor coarse step's fast path (:mod:`registration.fast_coarse`,
+  ``IntraConfig.fast_coarse``) is opt-in until runs with it are bit-reproducible across processes
+  on a loaded machine (see that module).
 """
 
 from __future__ import annotations

@@ -35,11 +35,13 @@ from registration.coarse import (
     Seed,
     coarse_features,
     coarse_register,
+    coarse_scale,
     fit_coarse,
     frame_view,
 )
 from registration.coords import bbox_of, frame_outline, image_size, rescale
 from registration.distortion import HarrisModel
+from registration.fast_coarse import fast_coarse
 from registration.features import ControlPoints, GriddedSiftConfig, Keypoints
 from registration.models import Affine, PolyProjective, Projective, Similarity, quantized
 from registration.robust import FitResult, ReqconConfig, reqcon, simplest_supported
@@ -131,6 +133,17 @@ class IntraConfig:
             map itself (source 2). A frame flying over new ground has a leading edge that no
             earlier frame saw; without control points there, the polyprojective extrapolates
             (on a flyover at 480x360, hundreds of px at the leading corners).
+        fast_coarse: beyond the paper (needs ``use_previous_frame``): predict the frame from
+            the previous one (its model moved by the phase-correlation shift between the two),
+            confirm the prediction by template matches at the coarse scale, and run the SIFT
+            coarse step only when a check fails (:mod:`registration.fast_coarse`; the frame's
+            record says which in ``stats["coarse_path"]``). False = always SIFT (the paper and,
+            until runs with it are bit-reproducible across processes, every preset).
+        fast_max_shift: the fast path's largest shift from the previous frame, as a share of
+            the frame's shorter side (0.15: 288 px at 2560x1920, 72 px at 640x480); a larger
+            jump goes to the SIFT step.
+        fast_min_inliers: fewest template matches that must agree (RANSAC inliers) to confirm
+            the prediction.
     """
 
     prediction_gate_px: float = 150.0
@@ -143,8 +156,16 @@ class IntraConfig:
     reanchor_coverage: float = 0.0
     reanchor_max_shift_px: float = 20.0
     base_fallback: bool = False
+    fast_coarse: bool = False
+    fast_max_shift: float = 0.15
+    fast_min_inliers: int = 24
 
     def __post_init__(self) -> None:
+        if not 0 < self.fast_max_shift <= 1 or self.fast_min_inliers < 4:
+            raise ValueError(
+                "IntraConfig.fast_max_shift must be in (0, 1] and fast_min_inliers >= 4, got "
+                f"{self.fast_max_shift}, {self.fast_min_inliers}"
+            )
         if not 0 <= self.reanchor_coverage <= 1:
             raise ValueError(
                 f"IntraConfig.reanchor_coverage must be in [0, 1], got {self.reanchor_coverage}"
@@ -419,7 +440,7 @@ class JointBase:
         mid_grey: the mid base image, grey, in base pixels (Hb, Wb); 0 where ``mid_valid`` is
             False.
         mid_valid: (Hb, Wb) bool, where the mid base image has content.
-        mid_coarse: coarse SIFT of the mid base image.
+        mid_coarse: coarse SIFT of the mid base image, when first needed (:func:`mid_coarse`).
         mid_image: the mid base image as rendered (colour), for writing it out.
         base_grey, base_valid: the base map (grey) and its content mask, searched by the
             templates that neither the mid base image nor the previous frame can take
@@ -433,7 +454,7 @@ class JointBase:
 
     mid_grey: NDArray[np.uint8]
     mid_valid: NDArray[np.bool_]
-    mid_coarse: CoarseFeatures
+    mid_coarse: CoarseFeatures | None = None
     mid_image: NDArray[np.uint8] | None = None
     base_grey: NDArray[np.uint8] | None = None
     base_valid: NDArray[np.bool_] | None = None
@@ -446,12 +467,17 @@ class JointBase:
 
 @dataclass
 class PreviousFrame:
-    """The last registered frame: its view (image and pixel link), model and features."""
+    """The last registered frame: its view (image and pixel link), model and features.
+
+    ``coarse`` (its coarse SIFT) and ``small`` (its grey at the coarse scale, for the fast
+    path) are computed when first needed (:func:`previous_coarse`, :func:`previous_small`): a
+    frame the fast path registers never needs its SIFT."""
 
     view: FrameView
     base_from_corrected: PolyProjective
-    coarse: CoarseFeatures
+    coarse: CoarseFeatures | None = None
     sift: Keypoints | None = None
+    small: NDArray[np.uint8] | None = None
 
 
 def previous_frame_state(frame_raw: NDArray, gamma: float, model, config) -> PreviousFrame:
@@ -460,8 +486,21 @@ def previous_frame_state(frame_raw: NDArray, gamma: float, model, config) -> Pre
     sift = None
     if config.intra.control_points == "gridded_sift":
         sift = features.detect_sift(view.grey, config.intra.gridded.sift)
-    coarse = coarse_features(view.grey, _intra_coarse_config(config), view=view)
-    return PreviousFrame(view, model, coarse, sift)
+    return PreviousFrame(view, model, None, sift)
+
+
+def previous_coarse(prev: PreviousFrame, config) -> CoarseFeatures:
+    """The previous frame's coarse SIFT (computed once)."""
+    if prev.coarse is None:
+        prev.coarse = coarse_features(prev.view.grey, _intra_coarse_config(config), view=prev.view)
+    return prev.coarse
+
+
+def previous_small(prev: PreviousFrame, scale: float) -> NDArray[np.uint8]:
+    """The previous frame's grey at ``scale`` (computed once)."""
+    if prev.small is None:
+        prev.small = features.downscale(prev.view.grey, scale)
+    return prev.small
 
 
 def _intra_coarse_config(config) -> CoarseConfig:
@@ -478,8 +517,14 @@ def make_joint_base(mid_base: NDArray, mid_valid: NDArray[np.bool_], config) -> 
     """Prepare the mid base image for intra-sensor registration (computes its coarse SIFT once)."""
     grey = features.to_grey(mid_base)
     grey = np.where(mid_valid, grey, 0).astype(np.uint8)
-    coarse = coarse_features(grey, config.coarse, mask=mid_valid)
-    return JointBase(grey, mid_valid, coarse, mid_image=mid_base)
+    return JointBase(grey, mid_valid, mid_image=mid_base)
+
+
+def mid_coarse(joint: JointBase, config) -> CoarseFeatures:
+    """The mid base image's coarse SIFT (computed when first needed, after each change)."""
+    if joint.mid_coarse is None:
+        joint.mid_coarse = coarse_features(joint.mid_grey, config.coarse, mask=joint.mid_valid)
+    return joint.mid_coarse
 
 
 def add_to_mid_base(
@@ -488,8 +533,8 @@ def add_to_mid_base(
     """Fill the mid base image's empty pixels inside ``box`` = ``(x0, y0, x1, y1)`` from
     ``image`` (a re-anchored frame rendered into that box, with its ``valid`` mask); content
     already there (the reference frame, earlier anchors) is kept, so a run's mid base image
-    depends only on which frames were anchors and in which order. Features and the prepared
-    local-stage references are recomputed or dropped."""
+    depends only on which frames were anchors and in which order. Its features and the prepared
+    local-stage references are dropped (recomputed when next needed)."""
     x0, y0, x1, y1 = box
     hole = np.asarray(valid, bool) & ~joint.mid_valid[y0:y1, x0:x1]
     if not hole.any():
@@ -498,8 +543,7 @@ def add_to_mid_base(
     if joint.mid_image is not None:
         joint.mid_image[y0:y1, x0:x1][hole] = image[hole]
     joint.mid_valid[y0:y1, x0:x1] |= hole
-    joint.mid_coarse = coarse_features(joint.mid_grey, config.coarse, mask=joint.mid_valid)
-    joint.mid_sift = joint.local_keypoints = joint.flow_reference = None
+    joint.mid_coarse = joint.mid_sift = joint.local_keypoints = joint.flow_reference = None
 
 
 def mid_coverage(joint: JointBase, frame_raw: NDArray, gamma: float, model) -> float:
@@ -526,6 +570,11 @@ def register_intra(
 ) -> tuple[CoarseResult, FineResult, PreviousFrame | None]:
     """Register one frame against the joint base (paper 4.4).
 
+    The coarse step is the fast path (:mod:`registration.fast_coarse`, with
+    ``IntraConfig.fast_coarse``) or, when that is off or one of its checks fails, the SIFT step
+    (:func:`intra_sift_coarse`); ``CoarseResult.path`` says which (``"fast"`` or ``"sift"``) and
+    ``fast_reason`` why the fast path was not used.
+
     Returns the coarse and fine results and, on success, the frame's state to serve as the
     ``previous`` frame of the next one.
     """
@@ -533,84 +582,34 @@ def register_intra(
     rng = np.random.default_rng(rng)
     cfg: IntraConfig = config.intra
     view = frame_view(frame_raw, gamma, config.match_in)
-    ccfg = _intra_coarse_config(config)
-    frame_coarse = coarse_features(view.grey, ccfg, view=view)
     prev = joint.previous if cfg.use_previous_frame else None
-    refs: list[tuple[CoarseFeatures, object]] = []
-    known: list[features.Matches | None] = []
-    if prev is not None:
-        refs.append((prev.coarse, prev.base_from_corrected.apply))
-        known.append(
-            features.match_ratio(frame_coarse.keypoints, prev.coarse.keypoints, ccfg.ratio)
-        )
-    gate = None
-    mid = joint.mid_coarse
-    if joint.previous is not None:
-        predict = joint.previous.base_from_corrected.apply
-        shift = np.zeros(2)
-        if prev is not None:
-            shift = _median_shift(frame_coarse, prev.coarse, known[0], refs[0][1], predict)
-        mid = _coarse_near(mid, predict, shift, view, frame_raw.shape, cfg.prediction_gate_px)
-        limit = cfg.prediction_gate_px
-
-        def gate(fxy, bxy):
-            return np.linalg.norm(predict(fxy) + shift - bxy, axis=1) < limit
-
-    refs.insert(0, (mid, None))
-    known.insert(0, None)
-    n_base = sum(len(r[0].keypoints.xy) for r in refs)
-    coarse = fit_coarse(frame_coarse, refs, ccfg, gate, rng, n_base, known)
+    state = PreviousFrame(view, None)
+    coarse, fast_reason = None, "off"
+    if cfg.fast_coarse and prev is not None:
+        ccfg = _intra_coarse_config(config)
+        s = coarse_scale(*image_size(view.grey), ccfg)
+        state.small = features.downscale(view.grey, s)
+        coarse = fast_coarse(
+            view, state.small, prev.view, previous_small(prev, s), prev.base_from_corrected.apply,
+            s, ccfg, max_shift=cfg.fast_max_shift, min_inliers=cfg.fast_min_inliers, rng=rng,
+        )  # fmt: skip
+        fast_reason = coarse.reason
+        coarse = coarse if coarse else None
+    if coarse is None:
+        coarse, state.coarse = intra_sift_coarse(view, frame_raw.shape, joint, config, rng)
+    coarse.path = "fast" if coarse.gate == "fast" else "sift"
+    coarse.fast_reason = fast_reason
     coarse.time_s = time.perf_counter() - t0
     if not coarse:
         return coarse, _failed_fine(coarse.reason), None
 
     t1 = time.perf_counter()
     model = coarse.base_from_corrected
-    frame_sift = None
     if cfg.control_points == "gridded_sift":
-        frame_sift = features.detect_sift(view.grey, cfg.gridded.sift)
-        if joint.mid_sift is None:
-            joint.mid_sift = features.detect_sift(
-                joint.mid_grey, cfg.gridded.sift, mask=joint.mid_valid.astype(np.uint8)
-            )
-        refs_fine = [
-            features.Reference(
-                joint.mid_grey,
-                lambda xy: model.apply(view.to_corrected(xy)),
-                lambda b: view.from_corrected(model.inverse(b)),
-                joint.mid_sift,
-            )
-        ]
-        if prev is not None:
-            p = prev.base_from_corrected
-            pv = prev.view
-            refs_fine.append(
-                features.Reference(
-                    pv.grey,
-                    lambda xy: pv.from_corrected(p.inverse(model.apply(view.to_corrected(xy)))),
-                    lambda xy: view.from_corrected(model.inverse(p.apply(pv.to_corrected(xy)))),
-                    prev.sift,
-                )
-            )
-        cps = features.gridded_sift_control_points(
-            view.grey, refs_fine, cfg.gridded, frame_keypoints=frame_sift
-        )
-        cps = _points_to_corrected(cps, view)
+        state.sift = features.detect_sift(view.grey, cfg.gridded.sift)
+        cps = _gridded_points(view, state.sift, model, joint, prev, cfg)
     else:
-        fallbacks = []
-        if prev is not None:
-            p, pv = prev.base_from_corrected, prev.view
-            fallbacks.append(features.Reference(
-                pv.grey, lambda xy: pv.from_corrected(p.inverse(model.apply(view.to_corrected(xy))))
-            ))  # fmt: skip
-        if cfg.base_fallback and joint.base_grey is not None:
-            fallbacks.append(features.Reference(
-                joint.base_grey, lambda xy: model.apply(view.to_corrected(xy)),
-                valid=joint.base_valid,
-            ))  # fmt: skip
-        cps = _template_points(
-            view, joint.mid_grey, model, cfg.template, ref_valid=joint.mid_valid, fallback=fallbacks
-        )
+        cps = _intra_template_points(view, model, joint, prev, cfg)
     if prev is not None and len(cps.src):
         # Points found in the previous frame (source 1) are in its raw pixels: to base pixels.
         from_prev = cps.source == 1
@@ -623,8 +622,98 @@ def register_intra(
     fine = _fit_fine(cps, model, config.fine.degree, cfg.reqcon, t1, frame_domain(frame_raw, gamma))
     if not fine:
         return coarse, fine, None
-    state = PreviousFrame(view, fine.base_from_corrected, frame_coarse, frame_sift)
+    state.base_from_corrected = fine.base_from_corrected
     return coarse, fine, state
+
+
+def intra_sift_coarse(
+    view: FrameView, shape, joint: JointBase, config, rng: np.random.Generator
+) -> tuple[CoarseResult, CoarseFeatures]:
+    """The intra-sensor coarse step of the paper (4.4): the frame's coarse SIFT matched against
+    the mid base image and the previous frame, gated by where the previous frame's model
+    predicts each keypoint, RANSAC. Returns the result and the frame's coarse features."""
+    cfg: IntraConfig = config.intra
+    ccfg = _intra_coarse_config(config)
+    frame_coarse = coarse_features(view.grey, ccfg, view=view)
+    prev = joint.previous if cfg.use_previous_frame else None
+    refs: list[tuple[CoarseFeatures, object]] = []
+    known: list[features.Matches | None] = []
+    if prev is not None:
+        prev_coarse = previous_coarse(prev, config)
+        refs.append((prev_coarse, prev.base_from_corrected.apply))
+        known.append(
+            features.match_ratio(frame_coarse.keypoints, prev_coarse.keypoints, ccfg.ratio)
+        )
+    gate = None
+    mid = mid_coarse(joint, config)
+    if joint.previous is not None:
+        predict = joint.previous.base_from_corrected.apply
+        shift = np.zeros(2)
+        if prev is not None:
+            shift = _median_shift(frame_coarse, prev_coarse, known[0], refs[0][1], predict)
+        mid = _coarse_near(mid, predict, shift, view, shape, cfg.prediction_gate_px)
+        limit = cfg.prediction_gate_px
+
+        def gate(fxy, bxy):
+            return np.linalg.norm(predict(fxy) + shift - bxy, axis=1) < limit
+
+    refs.insert(0, (mid, None))
+    known.insert(0, None)
+    n_base = sum(len(r[0].keypoints.xy) for r in refs)
+    return fit_coarse(frame_coarse, refs, ccfg, gate, rng, n_base, known), frame_coarse
+
+
+def _gridded_points(view, frame_sift, model, joint: JointBase, prev, cfg) -> ControlPoints:
+    """Gridded-SIFT control points against the mid base image and the previous frame (paper
+    4.4), ``src`` corrected px."""
+    if joint.mid_sift is None:
+        joint.mid_sift = features.detect_sift(
+            joint.mid_grey, cfg.gridded.sift, mask=joint.mid_valid.astype(np.uint8)
+        )
+    refs_fine = [
+        features.Reference(
+            joint.mid_grey,
+            lambda xy: model.apply(view.to_corrected(xy)),
+            lambda b: view.from_corrected(model.inverse(b)),
+            joint.mid_sift,
+        )
+    ]
+    if prev is not None:
+        p = prev.base_from_corrected
+        pv = prev.view
+        if prev.sift is None:
+            prev.sift = features.detect_sift(pv.grey, cfg.gridded.sift)
+        refs_fine.append(
+            features.Reference(
+                pv.grey,
+                lambda xy: pv.from_corrected(p.inverse(model.apply(view.to_corrected(xy)))),
+                lambda xy: view.from_corrected(model.inverse(p.apply(pv.to_corrected(xy)))),
+                prev.sift,
+            )
+        )
+    cps = features.gridded_sift_control_points(
+        view.grey, refs_fine, cfg.gridded, frame_keypoints=frame_sift
+    )
+    return _points_to_corrected(cps, view)
+
+
+def _intra_template_points(view, model, joint: JointBase, prev, cfg) -> ControlPoints:
+    """Template control points against the mid base image, then the previous frame and the
+    base map where the ones before have no content (``src`` corrected px)."""
+    fallbacks = []
+    if prev is not None:
+        p, pv = prev.base_from_corrected, prev.view
+        fallbacks.append(features.Reference(
+            pv.grey, lambda xy: pv.from_corrected(p.inverse(model.apply(view.to_corrected(xy))))
+        ))  # fmt: skip
+    if cfg.base_fallback and joint.base_grey is not None:
+        fallbacks.append(features.Reference(
+            joint.base_grey, lambda xy: model.apply(view.to_corrected(xy)),
+            valid=joint.base_valid,
+        ))  # fmt: skip
+    return _template_points(
+        view, joint.mid_grey, model, cfg.template, ref_valid=joint.mid_valid, fallback=fallbacks
+    )
 
 
 def footprint_bbox(

@@ -826,6 +826,89 @@ def estimate_field_from_keypoints(
     return field_, stats
 
 
+def _box_counts(mask: NDArray, cx: NDArray, cy: NDArray, half: float) -> NDArray[np.int64]:
+    """``(Gy, Gx)`` non-zero pixels of ``mask`` in the boxes of side ``2 half`` around the crop
+    px ``(cx[j], cy[i])`` (clipped to the crop; box edges rounded to whole pixels). Exact, in
+    one pass over the mask: row bands summed at the boxes' row edges, then cumulated over the
+    columns (cheaper than a whole integral image of a crop of tens of megapixels)."""
+    h, w = mask.shape
+
+    def edges(c: NDArray, n: int) -> tuple[NDArray, NDArray]:
+        lo = np.clip(np.floor(c - half + 0.5), 0, n).astype(np.int64)
+        hi = np.clip(np.floor(c + half + 0.5), 0, n).astype(np.int64)
+        return lo, hi
+
+    r0, r1 = edges(cy, h)
+    c0, c1 = edges(cx, w)
+    rows = np.unique(np.r_[0, h, r0, r1])
+    # The mask's rows summed between consecutive row edges (one pass), then cumulated: the
+    # integral image at every row edge and column.
+    m = (mask > 0).view(np.uint8)
+    bands = np.stack(
+        [
+            cv2.reduce(m[a:b], 0, cv2.REDUCE_SUM, dtype=cv2.CV_32S)[0]
+            for a, b in zip(rows[:-1], rows[1:], strict=True)
+        ]
+    ).astype(np.int64)
+    integral = np.zeros((len(rows), w + 1), np.int64)
+    integral[1:, 1:] = np.cumsum(np.cumsum(bands, axis=0), axis=1)
+    ri0, ri1 = np.searchsorted(rows, r0), np.searchsorted(rows, r1)
+    a = integral[ri1[:, None], c1[None, :]] - integral[ri0[:, None], c1[None, :]]
+    b = integral[ri1[:, None], c0[None, :]] - integral[ri0[:, None], c0[None, :]]
+    return a - b
+
+
+def _cell_members(
+    pos: NDArray, cxs: NDArray, cys: NDArray, half: float, usable: NDArray[np.bool_]
+) -> tuple[NDArray, NDArray, NDArray]:
+    """The samples of each usable cell (``c - half < p < c + half`` on both axes), ordered by
+    x, then y, then index: ``(rows (C,), columns (C,), members (C, M) padded with -1)``, cells
+    in row-major order."""
+    n = len(pos)
+    gy, gx = usable.shape
+    if n == 0 or not usable.any():
+        ii, jj = np.nonzero(usable)
+        return ii, jj, np.full((len(ii), 0), -1, np.int64)
+    sp_x = cxs[1] - cxs[0] if gx > 1 else 1.0
+    sp_y = cys[1] - cys[0] if gy > 1 else 1.0
+
+    # Candidate cells of each sample along one axis: the cells whose centre lies within
+    # ``half`` of it (at most ceil(2 half / spacing) + 1 of them), checked exactly below.
+    def candidates(p: NDArray, c: NDArray, sp: float) -> tuple[NDArray, NDArray]:
+        k = int(np.ceil(2 * half / sp)) + 1 if len(c) > 1 else 1
+        first = np.floor((p - half - c[0]) / sp).astype(np.int64)
+        idx = first[:, None] + np.arange(k + 1)[None, :]
+        ok = (idx >= 0) & (idx < len(c))
+        cc = c[np.clip(idx, 0, len(c) - 1)]
+        ok &= (p[:, None] > cc - half) & (p[:, None] < cc + half)
+        return idx, ok
+
+    jx, okx = candidates(pos[:, 0], cxs, sp_x)
+    iy, oky = candidates(pos[:, 1], cys, sp_y)
+    sample = np.arange(n)
+    s_all, i_all, j_all = [], [], []
+    for a in range(iy.shape[1]):
+        for b in range(jx.shape[1]):
+            ok = oky[:, a] & okx[:, b]
+            s_all.append(sample[ok])
+            i_all.append(iy[ok, a])
+            j_all.append(jx[ok, b])
+    s_all, i_all, j_all = np.concatenate(s_all), np.concatenate(i_all), np.concatenate(j_all)
+    keep = usable[i_all, j_all]
+    s_all, i_all, j_all = s_all[keep], i_all[keep], j_all[keep]
+    cell = i_all * gx + j_all
+    # Order within a cell: x, then y, then index (the order of a stable sort by y, then by x).
+    order = np.lexsort((s_all, pos[s_all, 1], pos[s_all, 0], cell))
+    s_all, cell = s_all[order], cell[order]
+    cells = np.flatnonzero(usable.ravel())
+    counts = np.bincount(cell, minlength=gy * gx)[cells]
+    members = np.full((len(cells), int(counts.max()) if len(cells) else 0), -1, np.int64)
+    starts = np.r_[0, np.cumsum(counts)[:-1]]
+    slot = np.arange(len(s_all)) - np.repeat(starts, counts)
+    members[np.repeat(np.arange(len(cells)), counts), slot] = s_all
+    return cells // gx, cells % gx, members
+
+
 def estimate_field_from_matches(
     pos: ArrayLike,
     disp: ArrayLike,
@@ -855,55 +938,24 @@ def estimate_field_from_matches(
     resid = np.full((gy, gx), np.nan, np.float32)
     vec = np.zeros((gy, gx, 2), np.float64)
     half = config.cell_px / 2.0
-    integral = None
+    cxs = x0 + config.spacing_px * np.arange(gx, dtype=np.float64)
+    cys = y0 + config.spacing_px * np.arange(gy, dtype=np.float64)
+    usable = np.ones((gy, gx), bool)
     if valid_mask is not None:
         vm = np.asarray(valid_mask)
         if vm.shape != (height, width):
             raise ValueError(
                 f"valid_mask shape {vm.shape} differs from the crop ({height}, {width})"
             )
-        integral = cv2.integral((vm > 0).astype(np.uint8))
-    # Samples sorted by y once; a cell row takes a y-slice, sorts it by x, and each cell an
-    # x-slice of that (cells select c - half < p < c + half on both axes).
-    order_y = np.argsort(all_pos[:, 1], kind="stable")
-    ys_sorted = all_pos[order_y, 1]
-    # Cells are collected first and their consensus computed together (consensus_cells).
-    cells: list[tuple[int, int, float, float]] = []
-    members: list[NDArray] = []
-    for i in range(gy):
-        cy = y0 + i * config.spacing_px
-        lo = np.searchsorted(ys_sorted, cy - half, side="right")
-        hi = np.searchsorted(ys_sorted, cy + half, side="left")
-        row = order_y[lo:hi]
-        row = row[np.argsort(all_pos[row, 0], kind="stable")]
-        xs_row = all_pos[row, 0]
-        for j in range(gx):
-            cx = x0 + j * config.spacing_px
-            if integral is not None:
-                c0 = int(np.clip(np.floor(cx - half - origin[0] + 0.5), 0, width))
-                c1 = int(np.clip(np.floor(cx + half - origin[0] + 0.5), 0, width))
-                r0 = int(np.clip(np.floor(cy - half - origin[1] + 0.5), 0, height))
-                r1 = int(np.clip(np.floor(cy + half - origin[1] + 0.5), 0, height))
-                inside = integral[r1, c1] - integral[r0, c1] - integral[r1, c0] + integral[r0, c0]
-                if inside < config.min_valid_fraction * float(config.cell_px) ** 2:
-                    continue
-            sel = row[
-                np.searchsorted(xs_row, cx - half, side="right") : np.searchsorted(
-                    xs_row, cx + half, side="left"
-                )
-            ]
-            cells.append((i, j, cx, cy))
-            members.append(sel)
-    if cells:
-        ii, jj, cxs, cys = (np.array(v) for v in zip(*cells, strict=True))
-        padded = np.full((len(cells), max(len(m) for m in members)), -1, np.int64)
-        for c, m in enumerate(members):
-            padded[c, : len(m)] = m
+        inside = _box_counts(vm, cxs - origin[0], cys - origin[1], half)
+        usable = inside >= config.min_valid_fraction * float(config.cell_px) ** 2
+    ii, jj, members = _cell_members(all_pos, cxs, cys, half, usable)
+    if len(ii):
         vectors_c, kept_c, resid_c, status_c = consensus_cells(
-            all_pos, all_disp, np.c_[cxs, cys].astype(np.float64), padded, config
+            all_pos, all_disp, np.c_[cxs[jj], cys[ii]], members, config
         )
         status[ii, jj] = status_c
-        n_match[ii, jj] = (padded >= 0).sum(axis=1)
+        n_match[ii, jj] = (members >= 0).sum(axis=1)
         n_kept[ii, jj] = kept_c.sum(axis=1)
         resid[ii, jj] = resid_c
         ok = status_c == OK

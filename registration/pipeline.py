@@ -50,6 +50,7 @@ from registration.global_registration import (
 from registration.io import FrameSource
 from registration.local import DisplacementField, frame_field, reference_field
 from registration.models import model_from_dict
+from registration.overlap import FramesAhead, LocalAhead
 from registration.render import render_to_base
 from registration.result import MID_BASE, RegistrationResult, ResultWriter, make_metadata
 from registration.result import frame_arrays as _frame_arrays
@@ -199,6 +200,8 @@ class ChunkContext:
         mid, mid_valid: the mid base image (the reference frame in base pixels) and its mask.
         frames_identity: the frames' identity as the driver recorded it (``result.json``
             ``inputs.frames``); a worker checks that it reads the same files.
+        overlap: keep both cores busy within a chunk (frames decoded ahead, the local stage
+            in a second thread; :func:`run_chunk`). Off by default: see ``register_sequence``.
     """
 
     frames: FrameSource
@@ -211,6 +214,7 @@ class ChunkContext:
     mid: NDArray
     mid_valid: NDArray
     frames_identity: dict | None = None
+    overlap: bool = False
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     def __getstate__(self) -> dict:
@@ -257,37 +261,82 @@ def run_chunk(context: ChunkContext, job: ChunkJob) -> Iterator[FrameOutput]:
     base image (plus the chunk's anchors) and its predecessor, the nearest registered frame
     towards the reference frame; a frame without one in the chunk (a chunk start) is registered
     by :func:`_register_start`. Frames already done are replayed from their records, so that
-    the frames after them see exactly what the uninterrupted run saw."""
+    the frames after them see exactly what the uninterrupted run saw.
+
+    With ``context.overlap`` both cores are kept busy (:mod:`registration.overlap`): the next
+    frames are decoded ahead, and a frame's local stage runs in a second thread while the next
+    frame's global stage runs (the next frame needs only its global model). The local stage
+    reads nothing that the global stage changes, and whatever changes the joint base (an
+    anchor) waits for the local stage in flight, yet the two threads together now and then
+    change a fit in its last bits (see ``register_sequence``: off by default)."""
     ctx, cfg = context, context.config
     joint = ctx.joint_base()
     anchoring = _Anchoring(ctx, joint)
     models: dict[int, object] = {}  # registered frames of this chunk (None: failed)
-    for k in job.chunk.frames:
-        done = job.done.get(k)
-        if done is not None:
-            models[k] = model_from_dict(done.model) if done.ok else None
-            if done.ok and done.anchor and cfg.intra.reanchor_coverage > 0:
-                frame = ctx.frames.get(k)
-                _render_anchor(joint, frame, ctx.gamma, models[k], done.field, cfg)
-            continue
-        frame, problem = read_frame(ctx.frames, k)
-        if frame is None:
-            # Unreadable or of another size: marked failed, the chunk goes on (the next frame
-            # takes the last good one as its previous frame).
-            models[k] = None
-            yield k, _failed_record(problem), None
-            continue
-        prev = _predecessor(k, job.chunk, models, ctx.reference_frame)
-        _set_previous(joint, ctx, prev, models)
-        if prev is None:
-            record, arrays, state = _register_start(frame, k, ctx, joint, anchoring)
-        else:
-            record, arrays, state = _register_one(frame, k, ctx.gamma, joint, cfg)
-            record, arrays, state, _ = anchoring.maybe(frame, k, record, arrays, state)
-        models[k] = state.base_from_corrected if state is not None else None
-        if state is not None:
-            joint.previous, joint.previous_index = state, k
-        yield k, record, arrays
+    todo = [k for k in job.chunk.frames if k not in job.done]
+    frames = FramesAhead(ctx.frames, todo) if ctx.overlap and len(todo) > 1 else ctx.frames
+    local = LocalAhead(enabled=ctx.overlap)
+    pending: list[tuple[int, _Global, NDArray]] = []  # at most one frame, its local stage running
+
+    def finish_pending() -> Iterator[FrameOutput]:
+        while pending:
+            k, glob, frame = pending.pop(0)
+            yield k, *glob.finish(*local.result(k))[:2]
+
+    try:
+        for k in job.chunk.frames:
+            done = job.done.get(k)
+            if done is not None:
+                models[k] = model_from_dict(done.model) if done.ok else None
+                if done.ok and done.anchor and cfg.intra.reanchor_coverage > 0:
+                    yield from finish_pending()
+                    frame = ctx.frames.get(k)
+                    _render_anchor(joint, frame, ctx.gamma, models[k], done.field, cfg)
+                continue
+            t_read = time.perf_counter()
+            frame, problem = read_frame(frames, k)
+            t_read = time.perf_counter() - t_read
+            if frame is None:
+                # Unreadable or of another size: marked failed, the chunk goes on (the next
+                # frame takes the last good one as its previous frame).
+                models[k] = None
+                yield from finish_pending()
+                yield k, _failed_record(problem), None
+                continue
+            prev = _predecessor(k, job.chunk, models, ctx.reference_frame)
+            _set_previous(joint, ctx, prev, models)
+            glob = None
+            if prev is None:
+                yield from finish_pending()
+                record, arrays, state = _register_start(frame, k, ctx, joint, anchoring)
+            else:
+                glob = _register_global(frame, k, ctx.gamma, joint, cfg)
+                glob.times["read"] = t_read
+                if glob.ok and cfg.run_local and not anchoring.wanted(frame, glob.state):
+                    # The local stage in the background; the frame is yielded when it is done.
+                    local.submit(k, _local_stage, frame, ctx.gamma, glob, joint, cfg)
+                    models[k] = glob.state.base_from_corrected
+                    joint.previous, joint.previous_index = glob.state, k
+                    yield from finish_pending()
+                    pending.append((k, glob, frame))
+                    if not ctx.overlap:  # done already: written before the next frame starts
+                        yield from finish_pending()
+                    continue
+                yield from finish_pending()
+                field_out = _local_stage(frame, ctx.gamma, glob, joint, cfg) if glob.ok else ()
+                record, arrays, state = glob.finish(*field_out)
+                record, arrays, state, _ = anchoring.maybe(frame, k, record, arrays, state)
+            models[k] = state.base_from_corrected if state is not None else None
+            if state is not None:
+                joint.previous, joint.previous_index = state, k
+            if "time_s" in record.get("stats", {}):
+                record["stats"]["time_s"].setdefault("read", round(t_read, 4))
+            yield k, record, arrays
+        yield from finish_pending()
+    finally:
+        local.close()
+        if frames is not ctx.frames:
+            frames.close()
 
 
 def _predecessor(k: int, chunk: Chunk, models: dict, ref: int) -> int | None:
@@ -379,6 +428,7 @@ def register_sequence(
     reference: tuple[CoarseResult, FineResult] | None = None,
     base_georef=None,
     executor: ChunkExecutor | None = None,
+    overlap: bool = False,
 ) -> RegistrationResult:
     """Register every frame of ``frames`` to ``base`` and write the result folder ``out_dir``.
 
@@ -406,6 +456,11 @@ def register_sequence(
         executor: where the chunks run (:class:`SerialExecutor` when None;
             :class:`registration.distributed.DaskExecutor` on a Dask cluster). The result does
             not depend on it; this process writes every frame as its output arrives.
+        overlap: decode frames ahead and run each frame's local stage in a second thread
+            while the next frame's global stage runs (:func:`run_chunk`). Opt-in: on a loaded
+            machine the two threads now and then change a fit in its last bits (measured: 3
+            runs in 4, a later frame's corner moved by up to 2 px through REQCON), so runs
+            with it are not bit-reproducible; without it they are.
 
     Returns:
         The result, as :func:`registration.load` would open it.
@@ -442,7 +497,7 @@ def register_sequence(
             progress(n_done, n)
         context = ChunkContext(
             frames, base, base_valid, float(gamma), config, reference_frame, model, mid, valid,
-            meta["inputs"]["frames"],
+            meta["inputs"]["frames"], overlap,
         )  # fmt: skip
         jobs = chunk_jobs(writer, n, reference_frame, config)
         cancelled = cancel is not None and cancel.is_set()
@@ -635,6 +690,14 @@ class _Anchoring:
         self.base, self.base_valid, self.gamma = ctx.base, ctx.base_valid, ctx.gamma
         self.config = ctx.config
 
+    def wanted(self, frame, state) -> bool:
+        """Whether :meth:`maybe` would try to anchor a frame registered as ``state``."""
+        cfg = self.config.intra
+        if cfg.reanchor_coverage <= 0 or state is None:
+            return False
+        coverage = mid_coverage(self.joint, frame, self.gamma, state.base_from_corrected)
+        return coverage < cfg.reanchor_coverage
+
     def maybe(self, frame, k, record, arrays, state):
         """``(record, arrays, state, anchored)`` of frame ``k``: its intra-sensor result, or,
         when too little of it lies on the mid base image, its registration to the base map
@@ -662,6 +725,10 @@ class _Anchoring:
         times = dict(stats.get("time_s", {}))
         record, arrays, state = self.anchor(frame, fine, _NoCoarse(), times, t0)
         record["stats"].update(mid_coverage=round(coverage, 3), anchor_shift_px=round(shift, 3))
+        # How the intra-sensor step that the anchor confirmed found the frame.
+        for key in ("coarse_path", "fast_path_reason"):
+            if key in stats:
+                record["stats"][key] = stats[key]
         return record, arrays, state, True
 
     def anchor(self, frame, fine: FineResult, coarse, times: dict, t0: float):
@@ -704,7 +771,42 @@ def _empty_points():
     return z, z, np.zeros(0, bool), np.zeros(0), 0
 
 
-def _register_one(frame, k, gamma, joint: JointBase, config: PipelineConfig):
+class _Global:
+    """A frame's global stage (coarse and fine, :func:`register_intra`) and what its record
+    needs once the local stage is done (:meth:`finish`)."""
+
+    def __init__(self, record=None, arrays=None, coarse=None, fine=None, state=None, times=None):
+        self.record, self.arrays = record, arrays  # set when the global stage failed
+        self.coarse, self.fine, self.state = coarse, fine, state
+        self.times = times or {}
+
+    @property
+    def ok(self) -> bool:
+        return self.record is None
+
+    def finish(self, field=None, field_stats=None, local_s: float | None = None):
+        """``(record, arrays, state)`` of the frame, with the local stage's field."""
+        if not self.ok:
+            return self.record, self.arrays, None
+        times = dict(self.times)
+        read = times.pop("read", None)
+        if local_s is not None:
+            times["local"] = local_s
+        # Work done for the frame (its local stage may have overlapped the next frame's).
+        times["total"] = times.pop("global") + times.get("local", 0.0)
+        if read is not None:
+            times["read"] = read
+        record = {
+            "status": "ok",
+            "reason": "",
+            "stage": "intra-sensor",
+            "stats": _stats(self.coarse, self.fine, times, field_stats),
+            "model": self.fine.base_from_corrected.to_dict(),
+        }
+        return record, _frame_arrays(self.fine, field, field_stats), self.state
+
+
+def _register_global(frame, k, gamma, joint: JointBase, config: PipelineConfig) -> _Global:
     t0 = time.perf_counter()
     try:
         coarse, fine, state = register_intra(
@@ -712,27 +814,33 @@ def _register_one(frame, k, gamma, joint: JointBase, config: PipelineConfig):
         )
     except np.linalg.LinAlgError as exc:
         reason = f"degenerate fit: {exc}"
-        return {"status": "failed", "reason": reason, "stats": {}, "model": None}, None, None
+        return _Global({"status": "failed", "reason": reason, "stats": {}, "model": None})
     times = {"coarse": coarse.time_s, "fine": fine.time_s}
     if not fine:
         stats = _stats(coarse, fine, times) if coarse else {"time_s": times}
         record = {"status": "failed", "reason": fine.reason, "stats": stats, "model": None}
-        return record, (_frame_arrays(fine, None) if len(fine.src) else None), None
-    model = fine.base_from_corrected
-    field, field_stats = None, None
-    if config.run_local:
-        t1 = time.perf_counter()
-        field, field_stats = frame_field(frame, gamma, model, joint, config.local)
-        times["local"] = time.perf_counter() - t1
-    times["total"] = time.perf_counter() - t0
-    record = {
-        "status": "ok",
-        "reason": "",
-        "stage": "intra-sensor",
-        "stats": _stats(coarse, fine, times, field_stats),
-        "model": model.to_dict(),
-    }
-    return record, _frame_arrays(fine, field, field_stats), state
+        return _Global(record, _frame_arrays(fine, None) if len(fine.src) else None)
+    times["global"] = time.perf_counter() - t0
+    return _Global(coarse=coarse, fine=fine, state=state, times=times)
+
+
+def _local_stage(frame, gamma, glob: _Global, joint: JointBase, config: PipelineConfig):
+    """``(field, stats, seconds)`` of a frame registered by ``glob`` (no field when the local
+    stage is off)."""
+    if not config.run_local:
+        return None, None, None
+    t1 = time.perf_counter()
+    field_, field_stats = frame_field(frame, gamma, glob.fine.base_from_corrected, joint,
+                                      config.local)  # fmt: skip
+    return field_, field_stats, time.perf_counter() - t1
+
+
+def _register_one(frame, k, gamma, joint: JointBase, config: PipelineConfig):
+    """``(record, arrays, state)`` of an intra-sensor frame: global then local stage."""
+    glob = _register_global(frame, k, gamma, joint, config)
+    return (
+        glob.finish(*_local_stage(frame, gamma, glob, joint, config)) if glob.ok else glob.finish()
+    )
 
 
 def load_config(out_dir: str | Path) -> PipelineConfig:

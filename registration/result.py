@@ -481,6 +481,10 @@ def frame_stats(coarse, fine, times: dict[str, float], field_stats=None) -> dict
         # Rounded: REQCON's unquantized final fit varies in its last bits between processes.
         "residual_sigma_px": _finite_or_none(round(getattr(fine, "sigma_px", float("nan")), 9)),
     }
+    if getattr(coarse, "path", ""):
+        stats["coarse_path"] = coarse.path
+        if coarse.fast_reason:
+            stats["fast_path_reason"] = coarse.fast_reason
     if getattr(coarse, "heading_deg", None) is not None:
         stats["heading_deg"] = round(float(coarse.heading_deg), 3)
         stats["scale"] = round(float(coarse.scale), 5)

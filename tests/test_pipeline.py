@@ -153,7 +153,9 @@ def test_intra_frames_follow_motion_beyond_the_prediction_gate(sim, tmp_path):
     gate = 12.0
     assert min(moves) > 1.5 * gate, moves  # measured 22-39 px at 640x480
     cfg = get_preset("default")
-    cfg = replace(cfg, run_local=False, intra=replace(cfg.intra, prediction_gate_px=gate))
+    # The SIFT coarse step's gate (the fast path, tests/test_fast_coarse.py, has none).
+    intra = replace(cfg.intra, prediction_gate_px=gate, fast_coarse=False)
+    cfg = replace(cfg, run_local=False, intra=intra)
     frames = tmp_path / "frames"
     frames.mkdir()
     for k in range(4):
@@ -244,6 +246,43 @@ def test_opencv_baseline_scores_through_the_same_evaluation(sim, result):
     assert ours["local"]["mean"] < theirs["global"]["mean"]
 
 
+def test_stabilo_baseline_recovers_a_known_homography(sim):
+    from registration.baseline import StabiloConfig, _orb_features, stabilo_homography
+
+    ref = read_image(sim / "frames" / "000000.png")
+    h, w = ref.shape[:2]
+    # A small rotation, scale and shift about the centre: what consecutive frames differ by.
+    truth = cv2.getRotationMatrix2D((w / 2, h / 2), 2.0, 1.03)
+    truth = np.vstack([truth, [0, 0, 1]]) @ np.array([[1, 0, 12.0], [0, 1, -7.0], [0, 0, 1]])
+    frame = cv2.warpPerspective(ref, np.linalg.inv(truth), (w, h))  # ref = truth(frame)
+    cfg = StabiloConfig()
+    ref_feats = _orb_features(ref, 0.0, 2 * cfg.max_features, cfg.downsample)
+    got = stabilo_homography(ref_feats, _orb_features(frame, 0.0, cfg.max_features, 0.5), cfg)
+    assert got is not None
+    gx, gy = np.meshgrid(np.linspace(100, w - 100, 5), np.linspace(100, h - 100, 4))
+    p = np.c_[gx.ravel(), gy.ravel(), np.ones(gx.size)]
+    a, b = p @ got.T, p @ truth.T
+    err = np.hypot(*(a[:, :2] / a[:, 2:] - b[:, :2] / b[:, 2:]).T)
+    assert err.max() < 1.0
+
+
+def test_stabilo_baseline_scores_through_the_same_evaluation(sim, result):
+    from registration.baseline import register_baseline, register_stabilo
+
+    truth = load_truth(sim)
+    frames = open_frames(sim / "frames")
+    opencv = register_baseline(frames, read_image(sim / "base.png"), 0.7)
+    stabilo = register_stabilo(frames, opencv.homographies[0], 0.7)
+    assert all(h is not None for h in stabilo.homographies)
+    np.testing.assert_array_equal(stabilo.homographies[0], opencv.homographies[0])
+    theirs = evaluate_truth(stabilo, truth).summary
+    ours = evaluate_truth(result, truth).summary
+    assert theirs["global"]["mean"] < 4.0
+    assert ours["local"]["mean"] < theirs["global"]["mean"]
+    # Without a link to the base, nothing reaches it.
+    assert all(h is None for h in register_stabilo(frames, None, 0.7).homographies)
+
+
 @pytest.mark.slow
 def test_register_benchmark_runs_end_to_end(capsys):
     import json
@@ -254,6 +293,6 @@ def test_register_benchmark_runs_end_to_end(capsys):
     out = json.loads(capsys.readouterr().out)
     assert code == 0
     rows = out["register"]["rows"]
-    assert set(rows) == {"paper", "default", "opencv"}
+    assert set(rows) == {"paper", "default", "opencv", "stabilo"}
     for row in rows.values():
         assert np.isfinite(row["global"]["mean"]) and row["times"]["total"] > 0
