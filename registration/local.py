@@ -855,7 +855,8 @@ def estimate_field_from_matches(
     valid_mask: NDArray | None = None,
 ) -> tuple[DisplacementField, FieldStats]:
     """Displacement field from point matches: the per-cell consensus, the moving-car guard and
-    the filling of rejected cells.
+    the filling of rejected cells (``config.fit == "cells"``), or :func:`estimate_field_spline`
+    (``"spline"``, no moving-car guard: its Tukey weights drop what disagrees with the fit).
 
     Args:
         pos: ``(M, 2)`` base px of the matches in the reference (they pick the cell).
