@@ -607,7 +607,9 @@ def _reference_step(
     model = fine.base_from_corrected
     field_, field_stats = None, None
     if config.run_local and config.reference_local is not None:
-        field_, field_stats = reference_field(fine, (wb, hb), config.reference_local)
+        field_, field_stats = reference_field(
+            fine, (wb, hb), config.reference_local, _footprint(frame, gamma, model)
+        )
     # The mid base image is the reference frame registered with its own field: every other
     # frame's local stage aligns to it, so its accuracy is theirs.
     mid, valid = render_to_base(frame, gamma, model, (0, 0, wb, hb), field_)
@@ -670,6 +672,12 @@ def _anchor_box(frame, gamma, model, base_size) -> tuple[int, int, int, int] | N
     box = bbox_of(model.apply(harris.corrected_from_raw(frame_outline(w, h))), base_size, 2)
     x0, y0, x1, y1 = box
     return None if x1 - x0 < 2 or y1 - y0 < 2 else box
+
+
+def _footprint(frame, gamma, model) -> NDArray:
+    """``(N, 2)`` base px of the frame's outline under ``model`` (``base_from_corrected``)."""
+    w, h = image_size(frame)
+    return model.apply(HarrisModel(gamma, w, h).corrected_from_raw(frame_outline(w, h)))
 
 
 def _render_anchor(joint: JointBase, frame, gamma, model, field_, config) -> None:
@@ -738,7 +746,10 @@ class _Anchoring:
         field_ = field_stats = None
         if self.config.run_local and self.config.reference_local is not None:
             wb, hb = image_size(self.base)
-            field_, field_stats = reference_field(fine, (wb, hb), self.config.reference_local)
+            field_, field_stats = reference_field(
+                fine, (wb, hb), self.config.reference_local,
+                _footprint(frame, self.gamma, model),
+            )  # fmt: skip
         if self.config.intra.reanchor_coverage > 0:
             _render_anchor(self.joint, frame, self.gamma, model, field_, self.config)
         times["anchor"] = round(time.perf_counter() - t0, 4)

@@ -29,17 +29,20 @@ from tests.conftest import PAPER_FRAMES, FirstFrames
 # Limits are the measured figure times this.
 MARGIN = 1.3
 
-# Default preset, reference frame 0 (base px, mean over a 16 px grid of ground points).
+# Default preset, reference frame 0 (base px, mean over a 16 px grid of ground points). Measured
+# after the reference field became a spline (config.REFERENCE_LOCAL); the figures before it
+# (same process setup) in brackets: the reference frame's own local error rises by 0.04 px, every
+# other frame, aligned to the mid base image rendered with that field, improves.
 DEFAULT = {
     # The reference frame: inter-sensor fine step (global), then its own field (local).
-    "reference_global": 0.499,
-    "reference_local": 0.394,
+    "reference_global": 0.499,  # (0.499)
+    "reference_local": 0.434,  # (0.394)
     # The other frames, mean of their per-frame means: intra-sensor step, then the local field.
-    "others_global": 0.732,
-    "others_local": 0.521,
+    "others_global": 0.619,  # (0.732; 0.777-0.810 in earlier versions)
+    "others_local": 0.487,  # (0.521)
     # The paper's Table 2 measure: motion relative to the reference frame, all other frames.
-    "motion_global": 0.458,
-    "motion_local": 0.198,
+    "motion_global": 0.361,  # (0.458)
+    "motion_local": 0.176,  # (0.198)
 }
 # Paper preset, first 3 frames, reference frame 0 (the paper's Table 2: 2.6 px global, 1.1 px
 # local motion at 2560x1920, hand-marked).

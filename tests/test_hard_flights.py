@@ -47,15 +47,16 @@ def _run(flight, out, config):
 @pytest.mark.slow
 def test_long_flight_does_not_drift(flight, tmp_path):
     """Default preset (re-anchoring and the base map behind the joint base): the last 10 frames
-    are no worse than 1.5x the first 10 (measured 0.93 -> 1.09 px mean after the local stage)
-    and every frame stays within 3 px (measured max 2.25 px); without either, the chain of
-    intra-sensor frames drifts off (measured 7.7 px over the first 10, 719 px over the last)."""
+    are no worse than 1.2x the first 10 (the issue's bar; measured 0.905 -> 0.812 px mean after
+    the local stage) and stay within 1.3x the measured figures (last 10 0.812 px, worst frame
+    2.21 px); without either, the chain of intra-sensor frames drifts off (measured 7.7 px over
+    the first 10, 719 px over the last)."""
     result, err = _run(flight, tmp_path / "default", get_preset("default"))
     assert all(r["status"] == "ok" for r in result.records)
     assert any(r.get("stage") == ANCHOR_STAGE for r in result.records)
     first, last = err[:10].mean(), err[-10:].mean()
-    assert last <= 1.5 * first, f"first 10 {first:.2f} px, last 10 {last:.2f} px"
-    assert last < 1.5 and err.max() < 3.0, err.round(2)
+    assert last <= 1.2 * first, f"first 10 {first:.2f} px, last 10 {last:.2f} px"
+    assert last < 1.06 and err.max() < 2.88, err.round(2)  # measured 0.812, 2.21
 
     cfg = get_preset("default")
     paper_joint = dataclasses.replace(
@@ -69,10 +70,13 @@ def test_long_flight_does_not_drift(flight, tmp_path):
 def test_paper_hard_flight_has_no_failed_frame(tmp_path):
     """``paper-hard`` at 640x480, 20 frames: no frame fails (a previous version failed one with
     "REQCON failed: mean error 0.531 px ... still above 0.5"), REQCON keeps almost every
-    control point (measured 98.6 %; it kept 31-96 of ~150 before), and the errors stay at the
-    measured figures with a 1.3 margin: global 1.09 px, local 1.18 px mean. The local stage
-    cannot beat the reference frame's own inter-sensor error here (1.12 px), so the issue's
-    0.5 px bar is not reached (README, known limits)."""
+    control point (measured 98.1 %, worst frame 92.8 %; it kept 31-96 of ~150 before), and the
+    errors stay within 1.3x the measured figures: local 1.047 px mean (1.18 with the per-cell
+    reference field); global 1.134 px (the limit stays at 1.3x the 1.09 measured before: the
+    other frames' global step matches a mid base image rendered with the reference field). The
+    issue's 0.5 px bar is not reached: every inter-sensor match carries a ~0.46 px shadow bias
+    (the base map's sun is not the frames'), and the outer 32 raw px of each frame, stretched
+    ~6x by the radial correction, hold most of the rest (acc11 report)."""
     sim = tmp_path / "hard"
     simulate(sim, PROFILES["paper-hard"](frame_size=(640, 480), n_frames=20, video=False))
     truth = load_truth(sim)
@@ -86,5 +90,5 @@ def test_paper_hard_flight_has_no_failed_frame(tmp_path):
     kept = [r["stats"]["n_inliers"] / r["stats"]["n_control_points"] for r in result.records]
     assert np.mean(kept) >= 0.9 and min(kept) >= 0.75, np.round(kept, 2)
     s = evaluate_truth(result, truth).summary
-    assert s["global"]["mean"] < 1.42, s["global"]
-    assert s["local"]["mean"] < 1.53, s["local"]
+    assert s["global"]["mean"] < 1.42, s["global"]  # measured 1.134
+    assert s["local"]["mean"] < 1.36, s["local"]  # measured 1.047

@@ -393,6 +393,8 @@ def test_flow_method_is_not_dragged_by_cars(flat_cell):
         ({"method": "orb"}, "method must be 'sift' or 'flow', got 'orb'"),
         ({"flow_preset": "slow"}, "flow_preset must be ultrafast, fast or medium, got 'slow'"),
         ({"cell_model": "quadratic"}, "cell_model must be"),
+        ({"fit": "tps"}, "fit must be 'cells' or 'spline', got 'tps'"),
+        ({"spline_smoothness": 0.0}, "spline_smoothness must be positive, got 0.0"),
     ],
 )
 def test_bad_config_names_the_value(kwargs, message):
@@ -544,3 +546,89 @@ def test_batched_consensus_equals_one_cell_at_a_time(rng):
                 np.testing.assert_allclose(vec[c], v, atol=1e-9)
     # The random cells exercise success and every failure the consensus itself can report.
     assert {OK, NO_CONSENSUS, RIVAL_MOTION, local.FEW_MATCHES} <= statuses
+
+
+# --------------------------------------------------------------------------------------------
+# Spline fit (LocalConfig.fit = "spline")
+
+
+def _corner_field(xy: np.ndarray) -> np.ndarray:
+    """A field that bends within a 200 px cell, as a lens beyond Harris does towards a corner:
+    quadratic plus a row-dependent shear (rolling shutter), up to ~6 px over 640x480."""
+    u, v = xy[:, 0] / W, xy[:, 1] / H
+    return np.c_[4.0 * u**2 + 0.8 * v, -3.0 * u * v + 1.5 * v**2 - 0.5]
+
+
+def test_spline_recovers_a_bending_field_and_ignores_injected_mismatches(rng):
+    """Template-like samples (every 25 px, 0.15 px noise) of a field that bends within a cell,
+    with 5 % mismatches 4-8 px off at named indices: the spline puts zero weight on every
+    mismatch and follows the field (measured 0.026 px mean, 0.076 max over the crop); the
+    per-cell consensus of the previous reference field cannot follow the bend (0.109 px)."""
+    gx, gy = np.meshgrid(np.arange(12.5, W, 25.0), np.arange(12.5, H, 25.0))
+    pos = np.c_[gx.ravel(), gy.ravel()]
+    disp = _corner_field(pos) + rng.normal(0, 0.15, pos.shape)
+    bad = np.arange(0, len(pos), 20)
+    angle = rng.uniform(0, 2 * np.pi, len(bad))
+    disp[bad] += rng.uniform(4, 8, len(bad))[:, None] * np.c_[np.cos(angle), np.sin(angle)]
+    spline = LocalConfig(fit="spline", spacing_px=100, min_matches=6)
+    field_, stats = local.estimate_field_spline(pos, disp, W, H, spline)
+    probe = np.c_[rng.uniform(20, W - 20, 500), rng.uniform(20, H - 20, 500)]
+    err = np.linalg.norm(field_.sample(probe) - _corner_field(probe), axis=1)
+    assert err.mean() < 0.05 and err.max() < 0.15, (err.mean(), err.max())
+    assert stats.n_valid >= 0.9 * stats.n_cells  # the nodes beyond the last samples: fewer
+    assert int(stats.cell_kept.sum()) < int(stats.cell_matches.sum())  # the mismatches
+    cells = LocalConfig(cell_model="affine", cell_px=300, spacing_px=150, min_matches=6,
+                        reqcon_target_px=0.5, reqcon_max_residual_px=1.5)  # fmt: skip
+    field_c, _ = local.estimate_field_from_matches(pos, disp, W, H, cells)
+    err_c = np.linalg.norm(field_c.sample(probe) - _corner_field(probe), axis=1)
+    assert err.mean() < 0.5 * err_c.mean(), (err.mean(), err_c.mean())
+
+
+def test_spline_weights_drop_exactly_the_injected_mismatches(rng):
+    """A constant shift with 0.1 px noise and mismatches 5 px off at indices 3, 50, 97 and
+    140: the same field as without them (to 0.01 px), the mismatches carry no weight."""
+    gx, gy = np.meshgrid(np.arange(10.0, 400, 20.0), np.arange(10.0, 300, 20.0))
+    pos = np.c_[gx.ravel(), gy.ravel()]
+    disp = np.tile([1.25, -0.5], (len(pos), 1)) + rng.normal(0, 0.1, pos.shape)
+    cfg = LocalConfig(fit="spline", spacing_px=100)
+    clean, _ = local.estimate_field_spline(pos, disp, 400, 300, cfg)
+    dirty = disp.copy()
+    dirty[[3, 50, 97, 140]] += [5.0, 0.0]
+    field_, stats = local.estimate_field_spline(pos, dirty, 400, 300, cfg)
+    assert np.abs(field_.vectors - clean.vectors).max() < 0.01
+    assert int(stats.cell_matches.sum() - stats.cell_kept.sum()) >= 4
+
+
+def test_spline_continues_the_slope_beyond_the_samples():
+    """Samples of a linear field only in the middle of the crop: the nodes beyond them continue
+    the slope exactly (the penalty's null space is affine), where a per-cell consensus repeats
+    the last cell's vector; nodes without samples are marked as not measured."""
+    gx, gy = np.meshgrid(np.arange(200.0, 441, 10.0), np.arange(150.0, 331, 10.0))
+    pos = np.c_[gx.ravel(), gy.ravel()]
+
+    def linear(xy):
+        return np.c_[0.01 * xy[:, 0] - 2.0, 0.005 * xy[:, 1]]
+
+    field_, stats = local.estimate_field_spline(pos, linear(pos), W, H, LocalConfig(fit="spline"))
+    corners = np.array([[0.0, 0.0], [W - 1.0, 0.0], [0.0, H - 1.0], [W - 1.0, H - 1.0]])
+    assert np.abs(field_.sample(corners) - linear(corners)).max() < 1e-3
+    assert not field_.valid.all() and field_.valid.any()
+    assert stats.counts()["outside"] == int((~field_.valid).sum() - stats.counts()["few_matches"])
+
+
+def test_spline_with_too_few_samples_is_a_zero_unmeasured_field():
+    field_, stats = local.estimate_field_spline(
+        np.array([[10.0, 10.0], [20.0, 20.0]]), np.ones((2, 2)), 200, 200,
+        LocalConfig(fit="spline", min_matches=6),
+    )  # fmt: skip
+    assert not field_.valid.any() and not np.asarray(field_.vectors).any()
+    assert stats.n_valid == 0
+
+
+def test_estimate_field_from_matches_dispatches_on_fit(rng):
+    pos = np.c_[rng.uniform(0, W, 400), rng.uniform(0, H, 400)]
+    disp = np.tile([0.5, 0.25], (400, 1))
+    cfg = LocalConfig(fit="spline")
+    a, _ = local.estimate_field_from_matches(pos, disp, W, H, cfg)
+    b, _ = local.estimate_field_spline(pos, disp, W, H, cfg)
+    assert np.array_equal(a.vectors, b.vectors) and np.array_equal(a.valid, b.valid)
