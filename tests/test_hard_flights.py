@@ -63,7 +63,8 @@ def test_long_flight_does_not_drift(flight, tmp_path):
         cfg, intra=dataclasses.replace(cfg.intra, reanchor_coverage=0.0, base_fallback=False)
     )
     _, drift = _run(flight, tmp_path / "paper-joint", paper_joint)
-    assert drift[-10:].mean() > 20 * last, drift.round(1)
+    # A frame of the drifting chain may fail (NaN): the drift is measured on those that did not.
+    assert np.nanmean(drift[-10:]) > 20 * last, drift.round(1)
 
 
 @pytest.mark.slow
