@@ -145,19 +145,30 @@ def register_baseline(
     ref_feats = sift_features(corrected_grey(frames.get(reference_frame), gamma))
     base_from_ref = homography(ref_feats, base_feats, config)
     out = BaselineResult(gamma, (w, h), [None] * len(frames), reference_frame=reference_frame)
-    setup = time.perf_counter() - t0
+    return _chain_to_reference(
+        frames,
+        out,
+        base_from_ref,
+        lambda frame: homography(sift_features(corrected_grey(frame, gamma)), ref_feats, config),
+        time.perf_counter() - t0,
+    )
+
+
+def _chain_to_reference(frames, out: BaselineResult, base_from_ref, ref_from_frame, setup_s):
+    """Fill ``out`` with ``base_from_ref @ ref_from_frame(frame)`` for every frame (the reference
+    frame itself: ``base_from_ref``; None where either is missing) and each frame's seconds
+    (the reference frame's include ``setup_s``, its features)."""
+    ref = out.reference_frame
     for k, frame in frames.iter():
         t1 = time.perf_counter()
         if base_from_ref is not None:
-            if k == reference_frame:
+            if k == ref:
                 out.homographies[k] = base_from_ref
             else:
-                ref_from_k = homography(
-                    sift_features(corrected_grey(frame, gamma)), ref_feats, config
-                )
+                ref_from_k = ref_from_frame(frame)
                 if ref_from_k is not None:
                     out.homographies[k] = base_from_ref @ ref_from_k
-        out.times_s.append(time.perf_counter() - t1 + (setup if k == reference_frame else 0.0))
+        out.times_s.append(time.perf_counter() - t1 + (setup_s if k == ref else 0.0))
     return out
 
 
@@ -245,16 +256,12 @@ def register_stabilo(
     n_ref = round(config.max_features * config.ref_multiplier)
     ref_feats = _orb_features(frames.get(reference_frame), gamma, n_ref, config.downsample)
     out = BaselineResult(gamma, (w, h), [None] * len(frames), reference_frame=reference_frame)
-    setup = time.perf_counter() - t0
-    for k, frame in frames.iter():
-        t1 = time.perf_counter()
-        if base_from_ref is not None:
-            if k == reference_frame:
-                out.homographies[k] = base_from_ref
-            else:
-                feats = _orb_features(frame, gamma, config.max_features, config.downsample)
-                ref_from_k = stabilo_homography(ref_feats, feats, config)
-                if ref_from_k is not None:
-                    out.homographies[k] = base_from_ref @ ref_from_k
-        out.times_s.append(time.perf_counter() - t1 + (setup if k == reference_frame else 0.0))
-    return out
+    return _chain_to_reference(
+        frames,
+        out,
+        base_from_ref,
+        lambda frame: stabilo_homography(
+            ref_feats, _orb_features(frame, gamma, config.max_features, config.downsample), config
+        ),
+        time.perf_counter() - t0,
+    )
