@@ -326,9 +326,7 @@ def run_chunk(context: ChunkContext, job: ChunkJob) -> Iterator[FrameOutput]:
                         yield from finish_pending()
                     continue
                 yield from finish_pending()
-                field_out = (
-                    _local_stage(frame, ctx.camera, glob, joint, local_cfg) if glob.ok else ()
-                )
+                field_out = _local_stage(frame, ctx.camera, glob, joint, local_cfg)
                 record, arrays, state = glob.finish(*field_out)
                 record, arrays, state, _ = anchoring.maybe(frame, k, record, arrays, state)
             models[k] = state.base_from_corrected if state is not None else None
@@ -851,9 +849,9 @@ def _local_config(config: PipelineConfig) -> LocalConfig | None:
 
 
 def _local_stage(frame, camera: Camera, glob: _Global, joint: JointBase, cfg: LocalConfig | None):
-    """``(field, stats, seconds)`` of a frame registered by ``glob`` (no field when the local
-    stage is off: ``cfg`` None)."""
-    if cfg is None:
+    """``(field, stats, seconds)`` of a frame registered by ``glob`` (no field when its global
+    stage failed or the local stage is off: ``cfg`` None)."""
+    if cfg is None or not glob.ok:
         return None, None, None
     t1 = time.perf_counter()
     field_, field_stats = frame_field(frame, camera, glob.fine.base_from_corrected, joint, cfg)
@@ -863,8 +861,6 @@ def _local_stage(frame, camera: Camera, glob: _Global, joint: JointBase, cfg: Lo
 def _register_one(frame, k, camera: Camera, joint: JointBase, config: PipelineConfig):
     """``(record, arrays, state)`` of an intra-sensor frame: global then local stage."""
     glob = _register_global(frame, k, camera, joint, config)
-    if not glob.ok:
-        return glob.finish()
     return glob.finish(*_local_stage(frame, camera, glob, joint, _local_config(config)))
 
 
