@@ -40,8 +40,9 @@ def seed_argument(seed, seed2):
 def coarse_register(frame, base, gamma, seed, seed2, config, base_valid=None):
     """The coarse step (paper 4.3.1) with the seed pairs the analyst placed."""
     return global_registration.coarse_register(
-        frame, base, gamma, seed_argument(seed, seed2), config, base_valid=base_valid
-    )
+        frame, base, gamma, seed_argument(seed, seed2), config.coarse, match_in=config.match_in,
+        base_valid=base_valid,
+    )  # fmt: skip
 
 
 def failed_coarse(reason: str) -> global_registration.CoarseResult:

@@ -77,13 +77,16 @@ def run(args) -> dict:
             )
             for mode, seed in (("one click", (*seed_frame, *seed_base)), ("no click", None)):
                 t = time.perf_counter()
-                coarse = coarse_register(frame, base, truth.gamma, seed, cfg, base_valid=valid,
-                                         rng=0)  # fmt: skip
-                fine = (
-                    fine_register_reference(frame, base, truth.gamma, coarse, cfg, base_valid=valid)
-                    if coarse
-                    else None
-                )
+                coarse = coarse_register(
+                    frame, base, truth.gamma, seed, cfg.coarse, match_in=cfg.match_in,
+                    base_valid=valid, rng=0,
+                )  # fmt: skip
+                fine = None
+                if coarse:
+                    fine = fine_register_reference(
+                        frame, base, truth.gamma, coarse, cfg.fine, match_in=cfg.match_in,
+                        base_valid=valid,
+                    )  # fmt: skip
                 times[mode].append(time.perf_counter() - t)
                 if not fine:
                     errors[(scale, heading, mode)] = float("inf")

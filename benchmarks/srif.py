@@ -71,10 +71,15 @@ def register_pair(im1, im2, valid, seed, config, rng: int):
     from registration.global_registration import coarse_register, fine_register_reference
 
     t0 = time.perf_counter()
-    coarse = coarse_register(im1, im2, 0.0, seed, config, base_valid=valid, rng=rng)
+    coarse = coarse_register(
+        im1, im2, 0.0, seed, config.coarse, match_in=config.match_in, base_valid=valid, rng=rng
+    )
     fine = None
     if coarse:
-        fine = fine_register_reference(im1, im2, 0.0, coarse, config, base_valid=valid) or None
+        fine = fine_register_reference(
+            im1, im2, 0.0, coarse, config.fine, match_in=config.match_in, base_valid=valid
+        )
+        fine = fine or None
     return coarse, fine, time.perf_counter() - t0
 
 

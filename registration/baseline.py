@@ -22,6 +22,7 @@ result.
 
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass, field
 
@@ -29,9 +30,9 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from registration.camera import Camera, as_camera
 from registration.coarse import corrected_grey
 from registration.coords import as_points
-from registration.distortion import HarrisModel
 
 
 @dataclass(frozen=True)
@@ -66,8 +67,10 @@ class BaselineResult:
     def n_frames(self) -> int:
         return len(self.homographies)
 
-    def _harris(self) -> HarrisModel:
-        return HarrisModel(self.gamma, *self.frame_size)
+    @functools.cached_property
+    def camera(self) -> Camera:
+        """The frames' camera (built once)."""
+        return Camera(self.gamma, *self.frame_size)
 
     def _inside(self, xy: NDArray) -> NDArray[np.bool_]:
         w, h = self.frame_size
@@ -80,7 +83,7 @@ class BaselineResult:
         h = self.homographies[k]
         if h is None:
             return np.full_like(pts, np.nan)
-        out = apply_homography(h, self._harris().corrected_from_raw(pts))
+        out = apply_homography(h, self.camera.corrected_from_raw(pts))
         out[~self._inside(pts)] = np.nan
         return out
 
@@ -89,7 +92,7 @@ class BaselineResult:
         h = self.homographies[k]
         if h is None:
             return np.full_like(pts, np.nan)
-        raw = self._harris().raw_from_corrected(apply_homography(np.linalg.inv(h), pts))
+        raw = self.camera.raw_from_corrected(apply_homography(np.linalg.inv(h), pts))
         raw[~self._inside(raw)] = np.nan
         return raw
 
@@ -142,14 +145,15 @@ def register_baseline(
     w, h = frames.size
     t0 = time.perf_counter()
     base_feats = sift_features(to_grey(base))
-    ref_feats = sift_features(corrected_grey(frames.get(reference_frame), gamma))
-    base_from_ref = homography(ref_feats, base_feats, config)
     out = BaselineResult(gamma, (w, h), [None] * len(frames), reference_frame=reference_frame)
+    camera = out.camera
+    ref_feats = sift_features(corrected_grey(frames.get(reference_frame), camera))
+    base_from_ref = homography(ref_feats, base_feats, config)
     return _chain_to_reference(
         frames,
         out,
         base_from_ref,
-        lambda frame: homography(sift_features(corrected_grey(frame, gamma)), ref_feats, config),
+        lambda frame: homography(sift_features(corrected_grey(frame, camera)), ref_feats, config),
         time.perf_counter() - t0,
     )
 
@@ -172,12 +176,13 @@ def _chain_to_reference(frames, out: BaselineResult, base_from_ref, ref_from_fra
     return out
 
 
-def warp_to_base(frame_raw: NDArray, gamma: float, base_from_corrected: NDArray, size) -> NDArray:
-    """The baseline's output image: correction, then ``cv2.warpPerspective`` into base pixels."""
-    from registration.distortion import undistort_image
-
-    w, h = frame_raw.shape[1], frame_raw.shape[0]
-    corrected, _ = undistort_image(frame_raw, HarrisModel(gamma, w, h), canvas="same")
+def warp_to_base(
+    frame_raw: NDArray, camera: Camera | float, base_from_corrected: NDArray, size
+) -> NDArray:
+    """The baseline's output image: correction (``camera``: the frame's
+    :class:`registration.camera.Camera` or its Harris γ), then ``cv2.warpPerspective`` into base
+    pixels."""
+    corrected = as_camera(camera, frame_raw).undistort(frame_raw)
     return cv2.warpPerspective(corrected, base_from_corrected, tuple(size))
 
 
@@ -204,16 +209,15 @@ class StabiloConfig:
     confidence: float = 0.999999
 
 
-def _orb_features(image: NDArray, gamma: float, n: int, scale: float):
+def _orb_features(image: NDArray, camera: Camera | float, n: int, scale: float):
     """ORB keypoints (full-resolution corrected px) and descriptors of a frame, radially
-    corrected and resized by ``scale``."""
+    corrected (``camera``: its :class:`registration.camera.Camera` or Harris γ) and resized by
+    ``scale``."""
     from registration.coords import rescale
-    from registration.distortion import undistort_image
     from registration.features import downscale, to_grey
 
     grey = to_grey(image)
-    h, w = grey.shape
-    grey, _ = undistort_image(grey, HarrisModel(gamma, w, h), canvas="same")
+    grey = as_camera(camera, grey).undistort(grey)
     small = grey if scale == 1 else downscale(grey, scale)
     kps, desc = cv2.ORB_create(nfeatures=n).detectAndCompute(small, None)
     xy = np.array([k.pt for k in kps], np.float64).reshape(-1, 2)
@@ -254,14 +258,15 @@ def register_stabilo(
     w, h = frames.size
     t0 = time.perf_counter()
     n_ref = round(config.max_features * config.ref_multiplier)
-    ref_feats = _orb_features(frames.get(reference_frame), gamma, n_ref, config.downsample)
     out = BaselineResult(gamma, (w, h), [None] * len(frames), reference_frame=reference_frame)
+    camera = out.camera
+    ref_feats = _orb_features(frames.get(reference_frame), camera, n_ref, config.downsample)
     return _chain_to_reference(
         frames,
         out,
         base_from_ref,
         lambda frame: stabilo_homography(
-            ref_feats, _orb_features(frame, gamma, config.max_features, config.downsample), config
+            ref_feats, _orb_features(frame, camera, config.max_features, config.downsample), config
         ),
         time.perf_counter() - t0,
     )

@@ -38,9 +38,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from registration import features, heading
+from registration.camera import Camera, as_camera
 from registration.coords import frame_outline, image_size, rescale
 from registration.correlation import CorrelationConfig, agreement, refine_by_correlation
-from registration.distortion import HarrisModel, undistort_image
+from registration.distortion import HarrisModel
 from registration.features import Keypoints, SiftConfig
 from registration.heading import HeadingConfig, SimilarityPrior
 from registration.models import Affine, Projective, Similarity, quantized
@@ -220,20 +221,20 @@ class FrameView:
         return xy if self.harris is None else self.harris.raw_from_corrected(xy)
 
 
-def corrected_grey(frame_raw: NDArray, gamma: float) -> NDArray[np.uint8]:
-    """Radially corrected grey frame on the raw frame's canvas (paper section 3)."""
-    w, h = image_size(frame_raw)
-    corrected, _ = undistort_image(frame_raw, HarrisModel(gamma, w, h), canvas="same")
-    return features.to_grey(corrected)
+def corrected_grey(frame_raw: NDArray, camera: Camera | float) -> NDArray[np.uint8]:
+    """Radially corrected grey frame on the raw frame's canvas (paper section 3); ``camera``:
+    the frame's :class:`registration.camera.Camera` or its Harris γ."""
+    return features.to_grey(as_camera(camera, frame_raw).undistort(frame_raw))
 
 
-def frame_view(frame_raw: NDArray, gamma: float, match_in: str) -> FrameView:
-    """See :class:`FrameView`."""
+def frame_view(frame_raw: NDArray, camera: Camera | float, match_in: str) -> FrameView:
+    """See :class:`FrameView`; ``camera``: the frame's :class:`registration.camera.Camera` (or
+    its Harris γ)."""
+    camera = as_camera(camera, frame_raw)
     if match_in == "corrected":
-        return FrameView(corrected_grey(frame_raw, gamma), None)
+        return FrameView(corrected_grey(frame_raw, camera), None)
     if match_in == "raw":
-        w, h = image_size(frame_raw)
-        return FrameView(features.to_grey(frame_raw), HarrisModel(gamma, w, h))
+        return FrameView(features.to_grey(frame_raw), camera.harris)
     raise ValueError(f"match_in must be 'raw' or 'corrected', got {match_in!r}")
 
 
@@ -635,10 +636,11 @@ def _gate_outline(prior: SimilarityPrior, w: int, h: int, harris, config) -> NDA
 def coarse_register(
     frame_raw: NDArray,
     base: NDArray,
-    gamma: float,
+    camera: Camera | float,
     seed,
-    config,
+    cfg: CoarseConfig,
     *,
+    match_in: str,
     base_features: CoarseBase | None = None,
     base_valid: NDArray | None = None,
     rng: np.random.Generator | int | None = 0,
@@ -648,10 +650,12 @@ def coarse_register(
     Args:
         frame_raw: raw reference frame (H, W[, 3]) uint8.
         base: base map (Hb, Wb[, 3]) uint8.
-        gamma: Harris γ of the frame.
+        camera: the frame's :class:`registration.camera.Camera`, or its Harris γ.
         seed: None, one ``(fx, fy, bx, by)`` correspondence (raw frame px, base px), or a list of
             two (they fix heading and scale).
-        config: a :class:`registration.config.PipelineConfig`.
+        cfg: the coarse step's settings (``PipelineConfig.coarse``).
+        match_in: where keypoints are found, ``"corrected"`` or ``"raw"`` (:class:`FrameView`,
+            ``PipelineConfig.match_in``).
         base_features: the base's coarse keypoints cache (:class:`CoarseBase`), when kept
             between calls.
         base_valid: (Hb, Wb) bool, where the base map has content; ignored with
@@ -663,16 +667,16 @@ def coarse_register(
         the seed contradicts the one found, or without a seed when two disagree.
     """
     t0 = time.perf_counter()
-    cfg: CoarseConfig = config.coarse
     rng = np.random.default_rng(rng)
     seeds = normalise_seeds(seed)
-    w, h = image_size(frame_raw)
-    view = frame_view(frame_raw, gamma, config.match_in)
+    camera = as_camera(camera, frame_raw)
+    w, h = camera.size
+    view = frame_view(frame_raw, camera, match_in)
     s_f = coarse_scale(w, h, cfg)
     frame = coarse_features(view.grey, cfg, view=view, scale=s_f)
     cbase = base_features if base_features is not None else CoarseBase(base, cfg, base_valid)
     base_c = cbase.features(s_f)
-    harris = HarrisModel(gamma, w, h)
+    harris = camera.harris
     priors, matches, attr = _priors(seeds, harris, frame, base_c, cfg, w, h)
     if cfg.match_base_scale and priors:
         # Re-detect the base at the scale that matches the frame's ground resolution.
@@ -681,9 +685,7 @@ def coarse_register(
         if abs(math.log(s_b / base_c.scale)) > math.log(1.5):
             base_c = cbase.features(s_b)
             priors, matches, attr = _priors(seeds, harris, frame, base_c, cfg, w, h)
-    t = (np.arange(10) + 0.5) / 10
-    gx, gy = np.meshgrid(t * w - 0.5, t * h - 0.5)
-    domain = rescale(harris.corrected_from_raw(np.c_[gx.ravel(), gy.ravel()]), s_f)
+    domain = rescale(camera.cell_centres(10), s_f)
     attempts = []
     for i, prior in enumerate(priors):
         attempts.append(_attempt(prior, frame, base_c, matches, cfg, rng, bool(seeds), domain))

@@ -53,8 +53,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from registration.camera import Camera
 from registration.coords import as_points, frame_outline
-from registration.distortion import HarrisModel
 
 STAGES = ("unregistered", "global", "local")
 STAGE_LABELS = {"unregistered": "Unregistered", "global": "Post-Global", "local": "Post-Local"}
@@ -436,12 +436,12 @@ def _status(result: Any, k: int) -> str:
     return "ok"
 
 
-def _harris(result: Any) -> HarrisModel:
-    h = getattr(result, "harris", None)
-    if isinstance(h, HarrisModel):
-        return h
+def _camera(result: Any) -> Camera:
+    camera = getattr(result, "camera", None)
+    if isinstance(camera, Camera):
+        return camera
     w, hh = result.frame_size
-    return HarrisModel(float(result.gamma), int(w), int(hh))
+    return Camera(float(result.gamma), int(w), int(hh))
 
 
 # --------------------------------------------------------------------------------------------
@@ -511,11 +511,11 @@ def truth_errors(
         registered). For "unregistered" both are the corrected-frame motion.
     """
     b = as_points(base_xy, "base_xy")
-    harris = _harris(result)
+    camera = _camera(result)
     ref = int(result.reference_frame)
     q = truth.base_to_frame(k, b)
     q_ref = truth.base_to_frame(ref, b)
-    unreg = np.linalg.norm(harris.corrected_from_raw(q) - harris.corrected_from_raw(q_ref), axis=1)
+    unreg = np.linalg.norm(camera.corrected_from_raw(q) - camera.corrected_from_raw(q_ref), axis=1)
     error, motion = {"unregistered": unreg}, {"unregistered": unreg}
     for s in ("global", "local"):
         p_k = result.frame_to_base(k, q, s)
@@ -778,14 +778,14 @@ def read_points_csv(
 
 def point_positions(result: Any, marks: PointMarks) -> dict[str, dict[str, dict[int, NDArray]]]:
     """``positions[stage][point][frame] = (2,)``: corrected px (unregistered) or base px."""
-    harris = _harris(result)
+    camera = _camera(result)
     out: dict[str, dict[str, dict[int, NDArray]]] = {s: {} for s in STAGES}
     for point, by_frame in marks.marks.items():
         for s in STAGES:
             out[s][point] = {}
         for k, xy in sorted(by_frame.items()):
             q = np.asarray([xy], float)
-            out["unregistered"][point][k] = harris.corrected_from_raw(q)[0]
+            out["unregistered"][point][k] = camera.corrected_from_raw(q)[0]
             for s in ("global", "local"):
                 out[s][point][k] = np.asarray(result.frame_to_base(k, q, s), float)[0]
     return out

@@ -26,6 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from registration import features
+from registration.camera import Camera, as_camera
 from registration.coarse import (
     CoarseBase,
     CoarseConfig,
@@ -40,7 +41,6 @@ from registration.coarse import (
     frame_view,
 )
 from registration.coords import bbox_of, frame_outline, image_size, rescale
-from registration.distortion import HarrisModel
 from registration.fast_coarse import fast_coarse
 from registration.features import ControlPoints, GriddedSiftConfig, Keypoints
 from registration.models import Affine, PolyProjective, Projective, Similarity, quantized
@@ -340,71 +340,65 @@ def _fall_back_if_unsupported(
 def fine_register_reference(
     frame_raw: NDArray,
     base: NDArray,
-    gamma: float,
+    camera: Camera | float,
     coarse: CoarseResult,
-    config,
+    cfg: FineConfig,
     *,
+    match_in: str,
     base_valid: NDArray | None = None,
 ) -> FineResult:
     """Fine inter-sensor registration of the reference frame (paper 4.3.2).
 
     The template grid of the corrected frame is matched in the base map around where the coarse
     projective puts it (never where ``base_valid``, ``(Hb, Wb)`` bool, marks no data); REQCON
-    fits the polyprojective starting from the coarse model. With ``config.fine.check_support``
-    the projective is kept where the points do not support the polyprojective
-    (``FineResult.model_kind`` and ``model_reason`` say which and why).
+    fits the polyprojective starting from the coarse model. With ``cfg.check_support`` the
+    projective is kept where the points do not support the polyprojective
+    (``FineResult.model_kind`` and ``model_reason`` say which and why). ``camera``: the frame's
+    :class:`registration.camera.Camera` (or its Harris γ); ``match_in``: where control points
+    are found (``PipelineConfig.match_in``).
     """
     if not coarse:
         raise ValueError("fine_register_reference needs a successful coarse result")
     return _fine_against_base(
-        frame_raw, base, gamma, coarse.base_from_corrected, config, base_valid
+        frame_raw, base, camera, coarse.base_from_corrected, cfg, match_in, base_valid
     )
 
 
 def register_anchor(
     frame_raw: NDArray,
     base: NDArray,
-    gamma: float,
+    camera: Camera,
     start,
-    config,
+    cfg: FineConfig,
     *,
+    match_in: str,
     base_valid: NDArray | None = None,
 ) -> FineResult:
     """Re-anchor a frame to the base map (beyond the paper; ``IntraConfig.reanchor_coverage``):
     the inter-sensor fine step of the reference frame (templates against the base map, REQCON),
     started from ``start``, the frame's intra-sensor ``base_from_corrected`` (no click needed:
     it is accurate to a few pixels)."""
-    return _fine_against_base(frame_raw, base, gamma, start, config, base_valid)
+    return _fine_against_base(frame_raw, base, camera, start, cfg, match_in, base_valid)
 
 
-def _fine_against_base(frame_raw, base, gamma, model, config, base_valid) -> FineResult:
+def _fine_against_base(frame_raw, base, camera, model, cfg: FineConfig, match_in, base_valid):
     """Template control points of the frame in the base map around ``model``, then REQCON."""
     t0 = time.perf_counter()
-    cfg: FineConfig = config.fine
-    view = frame_view(frame_raw, gamma, config.match_in)
+    camera = as_camera(camera, frame_raw)
+    view = frame_view(frame_raw, camera, match_in)
     cps = _template_points(view, features.to_grey(base), model, cfg.template, ref_valid=base_valid)
-    w, h = image_size(frame_raw)
+    # The probes of robust.hull_coverage: how much of the frame the control points span.
     return _fit_fine(
-        cps, model, cfg.degree, cfg.reqcon, t0, frame_domain(frame_raw, gamma), cfg.check_support,
-        cell_centres(w, h, gamma),
+        cps, model, cfg.degree, cfg.reqcon, t0, frame_domain(frame_raw, camera), cfg.check_support,
+        camera.cell_centres(10),
     )  # fmt: skip
 
 
-def frame_domain(frame_raw: NDArray, gamma: float, n: int = 9) -> NDArray[np.float64]:
+def frame_domain(frame_raw: NDArray, camera: Camera | float, n: int = 9) -> NDArray[np.float64]:
     """An ``n`` x ``n`` grid over the whole raw frame in corrected pixels: where a frame's global
-    model must stay defined (no pole of the polyprojective inside the frame)."""
-    w, h = image_size(frame_raw)
-    gx, gy = np.meshgrid(np.linspace(0, w - 1, n), np.linspace(0, h - 1, n))
-    return HarrisModel(gamma, w, h).corrected_from_raw(np.c_[gx.ravel(), gy.ravel()])
-
-
-def cell_centres(width: int, height: int, gamma: float, cells: int = 10) -> NDArray[np.float64]:
-    """Centres of a ``cells`` x ``cells`` grid of equal cells over the raw frame, in corrected
-    pixels: the probes of :func:`registration.robust.hull_coverage` (how much of the frame
-    control points span)."""
-    t = (np.arange(cells) + 0.5) / cells
-    gx, gy = np.meshgrid(t * width - 0.5, t * height - 0.5)
-    return HarrisModel(gamma, width, height).corrected_from_raw(np.c_[gx.ravel(), gy.ravel()])
+    model must stay defined (no pole of the polyprojective inside the frame). ``camera``: the
+    frame's :class:`registration.camera.Camera` (or its Harris γ)."""
+    return as_camera(camera, frame_raw).grid(n, n)
 
 
 def _template_points(
@@ -480,19 +474,22 @@ class PreviousFrame:
     small: NDArray[np.uint8] | None = None
 
 
-def previous_frame_state(frame_raw: NDArray, gamma: float, model, config) -> PreviousFrame:
+def previous_frame_state(
+    frame_raw: NDArray, camera: Camera, model, cfg: IntraConfig, *, match_in: str
+) -> PreviousFrame:
     """What the next frame needs of a registered frame (its image, model, features)."""
-    view = frame_view(frame_raw, gamma, config.match_in)
+    view = frame_view(frame_raw, camera, match_in)
     sift = None
-    if config.intra.control_points == "gridded_sift":
-        sift = features.detect_sift(view.grey, config.intra.gridded.sift)
+    if cfg.control_points == "gridded_sift":
+        sift = features.detect_sift(view.grey, cfg.gridded.sift)
     return PreviousFrame(view, model, None, sift)
 
 
-def previous_coarse(prev: PreviousFrame, config) -> CoarseFeatures:
-    """The previous frame's coarse SIFT (computed once)."""
+def previous_coarse(prev: PreviousFrame, ccfg: CoarseConfig) -> CoarseFeatures:
+    """The previous frame's coarse SIFT (computed once) with the intra-sensor coarse settings
+    ``ccfg`` (:func:`intra_coarse_config`)."""
     if prev.coarse is None:
-        prev.coarse = coarse_features(prev.view.grey, _intra_coarse_config(config), view=prev.view)
+        prev.coarse = coarse_features(prev.view.grey, ccfg, view=prev.view)
     return prev.coarse
 
 
@@ -503,33 +500,30 @@ def previous_small(prev: PreviousFrame, scale: float) -> NDArray[np.uint8]:
     return prev.small
 
 
-def _intra_coarse_config(config) -> CoarseConfig:
-    """The coarse step's settings for intra-sensor frames (``IntraConfig.coarse_nfeatures``)."""
-    n = config.intra.coarse_nfeatures
+def intra_coarse_config(coarse: CoarseConfig, intra: IntraConfig) -> CoarseConfig:
+    """The coarse step's settings for intra-sensor frames: ``coarse`` with at most
+    ``intra.coarse_nfeatures`` keypoints per frame."""
+    n = intra.coarse_nfeatures
     if not n:
-        return config.coarse
-    return dataclasses.replace(
-        config.coarse, sift=dataclasses.replace(config.coarse.sift, nfeatures=n)
-    )
+        return coarse
+    return dataclasses.replace(coarse, sift=dataclasses.replace(coarse.sift, nfeatures=n))
 
 
-def make_joint_base(mid_base: NDArray, mid_valid: NDArray[np.bool_], config) -> JointBase:
+def make_joint_base(mid_base: NDArray, mid_valid: NDArray[np.bool_]) -> JointBase:
     """Prepare the mid base image for intra-sensor registration (computes its coarse SIFT once)."""
     grey = features.to_grey(mid_base)
     grey = np.where(mid_valid, grey, 0).astype(np.uint8)
     return JointBase(grey, mid_valid, mid_image=mid_base)
 
 
-def mid_coarse(joint: JointBase, config) -> CoarseFeatures:
+def mid_coarse(joint: JointBase, cfg: CoarseConfig) -> CoarseFeatures:
     """The mid base image's coarse SIFT (computed when first needed, after each change)."""
     if joint.mid_coarse is None:
-        joint.mid_coarse = coarse_features(joint.mid_grey, config.coarse, mask=joint.mid_valid)
+        joint.mid_coarse = coarse_features(joint.mid_grey, cfg, mask=joint.mid_valid)
     return joint.mid_coarse
 
 
-def add_to_mid_base(
-    joint: JointBase, image: NDArray, valid: NDArray[np.bool_], box, config
-) -> None:
+def add_to_mid_base(joint: JointBase, image: NDArray, valid: NDArray[np.bool_], box) -> None:
     """Fill the mid base image's empty pixels inside ``box`` = ``(x0, y0, x1, y1)`` from
     ``image`` (a re-anchored frame rendered into that box, with its ``valid`` mask); content
     already there (the reference frame, earlier anchors) is kept, so a run's mid base image
@@ -546,12 +540,12 @@ def add_to_mid_base(
     joint.mid_coarse = joint.mid_sift = joint.local_keypoints = joint.flow_reference = None
 
 
-def mid_coverage(joint: JointBase, frame_raw: NDArray, gamma: float, model) -> float:
+def mid_coverage(joint: JointBase, camera: Camera, model) -> float:
     """Share of the frame (a 16 x 12 grid of raw pixels) that ``model`` puts on content of the
     mid base image."""
-    w, h = image_size(frame_raw)
+    w, h = camera.size
     gx, gy = np.meshgrid((np.arange(16) + 0.5) * w / 16 - 0.5, (np.arange(12) + 0.5) * h / 12 - 0.5)
-    b = model.apply(HarrisModel(gamma, w, h).corrected_from_raw(np.c_[gx.ravel(), gy.ravel()]))
+    b = model.apply(camera.corrected_from_raw(np.c_[gx.ravel(), gy.ravel()]))
     hb, wb = joint.mid_valid.shape
     xi, yi = np.round(b[:, 0]), np.round(b[:, 1])
     ok = np.isfinite(b).all(axis=1) & (xi >= 0) & (xi < wb) & (yi >= 0) & (yi < hb)
@@ -562,13 +556,21 @@ def mid_coverage(joint: JointBase, frame_raw: NDArray, gamma: float, model) -> f
 
 def register_intra(
     frame_raw: NDArray,
-    gamma: float,
+    camera: Camera,
     joint: JointBase,
-    config,
+    cfg: IntraConfig,
+    coarse_cfg: CoarseConfig,
     *,
+    degree: int,
+    match_in: str,
     rng: np.random.Generator | int | None = 0,
 ) -> tuple[CoarseResult, FineResult, PreviousFrame | None]:
     """Register one frame against the joint base (paper 4.4).
+
+    ``cfg`` are the intra-sensor settings, ``coarse_cfg`` the coarse step's (the mid base
+    image's coarse SIFT; the frames' with :func:`intra_coarse_config`), ``degree`` that of the
+    polyprojective (``FineConfig.degree``), ``match_in`` where control points are found
+    (``PipelineConfig.match_in``).
 
     The coarse step is the fast path (:mod:`registration.fast_coarse`, with
     ``IntraConfig.fast_coarse``) or, when that is off or one of its checks fails, the SIFT step
@@ -580,13 +582,12 @@ def register_intra(
     """
     t0 = time.perf_counter()
     rng = np.random.default_rng(rng)
-    cfg: IntraConfig = config.intra
-    view = frame_view(frame_raw, gamma, config.match_in)
+    view = frame_view(frame_raw, camera, match_in)
     prev = joint.previous if cfg.use_previous_frame else None
     state = PreviousFrame(view, None)
     coarse, fast_reason = None, "off"
     if cfg.fast_coarse and prev is not None:
-        ccfg = _intra_coarse_config(config)
+        ccfg = intra_coarse_config(coarse_cfg, cfg)
         s = coarse_scale(*image_size(view.grey), ccfg)
         state.small = features.downscale(view.grey, s)
         coarse = fast_coarse(
@@ -596,7 +597,7 @@ def register_intra(
         fast_reason = coarse.reason
         coarse = coarse if coarse else None
     if coarse is None:
-        coarse, state.coarse = intra_sift_coarse(view, frame_raw.shape, joint, config, rng)
+        coarse, state.coarse = intra_sift_coarse(view, frame_raw.shape, joint, cfg, coarse_cfg, rng)
     coarse.path = "fast" if coarse.gate == "fast" else "sift"
     coarse.fast_reason = fast_reason
     coarse.time_s = time.perf_counter() - t0
@@ -619,7 +620,7 @@ def register_intra(
     keep = np.isfinite(cps.dst).all(axis=1) & np.isfinite(cps.src).all(axis=1)
     if not keep.all():
         cps = ControlPoints(cps.src[keep], cps.dst[keep], cps.score[keep], cps.source[keep])
-    fine = _fit_fine(cps, model, config.fine.degree, cfg.reqcon, t1, frame_domain(frame_raw, gamma))
+    fine = _fit_fine(cps, model, degree, cfg.reqcon, t1, frame_domain(frame_raw, camera))
     if not fine:
         return coarse, fine, None
     state.base_from_corrected = fine.base_from_corrected
@@ -627,25 +628,29 @@ def register_intra(
 
 
 def intra_sift_coarse(
-    view: FrameView, shape, joint: JointBase, config, rng: np.random.Generator
+    view: FrameView,
+    shape,
+    joint: JointBase,
+    cfg: IntraConfig,
+    coarse_cfg: CoarseConfig,
+    rng: np.random.Generator,
 ) -> tuple[CoarseResult, CoarseFeatures]:
     """The intra-sensor coarse step of the paper (4.4): the frame's coarse SIFT matched against
     the mid base image and the previous frame, gated by where the previous frame's model
     predicts each keypoint, RANSAC. Returns the result and the frame's coarse features."""
-    cfg: IntraConfig = config.intra
-    ccfg = _intra_coarse_config(config)
+    ccfg = intra_coarse_config(coarse_cfg, cfg)
     frame_coarse = coarse_features(view.grey, ccfg, view=view)
     prev = joint.previous if cfg.use_previous_frame else None
     refs: list[tuple[CoarseFeatures, object]] = []
     known: list[features.Matches | None] = []
     if prev is not None:
-        prev_coarse = previous_coarse(prev, config)
+        prev_coarse = previous_coarse(prev, ccfg)
         refs.append((prev_coarse, prev.base_from_corrected.apply))
         known.append(
             features.match_ratio(frame_coarse.keypoints, prev_coarse.keypoints, ccfg.ratio)
         )
     gate = None
-    mid = mid_coarse(joint, config)
+    mid = mid_coarse(joint, coarse_cfg)
     if joint.previous is not None:
         predict = joint.previous.base_from_corrected.apply
         shift = np.zeros(2)

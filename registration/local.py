@@ -40,6 +40,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from registration import features, warp
+from registration.camera import Camera
 from registration.coords import as_points, bbox_of, frame_outline, rescale
 
 log = logging.getLogger(__name__)
@@ -1535,20 +1536,20 @@ def reference_field(fine, base_size: tuple[int, int], config: LocalConfig, footp
     return estimate_field_from_matches(dst, disp, x1 - x0, y1 - y0, config, origin=(x0, y0))
 
 
-def frame_field(frame, gamma: float, model, joint, config: LocalConfig):
+def frame_field(frame, camera: Camera, model, joint, config: LocalConfig):
     """The displacement field of an intra-sensor frame against the mid base image (paper
-    section 5): ``frame`` raw (H, W[, 3]), ``model`` its ``base_from_corrected``, ``joint`` the
-    :class:`registration.global_registration.JointBase` (its flow reference or keypoints are
-    prepared once and kept there). Returns ``(field, stats)`` or ``(None, None)``."""
-    from registration.distortion import HarrisModel
+    section 5): ``frame`` raw (H, W[, 3]) taken by ``camera``, ``model`` its
+    ``base_from_corrected``, ``joint`` the :class:`registration.global_registration.JointBase`
+    (its flow reference or keypoints are prepared once and kept there). Returns
+    ``(field, stats)`` or ``(None, None)``."""
     from registration.render import render_to_base
 
     hb, wb = joint.mid_grey.shape
-    h, w = frame.shape[:2]
-    harris = HarrisModel(gamma, w, h)
+    camera.check(frame)
+    w = camera.width
 
     def base_from_raw(q):
-        return model.apply(harris.corrected_from_raw(q))
+        return model.apply(camera.corrected_from_raw(q))
 
     grey = features.to_grey(frame)
     if config.method == "flow":
@@ -1558,11 +1559,11 @@ def frame_field(frame, gamma: float, model, joint, config: LocalConfig):
                 joint.mid_grey, joint.mid_valid, flow_scale(w, config)
             )
         return estimate_field_in_frame(grey, base_from_raw, joint.flow_reference, config)
-    box = bbox_of(base_from_raw(frame_outline(w, h)), (wb, hb), 2)
+    box = bbox_of(model.apply(camera.outline()), (wb, hb), 2)
     x0, y0, x1, y1 = box
     if x1 - x0 < 2 or y1 - y0 < 2:
         return None, None
-    registered, valid = render_to_base(grey, gamma, model, box)
+    registered, valid = render_to_base(grey, camera, model, box)
     reference = joint.mid_grey[y0:y1, x0:x1]
     both = valid & joint.mid_valid[y0:y1, x0:x1]
     # The mid base image is the reference of every frame: detect its keypoints once.

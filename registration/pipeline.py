@@ -30,13 +30,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from registration import features
+from registration.camera import Camera
 from registration.coarse import CoarseBase, normalise_seeds
 from registration.config import PipelineConfig, config_from_dict
-from registration.coords import bbox_of, frame_outline, image_size
-from registration.distortion import HarrisModel, check_harris_gamma
+from registration.coords import bbox_of, image_size
+from registration.distortion import check_harris_gamma
 from registration.global_registration import (
     CoarseResult,
     FineResult,
+    IntraConfig,
     JointBase,
     add_to_mid_base,
     coarse_register,
@@ -48,7 +50,7 @@ from registration.global_registration import (
     register_intra,
 )
 from registration.io import FrameSource
-from registration.local import DisplacementField, frame_field, reference_field
+from registration.local import DisplacementField, LocalConfig, frame_field, reference_field
 from registration.models import model_from_dict
 from registration.overlap import FramesAhead, LocalAhead
 from registration.render import render_to_base
@@ -194,7 +196,7 @@ class ChunkContext:
     Attributes:
         frames: the sequence (paths: a worker reads the frames itself).
         base: base map, BGR uint8 (Hb, Wb, 3); base_valid: (Hb, Wb) bool or None.
-        gamma: Harris γ of the frames.
+        camera: the frames' camera (Harris γ and frame size).
         config: the run's configuration.
         reference_frame: the reference frame's index; reference_model: its model as recorded.
         mid, mid_valid: the mid base image (the reference frame in base pixels) and its mask.
@@ -207,7 +209,7 @@ class ChunkContext:
     frames: FrameSource
     base: NDArray
     base_valid: NDArray | None
-    gamma: float
+    camera: Camera
     config: PipelineConfig
     reference_frame: int
     reference_model: dict
@@ -231,7 +233,7 @@ class ChunkContext:
     def joint_base(self) -> JointBase:
         """A fresh joint base: the reference frame's mid base image, no anchors yet."""
         return _joint_base(self.mid.copy(), self.mid_valid.copy(), self.base, self.base_valid,
-                           self.config)  # fmt: skip
+                           self.config.intra)  # fmt: skip
 
 
 class ChunkExecutor(Protocol):
@@ -270,6 +272,7 @@ def run_chunk(context: ChunkContext, job: ChunkJob) -> Iterator[FrameOutput]:
     anchor) waits for the local stage in flight, yet the two threads together now and then
     change a fit in its last bits (see ``register_sequence``: off by default)."""
     ctx, cfg = context, context.config
+    local_cfg = _local_config(cfg)
     joint = ctx.joint_base()
     anchoring = _Anchoring(ctx, joint)
     models: dict[int, object] = {}  # registered frames of this chunk (None: failed)
@@ -291,7 +294,7 @@ def run_chunk(context: ChunkContext, job: ChunkJob) -> Iterator[FrameOutput]:
                 if done.ok and done.anchor and cfg.intra.reanchor_coverage > 0:
                     yield from finish_pending()
                     frame = ctx.frames.get(k)
-                    _render_anchor(joint, frame, ctx.gamma, models[k], done.field, cfg)
+                    _render_anchor(joint, frame, ctx.camera, models[k], done.field)
                 continue
             t_read = time.perf_counter()
             frame, problem = read_frame(frames, k)
@@ -310,11 +313,11 @@ def run_chunk(context: ChunkContext, job: ChunkJob) -> Iterator[FrameOutput]:
                 yield from finish_pending()
                 record, arrays, state = _register_start(frame, k, ctx, joint, anchoring)
             else:
-                glob = _register_global(frame, k, ctx.gamma, joint, cfg)
+                glob = _register_global(frame, k, ctx.camera, joint, cfg)
                 glob.times["read"] = t_read
                 if glob.ok and cfg.run_local and not anchoring.wanted(frame, glob.state):
                     # The local stage in the background; the frame is yielded when it is done.
-                    local.submit(k, _local_stage, frame, ctx.gamma, glob, joint, cfg)
+                    local.submit(k, _local_stage, frame, ctx.camera, glob, joint, local_cfg)
                     models[k] = glob.state.base_from_corrected
                     joint.previous, joint.previous_index = glob.state, k
                     yield from finish_pending()
@@ -323,7 +326,7 @@ def run_chunk(context: ChunkContext, job: ChunkJob) -> Iterator[FrameOutput]:
                         yield from finish_pending()
                     continue
                 yield from finish_pending()
-                field_out = _local_stage(frame, ctx.gamma, glob, joint, cfg) if glob.ok else ()
+                field_out = _local_stage(frame, ctx.camera, glob, joint, local_cfg)
                 record, arrays, state = glob.finish(*field_out)
                 record, arrays, state, _ = anchoring.maybe(frame, k, record, arrays, state)
             models[k] = state.base_from_corrected if state is not None else None
@@ -361,7 +364,9 @@ def _set_previous(joint: JointBase, ctx: ChunkContext, prev: int | None, models:
         joint.previous = joint.previous_index = None
         return
     model = model_from_dict(ctx.reference_model) if prev == ctx.reference_frame else models[prev]
-    joint.previous = previous_frame_state(ctx.frames.get(prev), ctx.gamma, model, ctx.config)
+    joint.previous = previous_frame_state(
+        ctx.frames.get(prev), ctx.camera, model, ctx.config.intra, match_in=ctx.config.match_in
+    )
     joint.previous_index = prev
 
 
@@ -373,7 +378,7 @@ def _register_start(frame, k: int, ctx: ChunkContext, joint: JointBase, anchorin
     image and its anchor does not confirm the intra-sensor model, it is registered to the base
     map as the reference frame is, without a seed (coarse step at any heading and scale, then
     the fine step), and becomes an anchor."""
-    record, arrays, state = _register_one(frame, k, ctx.gamma, joint, ctx.config)
+    record, arrays, state = _register_one(frame, k, ctx.camera, joint, ctx.config)
     confirmed = False
     if state is not None:
         record, arrays, state, anchored = anchoring.maybe(frame, k, record, arrays, state)
@@ -384,15 +389,13 @@ def _register_start(frame, k: int, ctx: ChunkContext, joint: JointBase, anchorin
     first_reason = record.get("reason") or record.get("stats", {}).get("anchor", "")
     t0 = time.perf_counter()
     cfg = ctx.config
-    coarse = coarse_register(frame, ctx.base, ctx.gamma, None, cfg, base_features=ctx.coarse_base(),
-                             rng=cfg.random_seed + k)  # fmt: skip
-    fine = (
-        register_anchor(
-            frame, ctx.base, ctx.gamma, coarse.base_from_corrected, cfg, base_valid=ctx.base_valid
-        )  # fmt: skip
-        if coarse
-        else FineResult(False, coarse.reason, None, *_empty_points())
-    )
+    coarse = coarse_register(frame, ctx.base, ctx.camera, None, cfg.coarse, match_in=cfg.match_in,
+                             base_features=ctx.coarse_base(), rng=cfg.random_seed + k)  # fmt: skip
+    if coarse:
+        fine = register_anchor(frame, ctx.base, ctx.camera, coarse.base_from_corrected, cfg.fine,
+                               match_in=cfg.match_in, base_valid=ctx.base_valid)  # fmt: skip
+    else:
+        fine = FineResult(False, coarse.reason, None, *_empty_points())
     if not fine:
         if state is not None:  # the intra-sensor result stands, unconfirmed (as in a chain)
             record["stats"]["chunk_start"] = f"unconfirmed: base map: {fine.reason}"
@@ -489,14 +492,15 @@ def register_sequence(
         if progress:
             progress(n_done, n)
         mid_missing = not (out_dir / MID_BASE).is_file()
+        camera = Camera(gamma, *frames.size)
         mid, valid, model = _reference_step(
-            frames, base, gamma, seed, reference_frame, config, writer, reference, base_valid
+            frames, base, camera, seed, reference_frame, config, writer, reference, base_valid
         )
         n_done = sum(writer.done(k) for k in range(n))
         if progress:
             progress(n_done, n)
         context = ChunkContext(
-            frames, base, base_valid, float(gamma), config, reference_frame, model, mid, valid,
+            frames, base, base_valid, camera, config, reference_frame, model, mid, valid,
             meta["inputs"]["frames"], overlap,
         )  # fmt: skip
         jobs = chunk_jobs(writer, n, reference_frame, config)
@@ -564,8 +568,9 @@ def _failed_record(reason: str) -> dict:
 
 
 def _reference_step(
-    frames, base, gamma, seed, ref, config, writer, reference, base_valid=None
-) -> tuple[NDArray, NDArray, dict]:
+    frames, base, camera: Camera, seed, ref, config: PipelineConfig, writer, reference,
+    base_valid=None,
+) -> tuple[NDArray, NDArray, dict]:  # fmt: skip
     """Register the reference frame (or load it when resuming): ``(mid, valid, model)``, the mid
     base image, its mask and the reference frame's model as recorded."""
     out_dir = writer.out_dir
@@ -581,7 +586,7 @@ def _reference_step(
             )
         # Resuming: the mid base image is rendered again from the record, exactly as the
         # uninterrupted run rendered it (each chunk adds its own anchors, run_chunk).
-        mid, valid = render_to_base(frame, gamma, rec.model(ref), (0, 0, wb, hb), rec.field(ref))
+        mid, valid = render_to_base(frame, camera, rec.model(ref), (0, 0, wb, hb), rec.field(ref))
         if writer.read_mid_base() is None:
             writer.write_mid_base(mid, valid)
         return mid, valid, rec.records[ref]["model"]
@@ -590,14 +595,15 @@ def _reference_step(
     if reference is not None:
         coarse, fine = reference
     else:
-        coarse = coarse_register(
-            frame, base, gamma, seed, config, base_valid=base_valid, rng=config.random_seed + ref
-        )
-        fine = (
-            fine_register_reference(frame, base, gamma, coarse, config, base_valid=base_valid)
-            if coarse
-            else FineResult(False, coarse.reason, None, *_empty_points())
-        )
+        coarse = coarse_register(frame, base, camera, seed, config.coarse, match_in=config.match_in,
+                                 base_valid=base_valid, rng=config.random_seed + ref)  # fmt: skip
+        if coarse:
+            fine = fine_register_reference(
+                frame, base, camera, coarse, config.fine, match_in=config.match_in,
+                base_valid=base_valid,
+            )  # fmt: skip
+        else:
+            fine = FineResult(False, coarse.reason, None, *_empty_points())
     times = {"coarse": coarse.time_s, "fine": fine.time_s, "total": time.perf_counter() - t0}
     if not fine:
         writer.write_frame(ref, _failed_record(fine.reason))
@@ -608,11 +614,11 @@ def _reference_step(
     field_, field_stats = None, None
     if config.run_local and config.reference_local is not None:
         field_, field_stats = reference_field(
-            fine, (wb, hb), config.reference_local, _footprint(frame, gamma, model)
+            fine, (wb, hb), config.reference_local, _footprint(camera, model)
         )
     # The mid base image is the reference frame registered with its own field: every other
     # frame's local stage aligns to it, so its accuracy is theirs.
-    mid, valid = render_to_base(frame, gamma, model, (0, 0, wb, hb), field_)
+    mid, valid = render_to_base(frame, camera, model, (0, 0, wb, hb), field_)
     writer.write_mid_base(mid, valid)
     record = {
         "status": "ok",
@@ -625,9 +631,9 @@ def _reference_step(
     return mid, valid, record["model"]
 
 
-def _joint_base(mid, valid, base, base_valid, config) -> JointBase:
-    joint = make_joint_base(mid, valid, config)
-    if config.intra.base_fallback:
+def _joint_base(mid, valid, base, base_valid, intra: IntraConfig) -> JointBase:
+    joint = make_joint_base(mid, valid)
+    if intra.base_fallback:
         joint.base_grey = features.to_grey(base)
         joint.base_valid = base_valid
     return joint
@@ -651,11 +657,13 @@ def _write_mosaic(writer: ResultWriter, ctx: ChunkContext) -> None:
     hb, wb = valid.shape
     for k in anchors:
         frame = ctx.frames.get(k)
-        box = _anchor_box(frame, ctx.gamma, result.model(k), (wb, hb))
+        box = _anchor_box(ctx.camera, result.model(k), (wb, hb))
         if box is None:
             continue
         x0, y0, x1, y1 = box
-        image, image_valid = render_to_base(frame, ctx.gamma, result.model(k), box, result.field(k))
+        image, image_valid = render_to_base(
+            frame, ctx.camera, result.model(k), box, result.field(k)
+        )
         hole = np.asarray(image_valid, bool) & ~valid[y0:y1, x0:x1]
         mid[y0:y1, x0:x1][hole] = image[hole]
         valid[y0:y1, x0:x1] |= hole
@@ -665,29 +673,26 @@ def _write_mosaic(writer: ResultWriter, ctx: ChunkContext) -> None:
 ANCHOR_STAGE = "inter-sensor anchor"
 
 
-def _anchor_box(frame, gamma, model, base_size) -> tuple[int, int, int, int] | None:
+def _anchor_box(camera: Camera, model, base_size) -> tuple[int, int, int, int] | None:
     """Base-pixel box a frame covers under ``model``, or None when it is empty."""
-    w, h = image_size(frame)
-    harris = HarrisModel(gamma, w, h)
-    box = bbox_of(model.apply(harris.corrected_from_raw(frame_outline(w, h))), base_size, 2)
+    box = bbox_of(_footprint(camera, model), base_size, 2)
     x0, y0, x1, y1 = box
     return None if x1 - x0 < 2 or y1 - y0 < 2 else box
 
 
-def _footprint(frame, gamma, model) -> NDArray:
+def _footprint(camera: Camera, model) -> NDArray:
     """``(N, 2)`` base px of the frame's outline under ``model`` (``base_from_corrected``)."""
-    w, h = image_size(frame)
-    return model.apply(HarrisModel(gamma, w, h).corrected_from_raw(frame_outline(w, h)))
+    return model.apply(camera.outline())
 
 
-def _render_anchor(joint: JointBase, frame, gamma, model, field_, config) -> None:
+def _render_anchor(joint: JointBase, frame, camera: Camera, model, field_) -> None:
     """Add a re-anchored frame to the mid base image (where it is empty)."""
     hb, wb = joint.mid_valid.shape
-    box = _anchor_box(frame, gamma, model, (wb, hb))
+    box = _anchor_box(camera, model, (wb, hb))
     if box is None:
         return
-    image, valid = render_to_base(frame, gamma, model, box, field_)
-    add_to_mid_base(joint, image, valid, box, config)
+    image, valid = render_to_base(frame, camera, model, box, field_)
+    add_to_mid_base(joint, image, valid, box)
 
 
 class _Anchoring:
@@ -695,7 +700,7 @@ class _Anchoring:
 
     def __init__(self, ctx: ChunkContext, joint: JointBase):
         self.ctx, self.joint = ctx, joint
-        self.base, self.base_valid, self.gamma = ctx.base, ctx.base_valid, ctx.gamma
+        self.base, self.base_valid, self.camera = ctx.base, ctx.base_valid, ctx.camera
         self.config = ctx.config
 
     def wanted(self, frame, state) -> bool:
@@ -703,7 +708,7 @@ class _Anchoring:
         cfg = self.config.intra
         if cfg.reanchor_coverage <= 0 or state is None:
             return False
-        coverage = mid_coverage(self.joint, frame, self.gamma, state.base_from_corrected)
+        coverage = mid_coverage(self.joint, self.camera, state.base_from_corrected)
         return coverage < cfg.reanchor_coverage
 
     def maybe(self, frame, k, record, arrays, state):
@@ -715,18 +720,20 @@ class _Anchoring:
         if cfg.reanchor_coverage <= 0 or state is None:
             return record, arrays, state, None
         intra = state.base_from_corrected
-        coverage = mid_coverage(self.joint, frame, self.gamma, intra)
+        coverage = mid_coverage(self.joint, self.camera, intra)
         if coverage >= cfg.reanchor_coverage:
             return record, arrays, state, None
         t0 = time.perf_counter()
-        fine = register_anchor(frame, self.base, self.gamma, intra, self.config,
-                               base_valid=self.base_valid)  # fmt: skip
+        fine = register_anchor(
+            frame, self.base, self.camera, intra, self.config.fine,
+            match_in=self.config.match_in, base_valid=self.base_valid,
+        )  # fmt: skip
         stats = record.setdefault("stats", {})
         stats["mid_coverage"] = round(coverage, 3)
         if not fine:
             stats["anchor"] = f"not re-anchored: {fine.reason}"
             return record, arrays, state, False
-        shift = _median_gap(fine.base_from_corrected, intra, frame, self.gamma)
+        shift = _median_gap(fine.base_from_corrected, intra, self.camera)
         if not shift <= cfg.reanchor_max_shift_px:
             stats["anchor"] = f"not re-anchored: the map fit is {shift:.1f} px from the frame's"
             return record, arrays, state, False
@@ -748,14 +755,16 @@ class _Anchoring:
             wb, hb = image_size(self.base)
             field_, field_stats = reference_field(
                 fine, (wb, hb), self.config.reference_local,
-                _footprint(frame, self.gamma, model),
+                _footprint(self.camera, model),
             )  # fmt: skip
         if self.config.intra.reanchor_coverage > 0:
-            _render_anchor(self.joint, frame, self.gamma, model, field_, self.config)
+            _render_anchor(self.joint, frame, self.camera, model, field_)
         times["anchor"] = round(time.perf_counter() - t0, 4)
         record = {"status": "ok", "reason": "", "stage": ANCHOR_STAGE,
                   "stats": _stats(coarse, fine, times, field_stats), "model": model.to_dict()}  # fmt: skip
-        state = previous_frame_state(frame, self.gamma, model, self.config)
+        state = previous_frame_state(
+            frame, self.camera, model, self.config.intra, match_in=self.config.match_in
+        )
         return record, _frame_arrays(fine, field_, field_stats), state
 
 
@@ -768,11 +777,9 @@ class _NoCoarse:
     heading_deg = None
 
 
-def _median_gap(a, b, frame, gamma) -> float:
+def _median_gap(a, b, camera: Camera) -> float:
     """Median distance (base px) between two ``base_from_corrected`` models over the frame."""
-    w, h = image_size(frame)
-    gx, gy = np.meshgrid(np.linspace(0, w - 1, 9), np.linspace(0, h - 1, 7))
-    c = HarrisModel(gamma, w, h).corrected_from_raw(np.c_[gx.ravel(), gy.ravel()])
+    c = camera.grid(9, 7)
     d = np.hypot(*(a.apply(c) - b.apply(c)).T)
     return float(np.median(d)) if np.isfinite(d).any() else float("inf")
 
@@ -817,12 +824,13 @@ class _Global:
         return record, _frame_arrays(self.fine, field, field_stats), self.state
 
 
-def _register_global(frame, k, gamma, joint: JointBase, config: PipelineConfig) -> _Global:
+def _register_global(frame, k, camera: Camera, joint: JointBase, config: PipelineConfig) -> _Global:
     t0 = time.perf_counter()
     try:
         coarse, fine, state = register_intra(
-            frame, gamma, joint, config, rng=config.random_seed + k
-        )
+            frame, camera, joint, config.intra, config.coarse, degree=config.fine.degree,
+            match_in=config.match_in, rng=config.random_seed + k,
+        )  # fmt: skip
     except np.linalg.LinAlgError as exc:
         reason = f"degenerate fit: {exc}"
         return _Global({"status": "failed", "reason": reason, "stats": {}, "model": None})
@@ -835,23 +843,25 @@ def _register_global(frame, k, gamma, joint: JointBase, config: PipelineConfig) 
     return _Global(coarse=coarse, fine=fine, state=state, times=times)
 
 
-def _local_stage(frame, gamma, glob: _Global, joint: JointBase, config: PipelineConfig):
-    """``(field, stats, seconds)`` of a frame registered by ``glob`` (no field when the local
-    stage is off)."""
-    if not config.run_local:
+def _local_config(config: PipelineConfig) -> LocalConfig | None:
+    """The local stage's settings, None when it is off (``PipelineConfig.run_local``)."""
+    return config.local if config.run_local else None
+
+
+def _local_stage(frame, camera: Camera, glob: _Global, joint: JointBase, cfg: LocalConfig | None):
+    """``(field, stats, seconds)`` of a frame registered by ``glob`` (no field when its global
+    stage failed or the local stage is off: ``cfg`` None)."""
+    if cfg is None or not glob.ok:
         return None, None, None
     t1 = time.perf_counter()
-    field_, field_stats = frame_field(frame, gamma, glob.fine.base_from_corrected, joint,
-                                      config.local)  # fmt: skip
+    field_, field_stats = frame_field(frame, camera, glob.fine.base_from_corrected, joint, cfg)
     return field_, field_stats, time.perf_counter() - t1
 
 
-def _register_one(frame, k, gamma, joint: JointBase, config: PipelineConfig):
+def _register_one(frame, k, camera: Camera, joint: JointBase, config: PipelineConfig):
     """``(record, arrays, state)`` of an intra-sensor frame: global then local stage."""
-    glob = _register_global(frame, k, gamma, joint, config)
-    return (
-        glob.finish(*_local_stage(frame, gamma, glob, joint, config)) if glob.ok else glob.finish()
-    )
+    glob = _register_global(frame, k, camera, joint, config)
+    return glob.finish(*_local_stage(frame, camera, glob, joint, _local_config(config)))
 
 
 def load_config(out_dir: str | Path) -> PipelineConfig:

@@ -19,8 +19,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from registration import warp
+from registration.camera import Camera, as_camera
 from registration.coords import frame_outline, image_size
-from registration.distortion import HarrisModel
 from registration.io import read_image, write_image_atomic
 from registration.local import DisplacementField
 
@@ -29,7 +29,7 @@ Box = tuple[int, int, int, int]  # (x0, y0, width, height) in base px
 
 def render_to_base(
     frame_raw: NDArray,
-    gamma: float,
+    camera: Camera | float,
     base_from_corrected,
     box: tuple[int, int, int, int],
     field=None,
@@ -37,15 +37,15 @@ def render_to_base(
     """The raw frame resampled once into the base-pixel box ``(x0, y0, x1, y1)``, with its
     validity mask: base pixels map to raw pixels through the displacement field (when given:
     ``x + d(x)``, :mod:`registration.local`), the model's inverse and the Harris model
-    (:func:`render_registered`), so the frame is interpolated only once."""
-    w, h = image_size(frame_raw)
-    harris = HarrisModel(gamma, w, h)
+    (:func:`render_registered`), so the frame is interpolated only once. ``camera``: the frames'
+    :class:`registration.camera.Camera` (or their Harris γ)."""
+    camera = as_camera(camera, frame_raw)
     x0, y0, x1, y1 = box
 
     def raw_from_base(b):
         if field is not None:
             b = b + field.sample(b, outside="clamp")
-        return harris.raw_from_corrected(base_from_corrected.inverse(b))
+        return camera.raw_from_corrected(base_from_corrected.inverse(b))
 
     return warp.warp_image(frame_raw, raw_from_base, x1 - x0, y1 - y0, origin=(x0, y0))
 

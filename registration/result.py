@@ -30,8 +30,8 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from registration.camera import Camera
 from registration.coords import as_points, image_size
-from registration.distortion import HarrisModel
 from registration.georef import GeoReference
 from registration.io import (
     SAMPLE_BYTES,
@@ -140,7 +140,9 @@ class RegistrationResult:
             self.base_size = tuple(int(v) for v in meta["base_size"])
             self.reference_frame = int(meta["reference_frame"])
             n = int(meta["n_frames"])
-            self.harris = HarrisModel(self.gamma, *self.frame_size)
+            # The frames' camera, and its Harris model (the name the result always had).
+            self.camera = Camera(self.gamma, *self.frame_size)
+            self.harris = self.camera.harris
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(
                 f"corrupt result.json in {self.out_dir}: bad or missing {exc}"

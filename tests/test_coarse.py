@@ -116,8 +116,9 @@ def test_guided_matching_finds_the_frame_in_a_map_of_look_alikes(scene):
     )
     cfg = dataclasses.replace(cfg, coarse=coarse)
     res = coarse_register(
-        scene["frame"], twice, scene["truth"].gamma, (w / 2, h / 2, bx, by), cfg, rng=0
-    )
+        scene["frame"], twice, scene["truth"].gamma, (w / 2, h / 2, bx, by), cfg.coarse,
+        match_in=cfg.match_in, rng=0,
+    )  # fmt: skip
     assert res, res.reason
     # Measured: 530 inliers (20 without guided matching), 0.861 px mean error. (Before FLANN
     # was seeded, 0.81-0.92 px and once 2.48 px, depending on earlier FLANN calls.)

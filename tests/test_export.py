@@ -494,16 +494,24 @@ def test_base_no_data_region_gets_no_control_points(tmp_path):
     w, h = truth.frame_size
     seed = (w / 2, h / 2, *truth.frame_to_base(0, [[w / 2, h / 2]])[0])
     cfg = get_preset("default")
-    coarse = coarse_register(frame, base, truth.gamma, seed, cfg, rng=0)
-    fine = fine_register_reference(frame, base, truth.gamma, coarse, cfg)
+    coarse = coarse_register(
+        frame, base, truth.gamma, seed, cfg.coarse, match_in=cfg.match_in, rng=0
+    )
+    fine = fine_register_reference(
+        frame, base, truth.gamma, coarse, cfg.fine, match_in=cfg.match_in
+    )
     cut = int(np.median(coarse.base_xy[coarse.inliers, 0]))
     assert (coarse.base_xy[coarse.inliers, 0] < cut).sum() >= 5
     assert (fine.dst[:, 0] < cut).sum() > 10
     valid = np.ones(base.shape[:2], bool)
     valid[:, :cut] = False
-    coarse = coarse_register(frame, base, truth.gamma, seed, cfg, rng=0, base_valid=valid)
+    coarse = coarse_register(
+        frame, base, truth.gamma, seed, cfg.coarse, match_in=cfg.match_in, rng=0, base_valid=valid
+    )
     assert coarse, coarse.reason
-    fine = fine_register_reference(frame, base, truth.gamma, coarse, cfg, base_valid=valid)
+    fine = fine_register_reference(
+        frame, base, truth.gamma, coarse, cfg.fine, match_in=cfg.match_in, base_valid=valid
+    )
     assert fine, fine.reason
     # Coarse keypoints are found at 1/4 scale: up to 2 base px of sub-pixel slack at the edge.
     assert not (coarse.base_xy[:, 0] < cut - 2).any()

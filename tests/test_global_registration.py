@@ -13,6 +13,7 @@ import dataclasses
 import numpy as np
 import pytest
 
+from registration.camera import Camera
 from registration.config import get_preset
 from registration.distortion import HarrisModel
 from registration.global_registration import (
@@ -75,7 +76,8 @@ def coarse0(scene):
         scene["base"],
         scene["truth"].gamma,
         seed_for(sim),
-        scene["config"],
+        scene["config"].coarse,
+        match_in=scene["config"].match_in,
         rng=0,
     )
 
@@ -103,9 +105,11 @@ def test_coarse_step_within_its_measured_error(scene, coarse0):
 def test_fine_step_improves_on_the_coarse_model_against_truth(scene, coarse0):
     """Paper 4.3.2: the template grid and REQCON refine the coarse projective into the
     polyprojective; against the truth the error more than halves."""
+    config = scene["config"]
     fine = fine_register_reference(
-        scene["frames"].get(0), scene["base"], scene["truth"].gamma, coarse0, scene["config"]
-    )
+        scene["frames"].get(0), scene["base"], scene["truth"].gamma, coarse0, config.fine,
+        match_in=config.match_in,
+    )  # fmt: skip
     assert fine and fine.model_kind == "polyprojective"
     before = _model_error(scene, coarse0.base_from_corrected, 0).mean()
     after = _model_error(scene, fine.base_from_corrected, 0).mean()
@@ -143,11 +147,17 @@ def _sift_coarse(config):
 
 
 def _register_frame_2(scene, mid, valid, model1, config):
-    joint = make_joint_base(mid, valid, config)
+    joint = make_joint_base(mid, valid)
     frame1 = scene["frames"].get(1)
-    joint.previous = previous_frame_state(frame1, scene["truth"].gamma, model1, config)
+    camera = Camera.of(frame1, scene["truth"].gamma)
+    joint.previous = previous_frame_state(
+        frame1, camera, model1, config.intra, match_in=config.match_in
+    )
     joint.previous_index = 1
-    return register_intra(scene["frames"].get(2), scene["truth"].gamma, joint, config, rng=2)
+    return register_intra(
+        scene["frames"].get(2), camera, joint, config.intra, config.coarse,
+        degree=config.fine.degree, match_in=config.match_in, rng=2,
+    )  # fmt: skip
 
 
 def test_intra_uses_the_previous_frame_where_the_mid_base_has_no_content(scene, joint_parts):

@@ -45,10 +45,14 @@ def _register(sim, seed):
     base = read_image(sim / "base.png")
     valid = base.max(axis=2) > 0  # the turned map's no-data corners
     cfg = get_preset("default")
-    coarse = coarse_register(frame, base, truth.gamma, seed, cfg, base_valid=valid, rng=0)
+    coarse = coarse_register(
+        frame, base, truth.gamma, seed, cfg.coarse, match_in=cfg.match_in, base_valid=valid, rng=0
+    )
     if not coarse:
         return coarse, None, truth
-    fine = fine_register_reference(frame, base, truth.gamma, coarse, cfg, base_valid=valid)
+    fine = fine_register_reference(
+        frame, base, truth.gamma, coarse, cfg.fine, match_in=cfg.match_in, base_valid=valid
+    )
     return coarse, fine, truth
 
 
@@ -166,10 +170,14 @@ def test_srif_one_click_beats_no_click_on_real_pairs():
         im1, im2, valid, gt = _srif_pair(folder, i)
         h, w = im1.shape[:2]
         for mode, seed in (("click", _srif_click(i, im1, valid, gt)), ("none", None)):
-            coarse = coarse_register(im1, im2, 0.0, seed, cfg, base_valid=valid, rng=i)
+            coarse = coarse_register(
+                im1, im2, 0.0, seed, cfg.coarse, match_in=cfg.match_in, base_valid=valid, rng=i
+            )
             if not coarse:
                 continue
-            fine = fine_register_reference(im1, im2, 0.0, coarse, cfg, base_valid=valid)
+            fine = fine_register_reference(
+                im1, im2, 0.0, coarse, cfg.fine, match_in=cfg.match_in, base_valid=valid
+            )
             ok[mode] += bool(fine) and _corner_error(fine.base_from_corrected, gt, w, h) < 10
     assert ok["click"] >= 17, ok  # measured 19 of 20
     assert ok["none"] >= 13, ok  # measured 16 of 20
@@ -232,9 +240,11 @@ def test_ortholoc_uav_photo_against_an_orthophoto_of_another_date():
     grid = np.c_[gx.ravel(), gy.ravel()]
     seed_b = _apply(ref, np.array([[512.0, 384.0]]))[0] + (1.5, 1.0)
     cfg = get_preset("default")
-    coarse = coarse_register(query, xdop, 0.0, (512.0, 384.0, *seed_b), cfg, rng=0)
+    coarse = coarse_register(
+        query, xdop, 0.0, (512.0, 384.0, *seed_b), cfg.coarse, match_in=cfg.match_in, rng=0
+    )
     assert coarse, coarse.reason
-    fine = fine_register_reference(query, xdop, 0.0, coarse, cfg)
+    fine = fine_register_reference(query, xdop, 0.0, coarse, cfg.fine, match_in=cfg.match_in)
     assert fine, fine.reason
     err = np.hypot(*(fine.base_from_corrected.apply(grid) - _apply(ref, grid)).T)
     assert np.median(err) < 2.0, f"median {np.median(err):.2f} px"

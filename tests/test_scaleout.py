@@ -21,6 +21,7 @@ import pytest
 
 import registration
 from app.cli import main as cli_main
+from registration.camera import Camera
 from registration.config import get_preset
 from registration.io import open_frames, read_image
 from registration.pipeline import (
@@ -356,7 +357,8 @@ def test_long_flight_in_chunks_stays_accurate_and_resumes_mid_chunk(tmp_path):
 def _context(sim: Path) -> ChunkContext:
     frames = open_frames(sim / "frames")
     z = np.zeros((4, 4, 3), np.uint8)
-    return ChunkContext(frames, z, None, 0.7, get_preset("default"), REF, {}, z,
+    camera = Camera(0.7, *frames.size)
+    return ChunkContext(frames, z, None, camera, get_preset("default"), REF, {}, z,
                         np.zeros((4, 4), bool), frames.identity())  # fmt: skip
 
 

@@ -282,8 +282,8 @@ MUTATIONS: list[Mutation] = [
         "registration/pipeline.py",
         [
             (
-                "mid, valid = render_to_base(frame, gamma, model, (0, 0, wb, hb), field_)",
-                "mid, valid = render_to_base(frame, gamma, model, (0, 0, wb, hb))",
+                "mid, valid = render_to_base(frame, camera, model, (0, 0, wb, hb), field_)",
+                "mid, valid = render_to_base(frame, camera, model, (0, 0, wb, hb))",
                 1,
             )
         ],  # fmt: skip

@@ -473,8 +473,9 @@ class SeedView(ControlPointActions, View):
 
     def _fine(self, inp, k, gamma, coarse, key, cfg, client) -> None:
         fine = global_registration.fine_register_reference(
-            inp.frame(k), inp.base, gamma, coarse, cfg, base_valid=inp.base_valid
-        )
+            inp.frame(k), inp.base, gamma, coarse, cfg.fine, match_in=cfg.match_in,
+            base_valid=inp.base_valid,
+        )  # fmt: skip
         with self.state.lock:
             ref = self.state.reference
             if ref is None or ref.key != key:

@@ -1,0 +1,97 @@
+"""The frames' camera: Harris γ, the raw frame size and the exact Harris model made from them
+(paper section 3, ``conventions.md``), built once per run and passed to every stage.
+
+The stages need γ only through the Harris model of the frame size: raw pixels to corrected ones
+and back, the corrected frame on the raw frame's canvas, and where a grid or the outline of the
+raw frame lies in corrected pixels. :class:`Camera` holds that model and gives exactly those
+conversions, so no stage rebuilds it from a bare γ.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from registration.coords import frame_outline, image_size
+from registration.distortion import HarrisModel, undistort_image
+
+
+@dataclass(frozen=True)
+class Camera:
+    """The camera of a sequence's raw frames.
+
+    Attributes:
+        gamma: Harris radial distortion γ (paper eq. 4; 0.7 for the paper's camera).
+        width, height: raw frame size in pixels.
+        harris: the Harris model of that γ and size, centred on the frame (built once; the
+            run's distortion centre is the frame centre, ``conventions.md``).
+    """
+
+    gamma: float
+    width: int
+    height: int
+    harris: HarrisModel = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "gamma", float(self.gamma))
+        object.__setattr__(self, "harris", HarrisModel(self.gamma, self.width, self.height))
+
+    @classmethod
+    def of(cls, frame: NDArray, gamma: float) -> Camera:
+        """The camera of ``frame`` (``(H, W[, C])``, raw) with Harris ``gamma``."""
+        return cls(gamma, *image_size(frame))
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """``(width, height)`` of the raw frames."""
+        return self.width, self.height
+
+    def corrected_from_raw(self, xy: ArrayLike) -> NDArray[np.float64]:
+        """``(N, 2)`` raw pixels -> ``(N, 2)`` corrected pixels."""
+        return self.harris.corrected_from_raw(xy)
+
+    def raw_from_corrected(self, xy: ArrayLike) -> NDArray[np.float64]:
+        """``(N, 2)`` corrected pixels -> ``(N, 2)`` raw pixels (NaN where undefined)."""
+        return self.harris.raw_from_corrected(xy)
+
+    def outline(self, per_edge: int = 32) -> NDArray[np.float64]:
+        """The raw frame's border (:func:`registration.coords.frame_outline`) in corrected
+        pixels: under a ``base_from_corrected`` model, the frame's footprint."""
+        return self.corrected_from_raw(frame_outline(self.width, self.height, per_edge))
+
+    def grid(self, nx: int, ny: int) -> NDArray[np.float64]:
+        """An ``nx`` x ``ny`` grid over the raw frame, corners included, in corrected pixels
+        (row by row)."""
+        gx, gy = np.meshgrid(
+            np.linspace(0, self.width - 1, nx), np.linspace(0, self.height - 1, ny)
+        )
+        return self.corrected_from_raw(np.c_[gx.ravel(), gy.ravel()])
+
+    def cell_centres(self, cells: int) -> NDArray[np.float64]:
+        """Centres of a ``cells`` x ``cells`` grid of equal cells over the raw frame, in corrected
+        pixels (row by row)."""
+        t = (np.arange(cells) + 0.5) / cells
+        gx, gy = np.meshgrid(t * self.width - 0.5, t * self.height - 0.5)
+        return self.corrected_from_raw(np.c_[gx.ravel(), gy.ravel()])
+
+    def undistort(self, frame_raw: NDArray) -> NDArray:
+        """The radially corrected frame on the raw frame's canvas (paper section 3)."""
+        self.check(frame_raw)
+        return undistort_image(frame_raw, self.harris, canvas="same")[0]
+
+    def check(self, frame: NDArray) -> None:
+        """ValueError when ``frame`` is not of the camera's size."""
+        if image_size(frame) != self.size:
+            w, h = image_size(frame)
+            raise ValueError(f"a {w}x{h} frame given to the camera of {self.width}x{self.height}")
+
+
+def as_camera(camera: Camera | float, frame: NDArray) -> Camera:
+    """``camera`` itself (checked against ``frame``'s size), or the camera of ``frame`` with
+    Harris γ ``camera``: the library's entry points still take a bare γ."""
+    if isinstance(camera, Camera):
+        camera.check(frame)
+        return camera
+    return Camera.of(frame, camera)
