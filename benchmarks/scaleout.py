@@ -108,7 +108,8 @@ def run(args) -> dict:
     n_chunks = len(chunk_plan(n, ref, chunk))
     base_fps = rows["serial"]["fps_after_reference"]
     lines = [
-        f"Sequence: {n} simulated frames {w}x{h} (seed {args.seed}), reference frame {ref}, "
+        f"Sequence: {n} simulated frames {w}x{h} ({args.profile or 'default'} flight, seed "
+        f"{args.seed}), reference frame {ref}, "
         f"default preset; chunked runs: --chunk-frames {chunk} ({n_chunks} chunks). Frames/s over "
         "the whole run and after the reference frame (which the driver registers alone first); "
         "Dask rows exclude starting the local cluster and importing aerialreg in its workers (their "

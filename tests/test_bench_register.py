@@ -32,9 +32,18 @@ def test_register_bench_on_a_hard_flight_reports_each_method_over_the_flight(cap
         for stage in ("global", "local"):
             errors = [row[stage]["mean"], *row[stage]["tenths"].values()]
             assert all(np.isfinite(e) and e > 0 for e in errors), (key, stage, row[stage])
+            per_frame = row[stage]["per_frame"]
+            assert len(per_frame) == 15
+            # 15 frames: tenths of 2 frames; the middle one starts at frame (15 - 2) // 2 = 6.
+            first, middle, last = row[stage]["tenths"].values()
+            assert np.allclose(
+                [first, middle, last],
+                [np.mean(per_frame[a:b]) for a, b in ((0, 2), (6, 8), (13, 15))],
+                atol=1e-4,
+            )
         assert row["times"]["total"] > 0
     ours = rows["default"]
-    assert ours["failed_frames"] == 0
+    assert ours["failed_frames"] == 0 and ours["local"]["frames_off"] == 0
     kept = ours["reqcon_kept"]
     assert 0.5 < kept["min"] <= kept["mean"] <= 1.0, kept
     assert ours["local"]["mean"] < rows["opencv"]["local"]["mean"]
