@@ -48,8 +48,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--profile",
         choices=tuple(PROFILE_RUNS),
         help=f"{' and '.join(PROFILE_SUITES)}: simulate this `aerialreg simulate --profile` flight "
-        f"(default size and frames: {runs}); register then reports the error per tenth of "
-        "the flight, failed frames and REQCON's kept share",
+        f"(default size and frames: {runs})",
     )
     p.add_argument(
         "--speed-options",
