@@ -42,11 +42,10 @@ def _gap(a, b, grid) -> tuple[float, float]:
 def run(args) -> dict:
     import logging
 
+    from benchmarks.sequence import simulated_sequence
     from registration.config import get_preset
     from registration.distributed import DaskExecutor, open_client, require_distributed
-    from registration.io import open_frames, read_image
     from registration.pipeline import chunk_plan, register_sequence
-    from registration.synth import SimConfig, load_truth, simulate
 
     require_distributed()  # importing it sets its loggers' levels
     logging.getLogger("distributed").setLevel(logging.WARNING)
@@ -56,22 +55,8 @@ def run(args) -> dict:
     chunk = args.chunk_frames or max(1, math.ceil((n - 1 - ref) / 2))
     workers = args.workers_list
     tmp = Path(tempfile.mkdtemp(prefix="aerialreg-bench-"))
-    sim = tmp / "sim"
-    t0 = time.perf_counter()
-    simulate(
-        sim,
-        SimConfig(frame_size=(w, h), n_frames=n, seed=args.seed, video=False),
-        scene=args.scene,
-        base=args.base,
-    )
-    sys.stderr.write(
-        f"bench scaleout: simulated {n} frames {w}x{h} in {time.perf_counter() - t0:.1f} s\n"
-    )
-    truth = load_truth(sim)
-    frames = open_frames(sim / "frames")
-    base = read_image(sim / "base.png")
-    bx, by = truth.frame_to_base(ref, [[w / 2, h / 2]])[0]
-    seed = (w / 2, h / 2, float(bx), float(by))
+    seq = simulated_sequence(args, tmp / "sim", "bench scaleout", reference_frame=ref)
+    truth, frames, base, seed = seq.truth, seq.frames, seq.base, seq.seed
     gx, gy = np.meshgrid(np.linspace(0, w - 1, 9), np.linspace(0, h - 1, 7))
     grid = np.c_[gx.ravel(), gy.ravel()]
     gx, gy = np.meshgrid(np.linspace(0, w - 1, 25), np.linspace(0, h - 1, 19))
@@ -123,7 +108,8 @@ def run(args) -> dict:
     n_chunks = len(chunk_plan(n, ref, chunk))
     base_fps = rows["serial"]["fps_after_reference"]
     lines = [
-        f"Sequence: {n} simulated frames {w}x{h} (seed {args.seed}), reference frame {ref}, "
+        f"Sequence: {n} simulated frames {w}x{h} ({args.profile or 'default'} flight, seed "
+        f"{args.seed}), reference frame {ref}, "
         f"default preset; chunked runs: --chunk-frames {chunk} ({n_chunks} chunks). Frames/s over "
         "the whole run and after the reference frame (which the driver registers alone first); "
         "Dask rows exclude starting the local cluster and importing aerialreg in its workers (their "

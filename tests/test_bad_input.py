@@ -923,6 +923,9 @@ def test_app_bad_option(sims, tmp_path, capsys, kind, needle):
         ("size-1x1", "at least 16 pixels a side"),
         ("scene-missing", "image not found"),
         ("scene-without-base", "--scene and --base go together"),
+        ("profile-unknown", "invalid choice: 'nosuch'"),
+        ("profile-other-suite", "--profile goes with the suites register and scaleout only"),
+        ("speed-options-other-suite", "--speed-options goes with the register suite only"),
     ],
 )
 def test_bench_bad_option(tmp_path, capsys, kind, needle):
@@ -933,6 +936,9 @@ def test_bench_bad_option(tmp_path, capsys, kind, needle):
         "size-1x1": ["register", "--size", "1x1"],
         "scene-missing": ["register", "--scene", missing, "--base", missing],
         "scene-without-base": ["register", "--scene", missing],
+        "profile-unknown": ["register", "--profile", "nosuch"],
+        "profile-other-suite": ["register", "simulate", "--profile", "paper-hard"],
+        "speed-options-other-suite": ["scaleout", "--speed-options"],
     }[kind]
     code, _, err = cli(capsys, "bench", *argv)
     assert_refused(code, err, "bench", needle)

@@ -14,6 +14,15 @@ HELP = "Measure speed and accuracy against in-run baselines and print the figure
 # benchmarks.SUITES, repeated so that --help works without the checkout (a test checks they agree).
 SUITES = ("distortion", "simulate", "register", "heading", "scaleout", "srif", "export", "app")
 MAX_FRAMES = 1000
+DEFAULT_SIZE, DEFAULT_FRAMES = "1280x960", 6
+# Size and frames of a --profile run unless --size/--frames say otherwise: a few minutes of
+# `bench register` on 2 cores.
+PROFILE_RUNS = {
+    "default": ("1280x960", 25),
+    "paper-hard": ("1280x960", 25),
+    "long-flight": ("640x480", 120),
+}
+PROFILE_SUITES = ("register", "scaleout")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -25,11 +34,27 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--size",
-        default="1280x960",
-        help="frame size WxH for simulated sequences (default 1280x960)",
+        help=f"frame size WxH for simulated sequences (default {DEFAULT_SIZE}; with --profile: "
+        "the profile's, see there)",
     )
     p.add_argument(
-        "--frames", type=int, default=6, help="frames per simulated sequence (default 6)"
+        "--frames",
+        type=int,
+        help=f"frames per simulated sequence (default {DEFAULT_FRAMES}; with --profile: the "
+        "profile's, see there)",
+    )
+    runs = ", ".join(f"{k} {v[0]} x {v[1]}" for k, v in PROFILE_RUNS.items())
+    p.add_argument(
+        "--profile",
+        choices=tuple(PROFILE_RUNS),
+        help=f"{' and '.join(PROFILE_SUITES)}: simulate this `aerialreg simulate --profile` flight "
+        f"(default size and frames: {runs})",
+    )
+    p.add_argument(
+        "--speed-options",
+        action="store_true",
+        help="register: also run the default preset with the opt-in speed options "
+        "(IntraConfig.fast_coarse, and that plus register_sequence(overlap=True)), a row each",
     )
     p.add_argument("--scene", help="scene image to simulate from instead of the procedural city")
     p.add_argument("--base", help="base map of the same area as --scene")
@@ -57,6 +82,13 @@ def run(args: argparse.Namespace) -> int:
     unknown = [s for s in suites if s not in SUITES]
     if unknown:
         raise UsageError(f"unknown bench suite {unknown[0]!r}; choose from {', '.join(SUITES)}")
+    if args.profile and any(s not in PROFILE_SUITES for s in suites):
+        raise UsageError(f"--profile goes with the suites {' and '.join(PROFILE_SUITES)} only")
+    if args.speed_options and suites != ["register"]:
+        raise UsageError("--speed-options goes with the register suite only")
+    size, frames = PROFILE_RUNS.get(args.profile, (DEFAULT_SIZE, DEFAULT_FRAMES))
+    args.size = size if args.size is None else args.size
+    args.frames = frames if args.frames is None else args.frames
     if (args.scene is None) != (args.base is None):
         raise UsageError("--scene and --base go together")
     if not 1 <= args.frames <= MAX_FRAMES:
