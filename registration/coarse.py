@@ -347,13 +347,13 @@ def _ransac_config(config: CoarseConfig, **changes) -> RansacConfig:
 
 # Share of the frame the inliers must span for a model's extra terms to be considered, as in
 # the fine step (registration.global_registration.FINE_MIN_COVERAGE says why and what it gave).
-COARSE_MIN_COVERAGE = {"affine": 0.5, "projective": 0.5}
+COARSE_MIN_COVERAGE = {"affine": 0.3, "projective": 0.5}
 
 
 def _select_model(src, dst, kinds: Sequence[str], current: Projective, probes) -> tuple:
     """The model among ``kinds`` that predicts held-out parts of the pairs best
     (:func:`registration.robust.simplest_supported`, spatial cross-validation): an affine's or
-    a projective's extra terms are kept only where the points span half of the frame
+    a projective's extra terms are kept only where the points span enough of the frame
     (:data:`COARSE_MIN_COVERAGE`), since undetermined ones extrapolate badly at the frame's
     corners. Returns ``(Projective, kind)``."""
     fits = []
