@@ -14,7 +14,7 @@ matches, RANSAC (4 points, 5 px, 1000 iterations) with Nelder-Mead. The paper's 
    images have about the same ground resolution (a map at 0.5x or 2x the frame's).
 4. RANSAC (paper), then ``refine_rounds`` of guided re-matching around the fitted model, and a
    choice among similarity, affine and projective (``models``) by spatial cross-validation and
-   how much of the frame the points span: a projective whose two perspective terms are not
+   how much of the frame the points span: an affine or projective whose extra terms are not
    supported by the points extrapolates badly at the frame's corners.
 5. With ``correlation`` rounds, gradient-magnitude template correlation at reduced scale refines
    the result, or rescues a seeded one SIFT could not find (:mod:`registration.correlation`).
@@ -346,11 +346,17 @@ def _ransac_config(config: CoarseConfig, **changes) -> RansacConfig:
     return dataclasses.replace(config.ransac, **changes)
 
 
+# Share of the frame the inliers must span for a model's extra terms to be considered, as in
+# the fine step (registration.global_registration.FINE_MIN_COVERAGE says why and what it gave).
+COARSE_MIN_COVERAGE = {"affine": 0.3, "projective": 0.5}
+
+
 def _select_model(src, dst, kinds: Sequence[str], current: Projective, probes) -> tuple:
     """The model among ``kinds`` that predicts held-out parts of the pairs best
-    (:func:`registration.robust.simplest_supported`, spatial cross-validation): a projective's
-    two perspective terms are kept only where the points determine them, since undetermined
-    ones extrapolate badly at the frame's corners. Returns ``(Projective, kind)``."""
+    (:func:`registration.robust.simplest_supported`, spatial cross-validation): an affine's or
+    a projective's extra terms are kept only where the points span enough of the frame
+    (:data:`COARSE_MIN_COVERAGE`), since undetermined ones extrapolate badly at the frame's
+    corners. Returns ``(Projective, kind)``."""
     fits = []
     for kind in ("similarity", "affine", "projective"):
         if kind in kinds:
@@ -360,7 +366,7 @@ def _select_model(src, dst, kinds: Sequence[str], current: Projective, probes) -
     if not fits:
         return current, "projective"
     kind, model = simplest_supported(
-        fits, src, dst, probes=probes, min_coverage={"projective": 0.5}
+        fits, src, dst, probes=probes, min_coverage=COARSE_MIN_COVERAGE
     )
     return (model if kind == "projective" else model.as_projective()), kind
 

@@ -81,3 +81,28 @@ def test_cross_validated_error_and_hull_coverage_known_values(rng):
     assert hull_coverage(square[:2], _frame_probes()) == 0.0
     with pytest.raises(ValueError, match="at least one"):
         simplest_supported([], src, dst)
+
+
+def test_the_registration_steps_keep_a_similarity_for_points_in_part_of_the_frame(rng):
+    """The coarse and fine steps' coverage rule: affine points in the left quarter of the frame
+    give a similarity (the affine's shear and unequal scales, fitted there, are not trusted at
+    the far corners), the same affine over the whole frame gives the affine (the coarse step
+    has no polyprojective candidate)."""
+    from registration.coarse import COARSE_MIN_COVERAGE
+    from registration.global_registration import FINE_MIN_COVERAGE
+
+    probes = _frame_probes()
+    for rule in (COARSE_MIN_COVERAGE, FINE_MIN_COVERAGE):
+        part = rng.uniform([0, 0], [W / 4, H - 1], (150, 2))
+        dst = _apply(TRUE["affine"], part) + rng.normal(0, 0.3, (150, 2))
+        assert hull_coverage(part, probes) < 0.5
+        name, _ = simplest_supported(
+            _fits(part, dst)[:3], part, dst, probes=probes, min_coverage=rule
+        )
+        assert name == "similarity"
+        whole = rng.uniform([0, 0], [W - 1, H - 1], (150, 2))
+        dst = _apply(TRUE["affine"], whole) + rng.normal(0, 0.3, (150, 2))
+        name, _ = simplest_supported(
+            _fits(whole, dst)[:3], whole, dst, probes=probes, min_coverage=rule
+        )
+        assert name == "affine"
