@@ -108,7 +108,7 @@ def test_outside_and_nan_get_the_border_value():
     np.testing.assert_array_equal(got, [[-7, -7, -7, -7]])
     # Half a pixel beyond the outer pixel centre: half image, half border (constant extension).
     edge = warp.remap(img, np.array([[[-0.5, 10.0]]], np.float32), border_value=0)
-    assert edge[0, 0] == pytest.approx(img[10, 0] / 2, abs=0.05 * img[10, 0])
+    assert edge[0, 0] == pytest.approx(img[10, 0] / 2, abs=0.05 * float(img[10, 0]))
     rgb = np.dstack([img, img, img]).astype(np.uint8)
     out = warp.remap(rgb, smap, border_value=(1, 2, 3))
     assert out.dtype == np.uint8 and (out[0, 0] == [1, 2, 3]).all()
