@@ -51,11 +51,16 @@ def _stat_times(result) -> dict[str, float]:
     return out
 
 
+def tenth(n_frames: int) -> int:
+    """Frames in a tenth of a flight of ``n_frames`` (at least one)."""
+    return max(1, round(n_frames / 10))
+
+
 def tenths(values) -> dict[str, float]:
     """Mean of the finite ``values`` (one per frame, in frame order) over the first, the middle
-    and the last tenth of the frames (at least one frame each)."""
+    and the last tenth of the frames (:func:`tenth`)."""
     v = np.asarray(values, float)
-    t = max(1, round(len(v) / 10))
+    t = tenth(len(v))
     mid = (len(v) - t) // 2
     parts = {"first": v[:t], "middle": v[mid : mid + t], "last": v[len(v) - t :]}
     return {
@@ -259,7 +264,7 @@ def _markdown(rows: dict, args, w: int, h: int) -> str:
 def _tenths_table(rows: dict, n_frames: int) -> list[str]:
     """Error per frame over the flight: each stage of ours, each baseline once (one homography
     per frame: its global and local stages are the same)."""
-    t = max(1, round(n_frames / 10))
+    t = tenth(n_frames)
     lines = [
         f"Error per frame (base px, mean over frames) over the first, middle and last tenth "
         f"({t} frames each) and the whole flight (pooled over ground points); off: registered "

@@ -656,13 +656,12 @@ def _write_mosaic(writer: ResultWriter, ctx: ChunkContext) -> None:
     mid, valid = ctx.mid.copy(), ctx.mid_valid.copy()
     hb, wb = valid.shape
     for k in anchors:
-        frame = ctx.frames.get(k)
         box = _anchor_box(ctx.camera, result.model(k), (wb, hb))
         if box is None:
-            continue
+            continue  # the frame is not read: its box needs only the camera and model
         x0, y0, x1, y1 = box
         image, image_valid = render_to_base(
-            frame, ctx.camera, result.model(k), box, result.field(k)
+            ctx.frames.get(k), ctx.camera, result.model(k), box, result.field(k)
         )
         hole = np.asarray(image_valid, bool) & ~valid[y0:y1, x0:x1]
         mid[y0:y1, x0:x1][hole] = image[hole]

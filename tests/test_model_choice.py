@@ -95,7 +95,7 @@ def test_the_registration_steps_keep_a_similarity_for_points_in_part_of_the_fram
     for rule in (COARSE_MIN_COVERAGE, FINE_MIN_COVERAGE):
         part = rng.uniform([0, 0], [W / 4, H - 1], (150, 2))
         dst = _apply(TRUE["affine"], part) + rng.normal(0, 0.3, (150, 2))
-        assert hull_coverage(part, probes) < 0.5
+        assert hull_coverage(part, probes) < rule["affine"]
         name, _ = simplest_supported(
             _fits(part, dst)[:3], part, dst, probes=probes, min_coverage=rule
         )
