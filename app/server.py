@@ -112,6 +112,7 @@ class App:
             on_error=self._report_error,
             on_progress=self._job_progress,
             on_finish=self._job_finished,
+            on_start=self._job_started,
         )
         self.max_upload_bytes = int(max_upload_mb * 1024 * 1024)
         self.max_download_bytes = int(max_download_mb * 1024 * 1024)
@@ -274,13 +275,14 @@ class App:
         """Run ``fn(job)`` as the app's long job (progress in the header); a notification when
         another job is running (unless ``queue``: then it runs after it)."""
         started = self.jobs.start(name, fn, queue=queue)
-        if started:
-            self.job_md.content = f"{name} ..."
-            self.job_md.visible = True
-            self.btn_cancel.visible = True
-        else:
+        if not started:
             self.notify(client, "Busy", f"{self.jobs.name} is running", color="yellow")
         return started
+
+    def _job_started(self, job: Job) -> None:
+        self.job_md.content = f"{job.name} ..."
+        self.job_md.visible = True
+        self.btn_cancel.visible = True
 
     def _job_progress(self, job: Job) -> None:
         now = time.monotonic()

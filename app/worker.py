@@ -156,6 +156,7 @@ class JobRunner:
         on_error: Callable[[str, BaseException], None] | None = None,
         on_progress: Callable[[Job], None] | None = None,
         on_finish: Callable[[Job], None] | None = None,
+        on_start: Callable[[Job], None] | None = None,
     ) -> None:
         self._lock = threading.Lock()
         self._thread: threading.Thread | None = None
@@ -164,6 +165,7 @@ class JobRunner:
         self._on_error = on_error
         self._on_progress = on_progress
         self._on_finish = on_finish
+        self._on_start = on_start
 
     @property
     def busy(self) -> bool:
@@ -197,6 +199,9 @@ class JobRunner:
     def _launch(self, name: str, fn: Callable[[Job], None]) -> None:
         job = Job(name, self._on_progress)
         self.job = job
+        if self._on_start is not None:
+            # Before the thread starts, so a job that ends at once cannot finish before it.
+            self._on_start(job)
 
         def run() -> None:
             try:

@@ -19,6 +19,15 @@ def shared_data(*parts: str) -> Path:
     return path
 
 
+def pytest_report_header(config) -> str:
+    # The accuracy limits are measured with one OpenCV build (SIFT's keypoints differ between
+    # builds): say which one ran.
+    import cv2
+    import scipy
+
+    return f"aerialreg: OpenCV {cv2.__version__}, numpy {np.__version__}, scipy {scipy.__version__}"
+
+
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(12345)

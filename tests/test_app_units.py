@@ -194,3 +194,19 @@ def test_second_seed_from_typed_heading_round_trips():
     for heading, scale in [(10.0, 0.0), (10.0, -1.0), (float("nan"), 1.0)]:
         with pytest.raises(ValueError, match="scale positive"):
             calls.second_seed_from_similarity((1.0, 2.0, 3.0, 4.0), heading, scale, 0.7, size)
+
+
+def test_job_runner_reports_start_before_a_job_that_ends_at_once():
+    """A job that finishes before ``start`` returns (an export refused at once) must not have
+    its finish overtaken by its start: the app's header would show a job that is not running."""
+    from app.worker import JobRunner
+
+    events = []
+    runner = JobRunner(
+        on_start=lambda job: events.append(("start", job.name)),
+        on_finish=lambda job: events.append(("finish", job.name)),
+    )
+    for name in ("a", "b", "c"):
+        assert runner.start(name, lambda job: None)
+        assert runner.join(10)
+    assert events == [(kind, n) for n in ("a", "b", "c") for kind in ("start", "finish")]

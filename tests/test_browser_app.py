@@ -555,19 +555,20 @@ def test_scrub_plot_click_and_table2(browser, registered_app):
     legend = chart.locator(".u-legend .u-series").first.locator(".u-value")
 
     def legend_at(fx: float) -> str:
-        # The legend follows the pointer after a render: wait until it settles.
+        # The legend follows the pointer after a render: wait until it reads the same three times
+        # (a loaded machine renders late, and two reads can both be the old value).
         page.page.mouse.move(box["x"] + fx * box["width"], box["y"] + box["height"] / 2)
-        last, t0 = None, time.monotonic()
+        reads, t0 = [], time.monotonic()
         while time.monotonic() - t0 < 5:
-            time.sleep(0.1)
-            now = legend.inner_text().strip()
-            if now == last:
-                return now
-            last = now
-        return last
+            time.sleep(0.15)
+            reads.append(legend.inner_text().strip())
+            if len(reads) >= 3 and len(set(reads[-3:])) == 1:
+                break
+        return reads[-1]
 
     fx = next((f for f in np.linspace(0.02, 0.98, 25) if legend_at(f) == "1"), None)
     assert fx is not None, "no pointer position over the chart shows frame 1"
+    assert legend_at(fx) == "1"  # still there after the pointer comes back
     page.page.mouse.click(box["x"] + fx * box["width"], box["y"] + box["height"] / 2)
     wait_until(lambda: app.shown["Sequence"][0] == 1, what="the chart click to show frame 1")
     page.shot("sequence")
@@ -819,7 +820,11 @@ def _serve(project: Path, seq: Path, port: int) -> subprocess.Popen:
         "--port",
         str(port),
     ]
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    # Its log goes to a file: a pipe nobody reads fills up with progress lines and blocks the
+    # server mid-run.
+    log_path = project.parent / f"{project.name}-server-{time.monotonic_ns()}.log"
+    with open(log_path, "w") as log_file:
+        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=log_file, text=True)
     t0 = time.monotonic()
     while time.monotonic() - t0 < 60:
         try:
@@ -827,7 +832,7 @@ def _serve(project: Path, seq: Path, port: int) -> subprocess.Popen:
                 return proc
         except OSError:
             if proc.poll() is not None:
-                raise AssertionError(f"server exited: {proc.stderr.read()}") from None
+                raise AssertionError(f"server exited: {log_path.read_text()[-2000:]}") from None
             time.sleep(0.2)
     proc.kill()
     raise AssertionError("server did not start")
@@ -851,7 +856,7 @@ def test_kill_mid_sequence_and_restart_keeps_frames(browser, tmp_path_factory):
     proc = _serve(project, seq, port)
     records = project / "result" / "frames"
     try:
-        page = Page(browser, port)
+        page = Page(browser, port, connect_s=90.0)
         page.button("Register all frames").click()
         wait_until(
             lambda: records.is_dir() and len(list(records.glob("*.json"))) >= 2,
@@ -869,7 +874,7 @@ def test_kill_mid_sequence_and_restart_keeps_frames(browser, tmp_path_factory):
     assert 2 <= len(done) < 6, f"killed too late to test resuming: {len(done)} frames done"
     proc = _serve(project, seq, port)
     try:
-        page = Page(browser, port)
+        page = Page(browser, port, connect_s=90.0)
         page.page.wait_for_selector(f"text={len(done)} ok", timeout=30000)
         page.button("Register all frames").click()
         wait_until(

@@ -239,7 +239,7 @@ def test_ortholoc_uav_photo_against_an_orthophoto_of_another_date():
     The reference needs the ground's height, which the sample does not give: it is fitted
     here, independently of our pipeline, to plain OpenCV SIFT + MAGSAC matches between the photo
     and the same-date orthophoto (DOP): z0 = -12.75 m, 1.3 px median residual (the SOURCE's
-    estimate, -11 m, leaves 8.8 px). Measured: median 1.27 px, mean 2.19 px (the mean is
+    estimate, -11 m, leaves 8.8 px). Measured: median 1.68 px, mean 2.92 px (the mean is
     pulled by the frame's far edge, where the ground plane model itself is least reliable)."""
     k, pose, query, dop, xdop = _ortholoc()
     kq, kd = cv2.SIFT.create(), cv2.SIFT.create()
@@ -268,6 +268,6 @@ def test_ortholoc_uav_photo_against_an_orthophoto_of_another_date():
     assert fine, fine.reason
     err = np.hypot(*(fine.base_from_corrected.apply(grid) - _apply(ref, grid)).T)
     assert np.median(err) < 2.0, f"median {np.median(err):.2f} px"
-    # Measured with OpenCV 5.0; 4.12-4.14's SIFT gives 2.92 px on the same CPU (README, "Known
-    # limits").
-    assert err.mean() < 2.9, f"mean {err.mean():.2f} px (measured 2.19)"
+    # Measured with OpenCV 4.14 (the pinned build): median 1.68 px, mean 2.92 px (5.0's SIFT
+    # gives 1.27 and 2.19 on the same CPU; README, "Known limits").
+    assert err.mean() < 2.92 * 1.3, f"mean {err.mean():.2f} px (measured 2.92)"

@@ -100,19 +100,22 @@ def test_dithered_correlation_reduces_subpixel_bias():
 
 
 def test_dithered_correlation_reduces_subpixel_bias_simulated(sim_seq):
-    """Synthetic twin of the test above (runs without ../shared): the simulator's base map, a
-    fractional shift; the dithered re-correlation halves the 90th percentile error (measured
-    0.0515 -> 0.0232 px; the real image: 0.32 -> 0.05 px)."""
-    ref = to_grey(read_image(sim_seq / "base.png"))[100:640, 200:1160]
-    shift = np.array([3.3, -2.6])
-    frame = warp_into(ref, lambda xy: xy + shift + 100, 560, 340)
-    model = lambda xy: xy + 100.0  # noqa: E731
+    """Synthetic twin of the test above (runs without ../shared): a simulated frame shifted by an
+    exact band-limited (Fourier) shift of half a pixel in x and y, where the plain peak fit is
+    most biased; the dithered re-correlation halves the 90th percentile error (measured 0.054 ->
+    0.028 px, median 0.030 -> 0.013). The shift is not made with ``cv2.remap``: its 1/32 px
+    position quantum differs between OpenCV builds and is itself of this size."""
+    ref = to_grey(read_image(sim_seq / "frames" / "000000.png"))
+    shift = np.array([3.5, -2.5])
+    h, w = ref.shape
+    frame = fourier_shift(ref, -shift[0], -shift[1])[40 : h - 40, 40 : w - 40]
+    model = lambda xy: xy + 40.0  # noqa: E731
     errs = []
     for n in (0, 1):
         cp = template_control_points(frame, ref, model, None, TemplateConfig(dither_iterations=n))
         assert len(cp) >= 50
-        errs.append(np.percentile(np.linalg.norm(cp.dst - (cp.src + shift + 100), axis=1), 90))
-    assert errs[1] < 0.0232 * 1.3 and errs[1] < 0.6 * errs[0], errs
+        errs.append(np.percentile(np.linalg.norm(cp.dst - (cp.src + shift + 40), axis=1), 90))
+    assert errs[1] < 0.028 * 1.3 and errs[1] < 0.6 * errs[0], errs
 
 
 def test_template_grid_and_jitter():

@@ -98,7 +98,11 @@ def test_bicubic_remap_matches_keys_cubic_convolution():
     expected = _keys_cubic(
         img.astype(np.float64), smap[..., 0].astype(float), smap[..., 1].astype(float)
     )
-    assert np.abs(got - expected).max() < max_gradient(img) * POSITION_QUANTUM / 2 + 1e-2
+    # OpenCV rounds x and y to its position quantum independently, so the position is off by up to
+    # half a quantum in each: sqrt(2)/2 of a quantum along the gradient (measured 0.262 with
+    # OpenCV 4.14 against a bound of 0.33; 5.0 is closer).
+    bound = max_gradient(img) * POSITION_QUANTUM * np.sqrt(2) / 2 + 1e-2
+    assert np.abs(got - expected).max() < bound
 
 
 def test_outside_and_nan_get_the_border_value():

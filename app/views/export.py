@@ -305,9 +305,13 @@ class Exporter:
                 return
             self.finished(summary, folder, time.perf_counter() - t0, client)
 
+        # Shown before the job starts: a job that fails at once must not have its reason
+        # overwritten by this line.
+        previous = self.panel.result_md.content
+        self.panel.result_md.content = f"_Exporting {', '.join(formats)} ..._"
         started = self.app.run_job("export", job, client)
-        if started:
-            self.panel.result_md.content = f"_Exporting {', '.join(formats)} ..._"
+        if not started:
+            self.panel.result_md.content = previous
         return started
 
     def show_error(self, message: str, client) -> None:
