@@ -47,14 +47,14 @@ class PipelineConfig:
             equals ``"global"``.
         reference_local: beyond the paper: settings of the reference frame's own displacement
             field against the base map, from its template control points
-            (:func:`registration.pipeline.reference_field`); the mid base image is rendered
+            (:func:`registration.local.reference_field`); the mid base image is rendered
             with it, so every frame's local stage inherits it. None = the paper (the reference
             frame's local stage is its global model).
         random_seed: seed of every random choice (RANSAC samples); frame ``k`` uses
             ``random_seed + k``.
         chunk_frames: beyond the paper: split the frames after the reference frame, and the
             frames before it, into chunks of at most this many consecutive frames that are
-            registered independently of each other (:func:`registration.pipeline.chunk_plan`),
+            registered independently of each other (:func:`registration.chunks.chunk_plan`),
             so that they can run in parallel (``registration.distributed``). A chunk's first
             frame has no registered predecessor (unless it follows the reference frame) and
             each chunk sees only its own anchors. 0 = one chunk (the paper's chain). The result

@@ -204,6 +204,12 @@ class FineResult:
     model_reason: str = ""
     sigma_px: float = float("nan")
 
+    @classmethod
+    def failed(cls, reason: str) -> FineResult:
+        """A failed step with ``reason`` and no points."""
+        z = np.zeros((0, 2))
+        return cls(False, reason, None, z, z, np.zeros(0, bool), np.zeros(0), 0)
+
     @property
     def residual_rms_px(self) -> float:
         r = self.residuals[self.kept]
@@ -606,7 +612,7 @@ def register_intra(
     coarse.fast_reason = fast_reason
     coarse.time_s = time.perf_counter() - t0
     if not coarse:
-        return coarse, _failed_fine(coarse.reason), None
+        return coarse, FineResult.failed(coarse.reason), None
 
     t1 = time.perf_counter()
     model = coarse.base_from_corrected
@@ -731,11 +737,6 @@ def footprint_bbox(
     """Integer ``(x0, y0, x1, y1)`` box of base pixels covered by a ``width`` x ``height`` frame
     under ``frame_to_base`` (a callable on ``(N, 2)`` frame px), clipped to the base."""
     return bbox_of(frame_to_base(frame_outline(width, height)), base_size, margin)
-
-
-def _failed_fine(reason: str) -> FineResult:
-    z = np.zeros((0, 2))
-    return FineResult(False, reason, None, z, z, np.zeros(0, bool), np.zeros(0), 0)
 
 
 def _median_shift(frame_coarse, prev_coarse, matches, prev_to_base, predict) -> NDArray:

@@ -16,7 +16,7 @@ thread with threadpoolctl, at run time, made even serial runs differ now and the
 machine), amplified by REQCON to up to 2 px at a later frame's corner. So the pipeline uses it
 only when asked (``register_sequence(..., overlap=True)``).
 
-Everything here is plumbing for :func:`registration.pipeline.run_chunk`.
+Everything here is plumbing for :func:`registration.chunks.run_chunk`.
 """
 
 from __future__ import annotations

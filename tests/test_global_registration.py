@@ -25,7 +25,7 @@ from registration.global_registration import (
 )
 from registration.io import open_frames, read_image
 from registration.models import PolyProjective, Projective
-from registration.pipeline import render_to_base
+from registration.render import render_to_base
 from registration.synth import load_truth
 from tests.conftest import seed_for
 

@@ -11,10 +11,11 @@ import dataclasses
 import numpy as np
 import pytest
 
+from registration.anchoring import ANCHOR_STAGE
 from registration.config import get_preset
 from registration.evaluation import evaluate_truth
 from registration.io import open_frames, read_image
-from registration.pipeline import ANCHOR_STAGE, register_sequence
+from registration.pipeline import register_sequence
 from registration.synth import PROFILES, load_truth, simulate
 
 W, H, N = 480, 360, 40

@@ -1,4 +1,4 @@
-"""Both cores busy within a chunk (registration/overlap.py, registration.pipeline.run_chunk):
+"""Both cores busy within a chunk (registration/overlap.py, registration.chunks.run_chunk):
 frames decoded ahead and the local stage in a second thread give the serial result, through
 failed frames, re-anchored frames and jumps: the same frames registered in the same way, the
 models within OVERLAP_GAP_PX of each other. Not bit-exact (why overlap is opt-in): with the local

@@ -21,18 +21,12 @@ import pytest
 
 import registration
 from app.cli import main as cli_main
+from registration.anchoring import ANCHOR_STAGE
 from registration.camera import Camera
+from registration.chunks import ChunkContext, ChunkJob, SerialExecutor, chunk_plan, processing_order
 from registration.config import get_preset
 from registration.io import open_frames, read_image
-from registration.pipeline import (
-    ANCHOR_STAGE,
-    ChunkContext,
-    ChunkJob,
-    SerialExecutor,
-    chunk_plan,
-    processing_order,
-    register_sequence,
-)
+from registration.pipeline import register_sequence
 from registration.synth import PROFILES, SimConfig, load_truth, simulate
 
 distributed = pytest.importorskip("distributed", reason="needs dask[distributed] (test extra)")

@@ -93,7 +93,7 @@ MUTATIONS: list[Mutation] = [
     _m(
         "frames_before_reference_dropped",
         "frames before the reference frame never processed",
-        "registration/pipeline.py",
+        "registration/chunks.py",
         [("        *range(reference_frame - 1, -1, -1),\n", "", 1)],
         [*E2E, "tests/test_export.py"],
     ),
