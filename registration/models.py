@@ -453,12 +453,12 @@ def _geometric_fun(
 
 
 # A stage's output model is rounded to multiples of 2^-34 (~6e-11) in its parameters (of order
-# one in normalised coordinates, so ~1e-7 px): MINPACK's result depends in its last bits on the
-# memory alignment of its work arrays (vectorised loops peel differently), which differs from
-# one call to the next; unrounded, those ~1e-13 differences decide which control points REQCON
-# drops and which cells the local stage keeps downstream, and two identical runs drift apart by
-# pixels. Rounding the outputs (not the optimiser's steps) makes runs reproducible except when
-# a parameter falls within ~1e-13 of a rounding boundary.
+# one in normalised coordinates, so ~1e-7 px). It was introduced against MINPACK, whose result
+# depends in its last bits on the memory alignment of its work arrays; our own
+# :func:`levenberg_marquardt` does not, and the rounding stays as a guard for any other
+# last-bit difference (another BLAS, another thread count): unrounded, ~1e-13 differences
+# decide which control points REQCON drops and which cells the local stage keeps downstream,
+# and two runs would drift apart by pixels.
 _QUANTUM_EXP = 34
 
 
@@ -481,16 +481,106 @@ def _refine(
 ) -> Array:
     """Minimise the sum of squared geometric residuals from ``p0`` with the chosen optimiser."""
     if optimizer == "lm":
-        m = len(fun(p0))
-        method = "lm" if m >= len(p0) else "trf"  # MINPACK's LM needs residuals >= params
+        if jac is not None and len(fun(p0)) >= len(p0):
+            return levenberg_marquardt(p0, fun, jac)
         res = scipy.optimize.least_squares(
-            fun, p0, jac=jac if jac is not None else "2-point", method=method,
+            fun, p0, jac=jac if jac is not None else "2-point", method="trf",
             ftol=1e-12, xtol=1e-12, gtol=1e-12, max_nfev=200 * (len(p0) + 1),
         )  # fmt: skip
         return res.x
     if optimizer == "nelder-mead":
         return _nelder_mead(p0, fun)
     return p0
+
+
+def levenberg_marquardt(
+    p0: Array,
+    fun: Callable[[Array], Array],
+    jac: Callable[[Array], Array],
+    *,
+    tol: float = 1e-12,
+    max_nfev: int | None = None,
+) -> Array:
+    """Levenberg-Marquardt minimisation of ``|fun(p)|^2`` from ``p0``, in numpy.
+
+    Marquardt's damping scaled by the Jacobian's column norms (kept at their largest, as
+    MINPACK does), solved through the normal equations of the column-scaled problem (17-29
+    parameters of normalised coordinates: well enough conditioned). Stops when a step lowers the
+    cost by less than ``tol`` relative, or is shorter than ``tol`` relative to the scaled
+    parameters, or after ``max_nfev`` evaluations (``200 (n + 1)`` by default).
+
+    Why not MINPACK (``scipy.optimize.least_squares(method="lm")``): its vectorised loops peel
+    differently with the memory alignment of its work arrays, so the same residuals and
+    Jacobians gave trial steps differing in their last bits from one process to the next, and
+    the fit ended ~1e-9 apart; REQCON and the next frames amplified that to pixels. Here every
+    operation is a BLAS/LAPACK call or an element-wise numpy operation whose result does not
+    depend on where its arrays lie, so the same inputs give the same bits in every process.
+    """
+    p = np.array(p0, dtype=np.float64)
+    n = len(p)
+    max_nfev = 200 * (n + 1) if max_nfev is None else int(max_nfev)
+    r = fun(p)
+    cost = float(r @ r)
+    if not math.isfinite(cost):
+        return p
+    nfev, nu = 1, 2.0
+    J = jac(p)
+    scale = np.sqrt((J * J).sum(axis=0))
+    lam = None
+    while nfev < max_nfev:
+        scale = np.where(scale > 0, scale, 1.0)
+        # The problem in scaled parameters u = scale * p: unit-diagonal normal equations.
+        js = J / scale
+        a = js.T @ js
+        g = js.T @ r
+        if lam is None:
+            lam = 1e-3 * float(np.max(np.diag(a)))
+        if float(np.max(np.abs(g))) <= tol * math.sqrt(cost):
+            return p  # gradient zero to working precision
+        # The most the quadratic model can still gain (the undamped step's reduction): the
+        # convergence test, which a heavily damped step's small reduction cannot fake.
+        u_gn = np.linalg.lstsq(a, -g, rcond=None)[0]
+        gain = float(-g @ u_gn)
+        if gain <= tol * cost:
+            return p
+        # The undamped step first: damping turns the step towards the gradient, which can point
+        # into the denominator barrier (a fit ending on it) where the full step clears it.
+        undamped = True
+        while nfev < max_nfev:
+            if undamped:
+                u = u_gn
+            else:
+                try:
+                    u = np.linalg.solve(a + lam * np.eye(n), -g)
+                except np.linalg.LinAlgError:
+                    u = np.full(n, np.nan)
+            if not np.isfinite(u).all():
+                lam, nu, undamped = lam * nu, nu * 2.0, False
+                continue
+            if float(np.linalg.norm(u)) <= tol * (float(np.linalg.norm(scale * p)) + tol):
+                return p
+            trial = p + u / scale
+            r_trial = fun(trial)
+            nfev += 1
+            c_trial = float(r_trial @ r_trial)
+            predicted = -float(2.0 * (g @ u) + u @ a @ u)
+            actual = cost - c_trial if math.isfinite(c_trial) else -math.inf
+            if predicted > 0 and actual > 0:
+                # Nielsen's update: less damping the better the quadratic model predicted.
+                rho = actual / predicted
+                lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+                nu = 2.0
+                p, r, cost = trial, r_trial, c_trial
+                break
+            if undamped:
+                undamped = False  # no say on the damping
+                continue
+            lam, nu = lam * nu, nu * 2.0
+            if lam > 1e16:
+                return p
+        J = jac(p)
+        scale = np.maximum(scale, np.sqrt((J * J).sum(axis=0)))
+    return p
 
 
 def _nelder_mead(p0: Array, fun: Callable[[Array], Array]) -> Array:
