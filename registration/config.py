@@ -12,9 +12,9 @@ provenance); this module only collects them. Presets:
   "Presets"): Levenberg-Marquardt instead of Nelder-Mead (same minimum, ~60x faster), templates
   correlated after warping the reference into frame geometry, template control points for
   intra-sensor frames instead of full-resolution SIFT, the local field from those same kinds of
-  matches. The intra-sensor coarse step's fast path (:mod:`registration.fast_coarse`,
-  ``IntraConfig.fast_coarse``) is opt-in until runs with it are bit-reproducible across processes
-  on a loaded machine (see that module).
+  matches, and the intra-sensor coarse step's fast path (:mod:`registration.fast_coarse`: the
+  frame predicted from the previous one and confirmed by correlation, the SIFT step only when
+  that fails).
 """
 
 from __future__ import annotations
@@ -213,6 +213,7 @@ def _default() -> PipelineConfig:
             reqcon=lm_reqcon,
             reanchor_coverage=REANCHOR_COVERAGE,
             base_fallback=True,
+            fast_coarse=True,
         ),
         local=replace(paper.local, **{**FLOW_OVERRIDES, **LOCAL_FLOW}),
         reference_local=REFERENCE_LOCAL,

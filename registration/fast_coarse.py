@@ -27,10 +27,10 @@ A failed step returns a falsy :class:`registration.coarse.CoarseResult` whose ``
 why; the caller then runs the SIFT step. Everything is deterministic (seeded RANSAC, no
 threads whose order matters) within a process.
 
-Opt-in (``IntraConfig.fast_coarse``; off in every preset): on a loaded 2-core machine, runs
-with it in separate processes (serial vs Dask workers, tests/test_scaleout.py) differed now
-and then in a fit's last bits, which REQCON amplified to ~2 px at a later frame's corner (4 of
-9 test runs; main's SIFT step 0 of 3). The source is not found yet.
+On in the default preset (``IntraConfig.fast_coarse``), off in the paper's. It was opt-in while
+runs with it in separate processes differed now and then in a fit's last bits; the cause was
+MINPACK's Levenberg-Marquardt (its result depends on memory alignment), which
+:func:`registration.models.levenberg_marquardt` replaced.
 """
 
 from __future__ import annotations

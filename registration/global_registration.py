@@ -137,8 +137,8 @@ class IntraConfig:
             the previous one (its model moved by the phase-correlation shift between the two),
             confirm the prediction by template matches at the coarse scale, and run the SIFT
             coarse step only when a check fails (:mod:`registration.fast_coarse`; the frame's
-            record says which in ``stats["coarse_path"]``). False = always SIFT (the paper and,
-            until runs with it are bit-reproducible across processes, every preset).
+            record says which in ``stats["coarse_path"]``). False = always SIFT (the paper); the
+            default preset uses it.
         fast_max_shift: the fast path's largest shift from the previous frame, as a share of
             the frame's shorter side (0.15: 288 px at 2560x1920, 72 px at 640x480); a larger
             jump goes to the SIFT step.

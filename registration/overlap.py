@@ -10,11 +10,10 @@ runs them on the second core while the main thread registers:
 * :class:`LocalAhead` runs :func:`registration.local.frame_field` on inputs that no later step
   modifies (the frame, its final global model and the mid base image's flow reference).
 
-Not yet exact: the overlapped run differs from the serial one in a fit's last bits now and
-then (OpenBLAS called from two threads at once splits its sums differently; holding it to one
-thread with threadpoolctl, at run time, made even serial runs differ now and then on a loaded
-machine), amplified by REQCON to up to 2 px at a later frame's corner. So the pipeline uses it
-only when asked (``register_sequence(..., overlap=True)``).
+Exact: the overlapped run gives the serial run's result to the bit. (Before the project's own
+Levenberg-Marquardt replaced MINPACK's, whose last bits depend on memory alignment, it did not,
+and REQCON amplified the difference to up to 2 px at a later frame's corner.) The pipeline uses
+it for runs in one process (``register_sequence(overlap=None)``), not on Dask workers.
 
 Everything here is plumbing for :func:`registration.chunks.run_chunk`.
 """

@@ -118,7 +118,7 @@ def register_sequence(
     reference: tuple[CoarseResult, FineResult] | None = None,
     base_georef=None,
     executor: ChunkExecutor | None = None,
-    overlap: bool = False,
+    overlap: bool | None = None,
 ) -> RegistrationResult:
     """Register every frame of ``frames`` to ``base`` and write the result folder ``out_dir``.
 
@@ -147,10 +147,10 @@ def register_sequence(
             :class:`registration.distributed.DaskExecutor` on a Dask cluster). The result does
             not depend on it; this process writes every frame as its output arrives.
         overlap: decode frames ahead and run each frame's local stage in a second thread
-            while the next frame's global stage runs (:func:`run_chunk`). Opt-in: on a loaded
-            machine the two threads now and then change a fit in its last bits (measured: 3
-            runs in 4, a later frame's corner moved by up to 2 px through REQCON), so runs
-            with it are not bit-reproducible; without it they are.
+            while the next frame's global stage runs (:func:`run_chunk`), so that both cores
+            work; the result is the same to the bit. None (default): on for a run in this
+            process, off on a Dask cluster (its workers are single-threaded processes, one per
+            core).
 
     Returns:
         The result, as :func:`registration.load` would open it.
@@ -188,7 +188,7 @@ def register_sequence(
             progress(n_done, n)
         context = ChunkContext(
             frames, base, base_valid, camera, config, reference_frame, model, mid, valid,
-            meta["inputs"]["frames"], overlap,
+            meta["inputs"]["frames"], executor is None if overlap is None else overlap,
         )  # fmt: skip
         jobs = chunk_jobs(writer, n, reference_frame, config)
         cancelled = cancel is not None and cancel.is_set()

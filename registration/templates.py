@@ -373,14 +373,19 @@ def prepare_search(
         ref_from_frame, fw + 2 * pad, fh + 2 * pad, step=config.map_step_px, origin=(-pad, -pad)
     )
     image = warp.remap(ref, smap, interpolation="linear")
-    rh, rw = ref.shape[:2]
-    # NaN fails every comparison, so this also marks pixels without a source.
+    return SearchImage(image, _invalid(smap, ref.shape, ref_valid), pad, ref_from_frame)
+
+
+def _invalid(smap: NDArray, ref_shape: tuple[int, ...], ref_valid: NDArray | None) -> NDArray:
+    """Pixels of a source map without reference content: outside the reference (NaN fails
+    every comparison, so pixels without a source too) or where ``ref_valid`` is False."""
+    rh, rw = ref_shape[:2]
     sx, sy = smap[..., 0], smap[..., 1]
     invalid = ~((sx >= 0) & (sx <= rw - 1) & (sy >= 0) & (sy <= rh - 1))
     if ref_valid is not None:
         content = np.asarray(ref_valid, np.uint8)
         invalid |= warp.remap(content, smap, interpolation="nearest") == 0
-    return SearchImage(image, invalid, pad, ref_from_frame)
+    return invalid
 
 
 def template_control_points(
@@ -465,14 +470,15 @@ def template_control_points(
 
 
 class _Searches:
-    """The warped reference and fallbacks, prepared on first use and shared by template sets
-    (their padding is the search radius, the same for every set)."""
+    """The warped reference, prepared on first use and shared by template sets (their padding
+    is the search radius, the same for every set), and the fallbacks, warped over the windows
+    each set needs."""
 
     def __init__(self, ref, ref_from_frame, ref_valid, fallbacks, frame_size, config):
         self._args = (ref, ref_from_frame, ref_valid, frame_size, config)
         self.fallbacks = fallbacks
         self._ref: SearchImage | None = None
-        self._fallback: dict[int, SearchImage] = {}
+        self._fallback_images: dict[int, NDArray] = {}
 
     def ref(self) -> SearchImage:
         if self._ref is None:
@@ -480,14 +486,33 @@ class _Searches:
             self._ref = prepare_search(ref, fn, size, cfg.search_radius, cfg, valid)
         return self._ref
 
-    def fallback(self, i: int) -> SearchImage:
-        if i not in self._fallback:
-            _, _, _, size, cfg = self._args
-            fb = self.fallbacks[i]
-            self._fallback[i] = prepare_search(
-                _signal(fb.image, cfg), fb.ref_from_frame, size, cfg.search_radius, cfg, fb.valid
-            )
-        return self._fallback[i]
+    def fallback_windows(
+        self, i: int, win_centres: NDArray[np.int64], win: int
+    ) -> tuple[list[NDArray[np.uint8]], NDArray[np.bool_]]:
+        """The ``i``-th fallback warped into frame geometry over the search windows of side
+        ``2 win + 1`` around ``win_centres`` (padded-canvas px) only, pixel for pixel as
+        :func:`prepare_search` would warp it over the whole canvas: ``(windows, unusable)``,
+        ``unusable`` where a window touches pixels without content. A fallback completes the
+        reference at a few windows, usually along one or two edges of the frame, so the model
+        (a numerical inverse for the previous frame) is evaluated and the image resampled only
+        there."""
+        _, _, _, (fw, fh), cfg = self._args
+        fb = self.fallbacks[i]
+        image = self._fallback_images.get(i)
+        if image is None:
+            image = self._fallback_images[i] = _signal(fb.image, cfg)
+        pad = cfg.search_radius
+        boxes = np.c_[win_centres - win, win_centres + win + 1]
+        maps = warp.source_maps_in_boxes(
+            fb.ref_from_frame, fw + 2 * pad, fh + 2 * pad, boxes, step=cfg.map_step_px,
+            origin=(-pad, -pad),
+        )  # fmt: skip
+        # All windows (one size) stacked into one map: one remap instead of one per window.
+        side = 2 * win + 1
+        stacked = np.stack(maps).reshape(len(maps) * side, side, 2)
+        windows = warp.remap(image, stacked, interpolation="linear").reshape(-1, side, side)
+        unusable = _invalid(stacked, image.shape, fb.valid).reshape(-1, side * side).any(axis=1)
+        return list(windows), unusable
 
 
 def _usable_centres(centres, ref_from_frame, frame_from_ref, config):
@@ -503,9 +528,10 @@ def _usable_centres(centres, ref_from_frame, frame_from_ref, config):
 
 
 def _assign_windows(centres, pred, ref, ref_valid, fallbacks, searches, config):
-    """Step 2: for each template, the image it is searched in and its window's centre there:
-    ``(images, window_centres, which)`` where ``which`` is -1 (not searched), 0 (the
-    reference) or ``i + 1`` (the ``i``-th fallback)."""
+    """Step 2: for each template, the window of the image it is searched in: ``(windows,
+    which, window_centres)``, ``windows[k]`` an array (or None: not searched), ``which[k]`` -1
+    (not searched), 0 (the reference) or ``i + 1`` (the ``i``-th fallback), and the windows'
+    centres in the reference's pixels (the paper's direct search) or the padded canvas's."""
     half, rad = config.half_template, config.search_radius
     win = half + rad  # half-size of the searched window
     which = np.full(len(centres), -1, np.int64)
@@ -513,14 +539,19 @@ def _assign_windows(centres, pred, ref, ref_valid, fallbacks, searches, config):
         ref_search = searches.ref()
         win_centres = centres + rad
         which[~_box_any(ref_search.invalid, win_centres, win)] = 0
-        images = [ref_search.image] + [None] * len(fallbacks)
+        windows = [
+            _window(ref_search.image, c, win) if w == 0 else None
+            for c, w in zip(win_centres, which, strict=True)
+        ]
         for i in range(len(fallbacks)):
-            if not (which < 0).any():
+            todo = np.flatnonzero(which < 0)
+            if len(todo) == 0:
                 break
-            fb = searches.fallback(i)
-            which[(which < 0) & ~_box_any(fb.invalid, win_centres, win)] = i + 1
-            images[i + 1] = fb.image
-        return images, win_centres, which
+            found, unusable = searches.fallback_windows(i, win_centres[todo], win)
+            for k, window, bad in zip(todo, found, unusable, strict=True):
+                if not bad:
+                    which[k], windows[k] = i + 1, window
+        return windows, which, win_centres
     rw, rh = coords.image_size(ref)
     win_centres = np.round(pred).astype(np.int64)
     ok = (
@@ -532,7 +563,16 @@ def _assign_windows(centres, pred, ref, ref_valid, fallbacks, searches, config):
     if ref_valid is not None and ok.any():
         ok[ok] = ~_box_any(~np.asarray(ref_valid, bool), win_centres[ok], win)
     which[ok] = 0
-    return [ref, None], win_centres, which
+    windows = [
+        _window(ref, c, win) if w == 0 else None for c, w in zip(win_centres, which, strict=True)
+    ]
+    return windows, which, win_centres
+
+
+def _window(image: NDArray, centre: NDArray, win: int) -> NDArray:
+    """The ``2 win + 1`` square of ``image`` around ``centre`` (a view)."""
+    x, y = centre
+    return image[y - win : y + win + 1, x - win : x + win + 1]
 
 
 def _match_set(frame, centres, config, ref, ref_from_frame, frame_from_ref, ref_valid, fallbacks,
@@ -543,14 +583,13 @@ def _match_set(frame, centres, config, ref, ref_from_frame, frame_from_ref, ref_
     centres, pred = _usable_centres(centres, ref_from_frame, frame_from_ref, config)
     if len(centres) == 0:
         return ControlPoints.empty()
-    images, win_centres, which = _assign_windows(
+    windows, which, win_centres = _assign_windows(
         centres, pred, ref, ref_valid, fallbacks, searches, config
     )
     idx = np.flatnonzero(which >= 0)
     if len(idx) == 0:
         return ControlPoints.empty()
-    scores, offsets, anchors = _correlate(frame, centres[idx], win_centres[idx], which[idx],
-                                          images, config)  # fmt: skip
+    scores, offsets, anchors = _correlate(frame, centres[idx], [windows[k] for k in idx], config)
     good = np.isfinite(scores) & (scores >= config.min_score)
     if not good.any():
         return ControlPoints.empty()
@@ -570,11 +609,11 @@ def _match_set(frame, centres, config, ref, ref_from_frame, frame_from_ref, ref_
     return ControlPoints(src[fin], dst[fin], scores[fin], source[fin])
 
 
-def _correlate(frame, centres, win_centres, which, images, config):
-    """Step 3: NCC of each template over its window, then step 4; ``(scores, offsets,
-    anchors)``, NaN scores where a template or window is too flat or the peak unusable."""
-    half, rad = config.half_template, config.search_radius
-    win = half + rad
+def _correlate(frame, centres, windows, config):
+    """Step 3: NCC of each template over its window (``windows[k]``, the searched part of the
+    reference around template ``k``), then step 4; ``(scores, offsets, anchors)``, NaN scores
+    where a template or window is too flat or the peak unusable."""
+    half = config.half_template
     n = len(centres)
     scores = np.full(n, np.nan)
     offsets = np.full((n, 2), np.nan)
@@ -588,9 +627,8 @@ def _correlate(frame, centres, win_centres, which, images, config):
         # releases the GIL inside matchTemplate.
         for k in chunk:
             cx, cy = centres[k]
-            wx, wy = win_centres[k]
             tpl = frame[cy - half : cy + half + 1, cx - half : cx + half + 1]
-            window = images[which[k]][wy - win : wy + win + 1, wx - win : wx + win + 1]
+            window = windows[k]
             # Texture check on both sides: a flat template or window has no reliable peak.
             if cv2.meanStdDev(tpl)[1][0, 0] < min_std or cv2.meanStdDev(window)[1][0, 0] < min_std:
                 continue

@@ -78,7 +78,9 @@ def _finite_map(source_map: NDArray) -> NDArray[np.float32]:
     The common case (all finite, within OpenCV's fixed-point range) returns the map itself,
     uncopied: the checks cost ~4 ms on a 2560x1920 map where the copy-and-patch path costs ~60.
     """
-    m = np.ascontiguousarray(source_map, dtype=np.float32)
+    m = np.asarray(source_map, dtype=np.float32)
+    if m.strides[1:] != (8, 4):  # OpenCV takes rows at any stride, pixels packed
+        m = np.ascontiguousarray(m)
     if np.isfinite(m).all() and m.min() > _OUTSIDE and m.max() < -_OUTSIDE:
         return m
     m = m.copy() if m is source_map else m
@@ -205,20 +207,79 @@ def source_map_from_function(
     if step <= 1:
         grid = pixel_grid(width, height).reshape(-1, 2).astype(np.float64) + (ox, oy)
         return np.asarray(source_from_output(grid), np.float32).reshape(height, width, 2)
-    # Nodes sit at (j + 0.5) * step - 0.5, exactly where cv2.resize's bilinear upscaling by
-    # ``step`` puts source pixel centres, with one extra ring outside so that every output pixel
-    # lies between nodes. cv2.resize interpolates float32 with float weights (cv2.remap would
-    # quantise positions to 1/32 of a cell). NaN propagates to the pixels next to an undefined
-    # node, so they stay undefined rather than being extrapolated.
+    nodes = _lattice(width, height, step, origin)
+    gy, gx = nodes.shape[:2]
+    coarse = np.asarray(source_from_output(nodes.reshape(-1, 2)), np.float32).reshape(gy, gx, 2)
+    return _densify(coarse, step)[step : step + height, step : step + width]
+
+
+def source_maps_in_boxes(
+    source_from_output: Callable[[NDArray], NDArray],
+    width: int,
+    height: int,
+    boxes: NDArray,
+    *,
+    step: int,
+    origin: tuple[float, float] = (0.0, 0.0),
+) -> list[NDArray[np.float32]]:
+    """The parts ``boxes`` of :func:`source_map_from_function`'s map (``step > 1``), to the bit,
+    with the function evaluated only at the lattice nodes those parts need.
+
+    Args:
+        boxes: ``(N, 4)`` int ``(x0, y0, x1, y1)`` output pixel boxes (end exclusive) inside
+            the ``width`` x ``height`` output.
+
+    Returns:
+        One ``(y1 - y0, x1 - x0, 2)`` float32 map per box.
+    """
+    nodes = _lattice(width, height, step, origin)
+    gy, gx = nodes.shape[:2]
+    boxes = np.asarray(boxes, np.int64).reshape(-1, 4)
+    # Output pixel x is dense pixel x + step; dense pixel d lies between nodes
+    # floor((d + 0.5) / step - 0.5) and the next (cv2.resize's bilinear upscaling).
+    lo = np.maximum((boxes[:, :2] + step + 0.5) // step - 1, 0).astype(np.int64)
+    hi = np.minimum((boxes[:, 2:] - 1 + step + 0.5) // step + 1, [gx - 1, gy - 1]).astype(np.int64)
+    need = np.zeros((gy + 1, gx + 1), np.int32)  # a 2-D difference array of the node boxes
+    np.add.at(need, (lo[:, 1], lo[:, 0]), 1)
+    np.add.at(need, (lo[:, 1], hi[:, 0] + 1), -1)
+    np.add.at(need, (hi[:, 1] + 1, lo[:, 0]), -1)
+    np.add.at(need, (hi[:, 1] + 1, hi[:, 0] + 1), 1)
+    need = need.cumsum(axis=0).cumsum(axis=1)[:gy, :gx] > 0
+    coarse = np.full((gy, gx, 2), np.nan, np.float32)
+    coarse[need] = np.asarray(source_from_output(nodes[need]), np.float32)
+    # Each box from its own nodes: between its first and last node, cv2.resize of a part of
+    # the lattice gives the pixels of the whole lattice's resize, to the bit.
+    maps = []
+    for (x0, y0, x1, y1), (lx, ly), (hx, hy) in zip(boxes, lo, hi, strict=True):
+        part = _densify(coarse[ly : hy + 1, lx : hx + 1], step)
+        ox, oy = (lx - 1) * step, (ly - 1) * step  # the part's dense origin, output px
+        maps.append(part[y0 - oy : y1 - oy, x0 - ox : x1 - ox])
+    return maps
+
+
+def _lattice(width: int, height: int, step: int, origin: tuple[float, float]) -> NDArray:
+    """``(gy, gx, 2)`` evaluation nodes of a ``step``-spaced source map, in the function's
+    coordinates.
+
+    Nodes sit at (j + 0.5) * step - 0.5, exactly where cv2.resize's bilinear upscaling by
+    ``step`` puts source pixel centres, with one extra ring outside so that every output pixel
+    lies between nodes."""
+    ox, oy = origin
     gx, gy = -(-width // step) + 2, -(-height // step) + 2
     xs = (np.arange(gx) - 1 + 0.5) * step - 0.5
     ys = (np.arange(gy) - 1 + 0.5) * step - 0.5
     nx, ny = np.meshgrid(xs + ox, ys + oy, indexing="xy")
-    coarse = np.asarray(
-        source_from_output(np.stack([nx.ravel(), ny.ravel()], axis=1)), np.float32
-    ).reshape(gy, gx, 2)
-    dense = cv2.resize(coarse, (gx * step, gy * step), interpolation=cv2.INTER_LINEAR)
-    return np.ascontiguousarray(dense[step : step + height, step : step + width])
+    return np.stack([nx, ny], axis=2)
+
+
+def _densify(coarse: NDArray[np.float32], step: int) -> NDArray[np.float32]:
+    """The lattice interpolated to every pixel (the extra ring included). cv2.resize
+    interpolates float32 with float weights (cv2.remap would quantise positions to 1/32 of a
+    cell). NaN propagates to the pixels next to an undefined node, so they stay undefined rather
+    than being extrapolated. The result is a view's base: slices of it are what OpenCV takes
+    (rows at any stride), so no copy is made."""
+    gy, gx = coarse.shape[:2]
+    return cv2.resize(coarse, (gx * step, gy * step), interpolation=cv2.INTER_LINEAR)
 
 
 def warp_image(

@@ -1,6 +1,6 @@
 """``aerialreg bench register``'s plumbing: the hard-flight profiles (issue 11: error per tenth of
-the flight, failed frames, REQCON's kept share, beside the baselines) and the opt-in speed
-options as rows of their own (issue 15), on a tiny flight."""
+the flight, failed frames, REQCON's kept share, beside the baselines) and the speed options as
+rows of their own (issue 15), on a tiny flight."""
 
 from __future__ import annotations
 
@@ -53,25 +53,25 @@ def test_register_bench_on_a_hard_flight_reports_each_method_over_the_flight(cap
     assert table.count("plain OpenCV") == 1 and table.count("Stabilo") == 1
 
 
-def test_speed_options_add_the_opt_in_configurations_as_rows():
+def test_speed_options_add_one_thread_and_the_sift_coarse_step_as_rows():
     def runs(**kw):
         args = argparse.Namespace(**{"profile": None, "speed_options": False, **kw})
         return {key: (config, overlap) for key, config, overlap in our_runs(args)}
 
     plain = runs()
     assert list(plain) == ["default", "paper"]
-    default = plain["default"][0]
-    assert not default.intra.fast_coarse and not plain["default"][1]
+    default, overlap = plain["default"]
+    assert default.intra.fast_coarse and overlap  # as `aerialreg register` runs
     assert list(runs(profile="long-flight")) == ["default"]
 
-    fast = runs(speed_options=True)
-    assert list(fast) == ["default", "paper", "fast", "overlap"]
-    (fast_cfg, fast_overlap), (over_cfg, over_overlap) = fast["fast"], fast["overlap"]
-    assert fast_cfg.intra.fast_coarse and not fast_overlap
-    assert over_cfg == fast_cfg and over_overlap
+    more = runs(speed_options=True)
+    assert list(more) == ["default", "paper", "serial", "sift"]
+    assert more["serial"] == (default, False)
+    sift_cfg, sift_overlap = more["sift"]
+    assert not sift_cfg.intra.fast_coarse and not sift_overlap
     # Nothing else differs from the default preset.
-    unfast = dataclasses.replace(fast_cfg.intra, fast_coarse=False)
-    assert dataclasses.replace(fast_cfg, intra=unfast) == default
+    fast = dataclasses.replace(sift_cfg.intra, fast_coarse=True)
+    assert dataclasses.replace(sift_cfg, intra=fast) == default
 
 
 def test_tenths_average_the_first_middle_and_last_tenth_ignoring_failed_frames():

@@ -546,6 +546,10 @@ def test_scrub_plot_click_and_table2(browser, registered_app):
         lambda: np.abs(page.pixels(pts) - before)[:, :3].mean() > 2.0, what="a changed image"
     )
     assert app.shown["Sequence"][0] == 3
+    # The app redraws the chart when the frame changes (the current frame's marker): let that
+    # reach the page first, or the legend goes blank mid-hover.
+    app.worker.wait_idle()
+    time.sleep(1.0)
     # Clicking a point of the per-frame chart shows that frame: hover along the chart until its
     # legend names frame 1, then click.
     chart = page.page.locator(".uplot", has_text="Per-frame").first
@@ -553,11 +557,15 @@ def test_scrub_plot_click_and_table2(browser, registered_app):
     over = chart.locator(".u-over")
     box = over.bounding_box()
     legend = chart.locator(".u-legend .u-series").first.locator(".u-value")
+    mid_y = box["y"] + box["height"] / 2
 
     def legend_at(fx: float) -> str:
-        # The legend follows the pointer after a render: wait until it reads the same three times
-        # (a loaded machine renders late, and two reads can both be the old value).
-        page.page.mouse.move(box["x"] + fx * box["width"], box["y"] + box["height"] / 2)
+        # A move that always changes the position (a move to where the pointer already is
+        # sends no mousemove, and the page's click handler reads the last hovered frame), then
+        # wait until the legend reads the same three times (a loaded machine renders late).
+        x = box["x"] + fx * box["width"]
+        page.page.mouse.move(x, mid_y + 3)
+        page.page.mouse.move(x, mid_y)
         reads, t0 = [], time.monotonic()
         while time.monotonic() - t0 < 5:
             time.sleep(0.15)
@@ -569,7 +577,7 @@ def test_scrub_plot_click_and_table2(browser, registered_app):
     fx = next((f for f in np.linspace(0.02, 0.98, 25) if legend_at(f) == "1"), None)
     assert fx is not None, "no pointer position over the chart shows frame 1"
     assert legend_at(fx) == "1"  # still there after the pointer comes back
-    page.page.mouse.click(box["x"] + fx * box["width"], box["y"] + box["height"] / 2)
+    page.page.mouse.click(box["x"] + fx * box["width"], mid_y)
     wait_until(lambda: app.shown["Sequence"][0] == 1, what="the chart click to show frame 1")
     page.shot("sequence")
     # Evaluate: two marks and a proposal; the unconfirmed proposal is not in Table 2.

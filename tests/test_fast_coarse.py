@@ -48,17 +48,17 @@ def test_phase_shift_recovers_a_known_shift(sim_seq):
     assert weak < 0.2
 
 
-def _fast(config):
-    return replace(config, intra=replace(config.intra, fast_coarse=True))
+def _sift(config):
+    return replace(config, intra=replace(config.intra, fast_coarse=False))
 
 
 def test_fast_path_is_taken_and_as_accurate_as_sift(sim_seq, default_result, tmp_path):
     truth = load_truth(sim_seq)
     n = truth.n_frames
-    fast_run = register(sim_seq, tmp_path / "fast", config=_fast(get_preset("default")))
+    fast_run = default_result  # the default preset takes the fast path
     paths = [fast_run.records[k]["stats"].get("coarse_path") for k in range(1, n)]
     assert paths == ["fast"] * (n - 1)
-    sift_only = default_result  # the default preset: the SIFT step
+    sift_only = register(sim_seq, tmp_path / "sift", config=_sift(get_preset("default")))
     assert [sift_only.records[k]["stats"]["coarse_path"] for k in range(1, n)] == ["sift"] * (n - 1)
     assert sift_only.records[1]["stats"]["fast_path_reason"] == "off"
     frames = list(range(n))
@@ -94,7 +94,7 @@ def test_a_sudden_jump_falls_back_to_sift_and_registers(jump_sim, tmp_path):
     frames_dir.mkdir()
     for i, k in enumerate(picked):
         shutil.copy(jump_sim / "frames" / f"{k:06d}.png", frames_dir / f"{i:06d}.png")
-    cfg = _fast(get_preset("default"))
+    cfg = get_preset("default")
     # Re-anchoring off: the jumped frame's result is the intra-sensor SIFT step's own.
     cfg = replace(cfg, intra=replace(cfg.intra, reanchor_coverage=0.0))
     result = register(jump_sim, tmp_path / "out", frames_dir=frames_dir, config=cfg)

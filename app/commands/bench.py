@@ -53,8 +53,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--speed-options",
         action="store_true",
-        help="register: also run the default preset with the opt-in speed options "
-        "(IntraConfig.fast_coarse, and that plus register_sequence(overlap=True)), a row each",
+        help="register: also run the default preset on one thread (overlap=False) and, on one "
+        "thread, with the SIFT coarse step for every frame (fast_coarse=False), a row each",
     )
     p.add_argument("--scene", help="scene image to simulate from instead of the procedural city")
     p.add_argument("--base", help="base map of the same area as --scene")
