@@ -21,6 +21,7 @@ from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -226,8 +227,8 @@ def run_chunk(context: ChunkContext, job: ChunkJob) -> Iterator[FrameOutput]:
     frames are decoded ahead, and a frame's local stage runs in a second thread while the next
     frame's global stage runs (the next frame needs only its global model). The local stage
     reads nothing that the global stage changes, and whatever changes the joint base (an
-    anchor) waits for the local stage in flight, yet the two threads together now and then
-    change a fit in its last bits (see ``register_sequence``: off by default)."""
+    anchor) waits for the local stage in flight, so the result is the serial one to the bit;
+    OpenCV runs single-threaded meanwhile (the two threads keep both cores busy)."""
     ctx, cfg = context, context.config
     local_cfg = _local_config(cfg)
     joint = ctx.joint_base()
@@ -236,6 +237,11 @@ def run_chunk(context: ChunkContext, job: ChunkJob) -> Iterator[FrameOutput]:
     todo = [k for k in job.chunk.frames if k not in job.done]
     frames = FramesAhead(ctx.frames, todo) if ctx.overlap and len(todo) > 1 else ctx.frames
     local = LocalAhead(enabled=ctx.overlap)
+    cv_threads = cv2.getNumThreads()
+    if ctx.overlap:
+        # The two threads already keep both cores busy; OpenCV's own threads on top of them
+        # only contend (results do not depend on its thread count).
+        cv2.setNumThreads(1)
     pending: list[tuple[int, _Global, NDArray]] = []  # at most one frame, its local stage running
 
     def finish_pending() -> Iterator[FrameOutput]:
@@ -297,6 +303,7 @@ def run_chunk(context: ChunkContext, job: ChunkJob) -> Iterator[FrameOutput]:
         local.close()
         if frames is not ctx.frames:
             frames.close()
+        cv2.setNumThreads(cv_threads)
 
 
 def _predecessor(k: int, chunk: Chunk, models: dict, ref: int) -> int | None:
