@@ -533,8 +533,10 @@ def levenberg_marquardt(
         js = J / scale
         a = js.T @ js
         g = js.T @ r
+        if not (np.isfinite(a).all() and np.isfinite(g).all()):
+            return p  # no usable Jacobian here (the model undefined at a point)
         if lam is None:
-            lam = 1e-3 * float(np.max(np.diag(a)))
+            lam = max(1e-3 * float(np.max(np.diag(a))), 1e-12)
         if float(np.max(np.abs(g))) <= tol * math.sqrt(cost):
             return p  # gradient zero to working precision
         # The most the quadratic model can still gain (the undamped step's reduction): the
@@ -556,6 +558,8 @@ def levenberg_marquardt(
                     u = np.full(n, np.nan)
             if not np.isfinite(u).all():
                 lam, nu, undamped = lam * nu, nu * 2.0, False
+                if lam > 1e16:
+                    return p
                 continue
             if float(np.linalg.norm(u)) <= tol * (float(np.linalg.norm(scale * p)) + tol):
                 return p
