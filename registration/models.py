@@ -410,7 +410,10 @@ def _geometric_fun(
     Parameters whose denominator drops below :data:`MIN_DENOMINATOR` on the points, on their
     bounding box or on the extra ``domain_n`` points (normalised) give the constant residual
     ``_BARRIER_RESIDUAL`` (a barrier; see there). The barrier is active only when the start
-    ``p0`` satisfies it (degree >= 2).
+    ``p0`` satisfies it (degree >= 2); when it does not, parameters that fold the map at one of
+    the points themselves (denominator <= 0 there) still get the barrier residual, as long as
+    ``p0`` does not: a long Gauss-Newton step from such a start otherwise lands on a fold that
+    lets a few outliers fit (seen re-anchoring a long flight's frame).
     """
     phi = _design(sn, degree)
     phic = phi[:, :-1]
@@ -423,10 +426,13 @@ def _geometric_fun(
     phi_all = np.vstack(parts)
     barrier = np.full(2 * len(sn), _BARRIER_RESIDUAL)
     use_barrier = degree >= 2 and _denominator_ok(p0, degree, phi_all)
+    no_fold = degree >= 2 and not use_barrier and bool(np.min(phi @ _split(p0, degree)[2]) > 0)
 
     def fun(p: Array) -> Array:
         a, b, c = _split(p, degree)
         if use_barrier and np.min(phi_all @ c) < MIN_DENOMINATOR:
+            return barrier
+        if no_fold and not np.min(phi @ c) > 0:
             return barrier
         den = phi @ c
         r = np.concatenate([(phi @ a / den - dn[:, 0]), (phi @ b / den - dn[:, 1])]) * inv_s
@@ -558,7 +564,8 @@ def levenberg_marquardt(
                     u = np.full(n, np.nan)
             if not np.isfinite(u).all():
                 lam, nu, undamped = lam * nu, nu * 2.0, False
-                if lam > 1e16:
+                nfev += 1  # counted as a trial: this loop must end
+                if not lam <= 1e16:  # NaN too
                     return p
                 continue
             if float(np.linalg.norm(u)) <= tol * (float(np.linalg.norm(scale * p)) + tol):
@@ -575,12 +582,17 @@ def levenberg_marquardt(
                 lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
                 nu = 2.0
                 p, r, cost = trial, r_trial, c_trial
+                if not lam <= 1e16:
+                    # Accepted steps the quadratic model keeps mispredicting (rho ~ 0, gains at
+                    # rounding level: a fit pressed against the denominator barrier) double the
+                    # damping each time: nothing more to gain.
+                    return p
                 break
             if undamped:
                 undamped = False  # no say on the damping
                 continue
-            lam, nu = lam * nu, nu * 2.0
-            if lam > 1e16:
+            lam, nu = lam * nu, min(nu * 2.0, 1e6)
+            if not lam <= 1e16:  # NaN too
                 return p
         J = jac(p)
         scale = np.maximum(scale, np.sqrt((J * J).sum(axis=0)))

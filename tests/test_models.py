@@ -362,7 +362,9 @@ def test_levenberg_marquardt_reaches_minpacks_minimum():
     def rosen_jac(p):
         return np.array([[-20.0 * p[0], 10.0], [-1.0, 0.0]])
 
-    np.testing.assert_allclose(levenberg_marquardt([-1.2, 1.0], rosen, rosen_jac), [1, 1], atol=1e-9)
+    np.testing.assert_allclose(
+        levenberg_marquardt([-1.2, 1.0], rosen, rosen_jac), [1, 1], atol=1e-9
+    )
     t = np.linspace(0, 4, 60)
     y = 2.5 * np.exp(-1.3 * t) + 0.4 + np.random.default_rng(3).normal(0, 0.02, t.size)
 
@@ -405,3 +407,40 @@ def test_levenberg_marquardt_stops_where_the_jacobian_or_steps_are_not_finite():
 
     out = levenberg_marquardt(p0, walled, lambda p: np.eye(3, 2), max_nfev=500)
     np.testing.assert_array_equal(out, p0)
+
+
+def test_a_fit_from_a_start_beyond_the_barrier_still_never_folds_at_its_points():
+    """A start whose denominator is positive at the points but under the barrier's floor
+    elsewhere in their bounding box turns the floor off; a step that folds the map at one of
+    the points (denominator <= 0 there) must still be refused (barrier residual), or a long
+    Gauss-Newton step can land on a fold that fits outliers (a long flight's anchor failed so)."""
+    from registration.models import (
+        _BARRIER_RESIDUAL,
+        MIN_DENOMINATOR,
+        _design,
+        _exponents,
+        _geometric_fun,
+        _identity_params,
+        _split,
+    )
+
+    degree = 2
+    sn = np.array([[-0.5, -0.5], [0.5, -0.5], [-0.5, 0.5], [0.5, 0.5], [0.0, 0.0]])
+    dst = sn * 100.0 + 500.0
+    norm = Normalisation.from_points(dst)
+    p0 = _identity_params(degree)
+    j = (degree + 1) * (degree + 2) // 2
+    # Denominator 1 - 3.8 u v: 0.05 at the points (0.5, 0.5) and (-0.5, -0.5), under the floor
+    # but positive.
+    uv = next(i for i, e in enumerate(_exponents(degree)) if tuple(e) == (1, 1))
+    p0[2 * j + uv] = -3.8
+    c0 = _split(p0, degree)[2]
+    assert (_design(sn, degree) @ c0 > 0).all() and (
+        _design(sn, degree) @ c0
+    ).min() < MIN_DENOMINATOR
+    fun, _ = _geometric_fun(degree, sn, dst, norm, None, p0)
+    assert not (fun(p0) == _BARRIER_RESIDUAL).all()  # the start itself is usable
+    folded = p0.copy()
+    folded[2 * j + uv] = -5.0  # 1 - 5 * 0.25 < 0 at those two points
+    assert (_design(sn, degree) @ _split(folded, degree)[2]).min() <= 0
+    assert (fun(folded) == _BARRIER_RESIDUAL).all()
