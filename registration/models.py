@@ -391,11 +391,6 @@ def _domain_grid(sn: Array, k: int = 9) -> Array:
     return np.stack([gx.ravel(), gy.ravel()], axis=1)
 
 
-def _denominator_ok(p: Array, degree: int, phi_all: Array) -> bool:
-    _, _, c = _split(p, degree)
-    return bool(np.min(phi_all @ c) >= MIN_DENOMINATOR)
-
-
 def _geometric_fun(
     degree: int,
     sn: Array,
@@ -407,13 +402,16 @@ def _geometric_fun(
 ):
     """Residual vector (2N,) in destination pixels and its Jacobian, for normalised params.
 
-    Parameters whose denominator drops below :data:`MIN_DENOMINATOR` on the points, on their
-    bounding box or on the extra ``domain_n`` points (normalised) give the constant residual
-    ``_BARRIER_RESIDUAL`` (a barrier; see there). The barrier is active only when the start
-    ``p0`` satisfies it (degree >= 2); when it does not, parameters that fold the map at one of
-    the points themselves (denominator <= 0 there) still get the barrier residual, as long as
-    ``p0`` does not: a long Gauss-Newton step from such a start otherwise lands on a fold that
-    lets a few outliers fit (seen re-anchoring a long flight's frame).
+    Parameters whose denominator drops below a floor on the points, on their bounding box or on
+    the extra ``domain_n`` points (normalised) give the constant residual ``_BARRIER_RESIDUAL``
+    (a barrier; see there), for degree >= 2. The floor is :data:`MIN_DENOMINATOR`, or the
+    start ``p0``'s own smallest denominator there when it is lower but positive: a start from a
+    previous fit that ended on the floor (then rounded, :func:`quantized`) lies a hair under
+    it, and turning the barrier off for it let a re-anchored frame's fit put a pole inside the
+    frame (a corner 172 px off). When ``p0`` already folds somewhere there, parameters that
+    fold the map at one of the points themselves (denominator <= 0 there) still get the barrier
+    residual, as long as ``p0`` does not: a long Gauss-Newton step from such a start otherwise
+    lands on a fold that lets a few outliers fit (seen re-anchoring a long flight's frame).
     """
     phi = _design(sn, degree)
     phic = phi[:, :-1]
@@ -425,12 +423,14 @@ def _geometric_fun(
         parts.append(_design(domain_n, degree))
     phi_all = np.vstack(parts)
     barrier = np.full(2 * len(sn), _BARRIER_RESIDUAL)
-    use_barrier = degree >= 2 and _denominator_ok(p0, degree, phi_all)
+    start_min = float(np.min(phi_all @ _split(p0, degree)[2]))
+    use_barrier = degree >= 2 and start_min > 0
+    floor = min(MIN_DENOMINATOR, start_min)
     no_fold = degree >= 2 and not use_barrier and bool(np.min(phi @ _split(p0, degree)[2]) > 0)
 
     def fun(p: Array) -> Array:
         a, b, c = _split(p, degree)
-        if use_barrier and np.min(phi_all @ c) < MIN_DENOMINATOR:
+        if use_barrier and np.min(phi_all @ c) < floor:
             return barrier
         if no_fold and not np.min(phi @ c) > 0:
             return barrier

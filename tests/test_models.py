@@ -409,38 +409,56 @@ def test_levenberg_marquardt_stops_where_the_jacobian_or_steps_are_not_finite():
     np.testing.assert_array_equal(out, p0)
 
 
-def test_a_fit_from_a_start_beyond_the_barrier_still_never_folds_at_its_points():
-    """A start whose denominator is positive at the points but under the barrier's floor
-    elsewhere in their bounding box turns the floor off; a step that folds the map at one of
-    the points (denominator <= 0 there) must still be refused (barrier residual), or a long
-    Gauss-Newton step can land on a fold that fits outliers (a long flight's anchor failed so)."""
-    from registration.models import (
-        _BARRIER_RESIDUAL,
-        MIN_DENOMINATOR,
-        _design,
-        _exponents,
-        _geometric_fun,
-        _identity_params,
-        _split,
-    )
+def _start_under_the_floor(coef: float):
+    """Degree-2 identity with denominator ``1 + coef * u * v`` on five points at the corners
+    and centre of [-0.5, 0.5]^2 (normalised), their destinations and helpers."""
+    from registration.models import _exponents, _identity_params
 
     degree = 2
     sn = np.array([[-0.5, -0.5], [0.5, -0.5], [-0.5, 0.5], [0.5, 0.5], [0.0, 0.0]])
     dst = sn * 100.0 + 500.0
-    norm = Normalisation.from_points(dst)
     p0 = _identity_params(degree)
     j = (degree + 1) * (degree + 2) // 2
-    # Denominator 1 - 3.8 u v: 0.05 at the points (0.5, 0.5) and (-0.5, -0.5), under the floor
-    # but positive.
-    uv = next(i for i, e in enumerate(_exponents(degree)) if tuple(e) == (1, 1))
-    p0[2 * j + uv] = -3.8
-    c0 = _split(p0, degree)[2]
-    assert (_design(sn, degree) @ c0 > 0).all() and (
-        _design(sn, degree) @ c0
-    ).min() < MIN_DENOMINATOR
+    uv = 2 * j + next(i for i, e in enumerate(_exponents(degree)) if tuple(e) == (1, 1))
+    p0[uv] = coef
+    return degree, sn, dst, Normalisation.from_points(dst), p0, uv
+
+
+def test_a_fit_from_a_start_under_the_floor_keeps_the_starts_own_floor():
+    """A start whose smallest denominator over the points' bounding box is positive but under
+    MIN_DENOMINATOR (a previous fit that ended on the floor, then rounded) keeps a barrier at
+    its own smallest denominator: no step may go lower. Without it the barrier was off and a
+    re-anchored long-flight frame's fit put a pole inside the frame (a corner 172 px off)."""
+    from registration.models import _BARRIER_RESIDUAL, MIN_DENOMINATOR, _geometric_fun
+
+    # Denominator 1 - 3.8 u v: 0.05 at (0.5, 0.5) and (-0.5, -0.5), its minimum over the box.
+    degree, sn, dst, norm, p0, uv = _start_under_the_floor(-3.8)
     fun, _ = _geometric_fun(degree, sn, dst, norm, None, p0)
-    assert not (fun(p0) == _BARRIER_RESIDUAL).all()  # the start itself is usable
+    assert not (fun(p0) == _BARRIER_RESIDUAL).any()  # the start itself is usable
+    better = p0.copy()
+    better[uv] = -3.0  # 0.25 there: back towards the floor
+    assert not (fun(better) == _BARRIER_RESIDUAL).any()
+    deeper = p0.copy()
+    deeper[uv] = -3.9  # 0.025: positive at the points, but under the start's own minimum
+    assert 0 < 1 - 3.9 * 0.25 < 0.05 < MIN_DENOMINATOR
+    assert (fun(deeper) == _BARRIER_RESIDUAL).all()
+
+
+def test_a_fit_from_a_start_that_folds_in_its_domain_still_never_folds_at_its_points():
+    """A start whose denominator is positive at the points but <= 0 elsewhere in the domain
+    has no floor to keep; a step that folds the map at one of the points (denominator <= 0
+    there) must still be refused (barrier residual), or a long Gauss-Newton step can land on a
+    fold that fits outliers (a long flight's anchor failed so)."""
+    from registration.models import _BARRIER_RESIDUAL, _design, _geometric_fun, _split
+
+    degree, sn, dst, norm, p0, uv = _start_under_the_floor(-3.8)
+    domain_n = np.array([[1.0, 1.0]])  # 1 - 3.8 < 0: the start folds there
+    fun, _ = _geometric_fun(degree, sn, dst, norm, None, p0, domain_n)
+    assert not (fun(p0) == _BARRIER_RESIDUAL).any()
+    deeper = p0.copy()
+    deeper[uv] = -3.9  # still positive at the points: allowed without a floor
+    assert not (fun(deeper) == _BARRIER_RESIDUAL).any()
     folded = p0.copy()
-    folded[2 * j + uv] = -5.0  # 1 - 5 * 0.25 < 0 at those two points
+    folded[uv] = -5.0  # 1 - 5 * 0.25 < 0 at two of the points
     assert (_design(sn, degree) @ _split(folded, degree)[2]).min() <= 0
     assert (fun(folded) == _BARRIER_RESIDUAL).all()
