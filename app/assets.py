@@ -68,6 +68,20 @@ def run_javascript(server, source: str) -> None:
     server.gui._websock_interface.queue_message(_messages.RunJavascriptMessage(source=source))
 
 
+def resend_value(widget) -> None:
+    """Send ``widget``'s value to every client, the one whose input set it included (private
+    viser message, see the module docstring). viser sends a client's change only to the other
+    clients, so a value another tab set a moment earlier, still on its way to this client,
+    lands in its box after the client's own input and stays there while the server holds the
+    client's value (two tabs typing γ in turn ended showing different values)."""
+    from viser import _messages
+
+    impl = widget._impl
+    impl.gui_api._websock_interface.queue_message(
+        _messages.GuiUpdateMessage(impl.uuid, {"value": impl.value})
+    )
+
+
 class EventChannel:
     """Events from the app's own scripts: ``window.aerialreg.send(kind, value)`` in the browser
     becomes ``handler(value, client)`` for the handler registered under ``kind``.

@@ -18,6 +18,7 @@ import numpy as np
 import viser.uplot as up
 
 from app import scene2d
+from app.assets import resend_value
 from app.security import escape_md
 from app.views.base import Scene, View
 from registration import calibration, distortion
@@ -110,6 +111,12 @@ class CalibratePanel:
                 self.gamma_number.value = round(float(gamma), 6)
         finally:
             self._quiet.on = False
+
+    def resend_gamma(self) -> None:
+        """Send the γ widgets' values to every tab, the one that typed γ included
+        (:func:`app.assets.resend_value` says why)."""
+        resend_value(self.gamma_number)
+        resend_value(self.gamma_slider)
 
     def show_lines(
         self, n: int, open_points: int | None, per_line, overall, error: str = ""
@@ -293,8 +300,10 @@ class CalibrateView(View):
             self.state.gamma_set = True
             self.state.revision += 1
             # Under the lock: callbacks from two browser tabs run concurrently, and the widgets
-            # must end showing the γ of whichever set the state last.
+            # must end showing the γ of whichever set the state last, in every tab.
             self.panel.show_gamma(gamma)
+            if client is not None:
+                self.panel.resend_gamma()
         if changed:
             self.app.save()
             self.app.state_changed()
