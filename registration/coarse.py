@@ -626,6 +626,34 @@ def _seed_priors(seeds, harris, frame, base, matches, attr, config) -> list[Simi
     return [prior.rescaled(sf, sb)]
 
 
+def _patch_prior(seed, harris, view, cbase, s_f, s_b, priors, config) -> list[SimilarityPrior]:
+    """The seed's heading and scale from image correlation (:func:`heading.prior_from_patch`),
+    in coarse pixels, as a list of at most one prior: empty when it finds nothing or agrees
+    with the first of ``priors`` within the gate's tolerances."""
+    hcfg = config.heading
+    fr = np.array([seed[:2]], float)
+    fr = fr if harris is None else harris.corrected_from_raw(fr)
+    valid = None
+    if cbase.valid is not None:
+        valid = features.downscale(cbase.valid.astype(np.uint8) * 255, s_b) > 250
+    found = heading.prior_from_patch(
+        features.downscale(view.grey, s_f), features.downscale(cbase.grey, s_b),
+        rescale(fr, s_f)[0], rescale(np.array([seed[2:]], float), s_b)[0], hcfg,
+        base_valid=valid,
+    )  # fmt: skip
+    if found is None:
+        return []
+    found = dataclasses.replace(found, anchor_error_px=hcfg.seed_error_px * (1.0 + found.scale))
+    if priors:
+        first = priors[0]
+        same_heading = float(heading.angle_gap_deg(found.heading_deg, first.heading_deg)) <= (
+            hcfg.max_rotation_deg
+        )
+        if same_heading and abs(math.log(found.scale / first.scale)) <= hcfg.max_scale_error:
+            return []
+    return [found]
+
+
 def _gate_outline(prior: SimilarityPrior, w: int, h: int, harris, config) -> NDArray:
     """The base region where gated matches can lie (full-scale): the frame's outline under the
     prior, pushed outwards by the gate's radius at each outline point."""
@@ -691,6 +719,10 @@ def coarse_register(
         if abs(math.log(s_b / base_c.scale)) > math.log(1.5):
             base_c = cbase.features(s_b)
             priors, matches, attr = _priors(seeds, harris, frame, base_c, cfg, w, h)
+    if len(seeds) == 1 and (not priors or priors[0].votes < cfg.heading.patch_below_votes):
+        priors = priors + _patch_prior(
+            seeds[0], harris, view, cbase, s_f, base_c.scale, priors, cfg
+        )
     domain = rescale(camera.cell_centres(10), s_f)
     attempts = []
     for i, prior in enumerate(priors):
@@ -698,15 +730,20 @@ def coarse_register(
         best = max(a.score for a in attempts)
         # Without a seed, stop once a registration stands out clearly from the candidates
         # left (their Hough votes bound how many matches they could gather).
-        if i + 1 < len(priors) and best >= max(
-            2 * cfg.min_inliers_unseeded, 2 * cfg.decisive_ratio * priors[i + 1].votes
+        if (
+            not seeds
+            and i + 1 < len(priors)
+            and best
+            >= max(2 * cfg.min_inliers_unseeded, 2 * cfg.decisive_ratio * priors[i + 1].votes)
         ):
             break
     result = _decide(attempts, priors, seeds, frame, base_c, cfg, w, h, harris)
     result.n_keypoints_frame = len(frame.keypoints)
     result.n_keypoints_base = len(base_c.keypoints)
     if cfg.correlation.rounds and (result.success or (seeds and priors)):
-        _correlate(result, view, cbase, priors, seeds, s_f, cfg, rng, domain, base_c.scale)
+        # The seed's own similarity start is the prior that won (the first when none did).
+        won = max(range(len(attempts)), key=lambda i: attempts[i].score) if attempts else 0
+        _correlate(result, view, cbase, priors[won], seeds, s_f, cfg, rng, domain, base_c.scale)
     if seeds and result.success:
         _check_seed(result, seeds, harris, cfg)
     result.base_from_corrected = quantized(result.base_from_corrected)
@@ -719,15 +756,15 @@ def coarse_register(
 _CORRELATION_GAIN = 1.25
 
 
-def _correlate(result, view, cbase, priors, seeds, s_f, cfg, rng, probes, s_b) -> None:
+def _correlate(result, view, cbase, prior, seeds, s_f, cfg, rng, probes, s_b) -> None:
     """Refine the result by the correlation rounds, started from the SIFT model and, with a
     seed, from the seed's similarity too; the start whose last round fits more template
     matches wins. A seeded result that SIFT could not find is rescued when a round succeeds."""
     starts = []
     if result.success:
         starts.append((result.base_from_corrected, result.model_kind))
-    if seeds and priors:
-        full = priors[0].rescaled(1.0 / s_f, 1.0 / s_b)
+    if seeds:
+        full = prior.rescaled(1.0 / s_f, 1.0 / s_b)
         starts.append((full.similarity.as_projective(), "similarity"))
 
     def select(src, dst, model):

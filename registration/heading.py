@@ -56,6 +56,7 @@ __all__ = [
     "gate_by_prior",
     "guided_matches",
     "prior_from_seed",
+    "prior_from_patch",
     "prior_from_seeds",
     "priors_without_seed",
 ]
@@ -98,6 +99,13 @@ class HeadingConfig:
             right matches without letting look-alikes from elsewhere in).
         guided_neighbours: at most this many base keypoints nearest to a prediction are
             compared (32).
+        patch_below_votes: a one-seed estimate with fewer votes than this gets a second
+            opinion from the images themselves around the seed (:func:`prior_from_patch`;
+            6; 0 = never). Across years and sensors a few right SIFT matches can be outvoted.
+        patch_radius_px: that patch's radius (40 px of the base, at the base's pyramid level
+            where the patch spans about a sixth of the base's shorter side).
+        patch_min_ncc: the patch estimate is used only when its best normalised correlation
+            reaches this (0.3).
     """
 
     bin_deg: float = 5.0
@@ -117,6 +125,9 @@ class HeadingConfig:
     min_votes: int = 4
     guided_ratio: float = 0.9
     guided_neighbours: int = 32
+    patch_below_votes: int = 6
+    patch_radius_px: int = 40
+    patch_min_ncc: float = 0.3
 
     def __post_init__(self) -> None:
         for name in ("bin_deg", "bin_log_scale", "max_log_scale", "hough_bin_deg",
@@ -130,6 +141,11 @@ class HeadingConfig:
         if not 0 <= self.max_scale_error < 1:
             raise ValueError(
                 f"HeadingConfig.max_scale_error must be in [0, 1), got {self.max_scale_error}"
+            )
+        if self.patch_below_votes < 0 or self.patch_radius_px < 8:
+            raise ValueError(
+                "HeadingConfig.patch_below_votes must be >= 0 and patch_radius_px >= 8, got "
+                f"{self.patch_below_votes} and {self.patch_radius_px}"
             )
         if self.max_candidates < 1 or self.min_votes < 1 or self.guided_neighbours < 2:
             raise ValueError(
@@ -203,7 +219,7 @@ def attribute_differences(
     return dtheta, np.nan_to_num(dlog, nan=0.0, posinf=0.0, neginf=0.0)
 
 
-def _angle_gap_deg(a: NDArray, b: NDArray | float) -> NDArray:
+def angle_gap_deg(a: NDArray, b: NDArray | float) -> NDArray:
     d = (np.asarray(a) - b) % 360.0
     return np.minimum(d, 360.0 - d)
 
@@ -276,7 +292,7 @@ def prior_from_seed(
         & (rb > 0)
         & np.isfinite(log_scale)
         & (np.abs(log_scale) < config.max_log_scale)
-        & (_angle_gap_deg(heading, attr_heading_deg) <= config.attribute_tolerance_deg)
+        & (angle_gap_deg(heading, attr_heading_deg) <= config.attribute_tolerance_deg)
         & (np.abs(log_scale - attr_log_scale) <= config.attribute_tolerance_log_scale)
     )
     if not votes.any():
@@ -296,7 +312,7 @@ def prior_from_seed(
     # Refine: mean of the votes within 1.5 bins of the peak (circular mean for the heading).
     near = (
         votes
-        & (_angle_gap_deg(heading, peak_heading) <= 1.5 * config.bin_deg)
+        & (angle_gap_deg(heading, peak_heading) <= 1.5 * config.bin_deg)
         & (np.abs(log_scale - peak_log) <= 1.5 * config.bin_log_scale)
     )
     if near.any():
@@ -304,9 +320,7 @@ def prior_from_seed(
         peak_heading = math.degrees(math.atan2(np.sin(ang).mean(), np.cos(ang).mean())) % 360.0
         peak_log = float(np.median(log_scale[near]))
     # Ambiguity: the strongest peak at least 3 bins away in heading or scale.
-    di = np.minimum(np.abs(np.arange(n_h) - i), n_h - np.abs(np.arange(n_h) - i))[:, None]
-    dj = np.abs(np.arange(n_s) - j)[None, :]
-    far = (di >= 3) | (dj >= 3)
+    far = _far_from(int(i), int(j), n_h, n_s)
     rival = float(smooth[far].max()) if far.any() else 0.0
     return SimilarityPrior(
         float(peak_heading),
@@ -318,6 +332,137 @@ def prior_from_seed(
         rival / max(float(smooth[i, j]), 1e-12),
         seed_error_px,
     )
+
+
+# The patch search's grid: heading step (degrees) and natural-log scale step, refined once by
+# a grid a quarter as fine around the best cell; the search margin (base-level px) around the
+# seed for its click error.
+_PATCH_STEP_DEG = 10.0
+_PATCH_STEP_LOG = 0.1
+_PATCH_MARGIN_PX = 8
+_PATCH_MAX_LEVEL = 5
+
+
+def prior_from_patch(
+    frame_grey: NDArray,
+    base_grey: NDArray,
+    seed_frame: ArrayLike,
+    seed_base: ArrayLike,
+    config: HeadingConfig = HeadingConfig(),
+    *,
+    base_valid: NDArray | None = None,
+    seed_error_px: float = 0.0,
+) -> SimilarityPrior | None:
+    """Heading and scale from the images around one seed, by correlation (no keypoints).
+
+    The base patch around the seed is compared with the frame resampled around its seed at
+    every heading (10° steps) and scale (``exp(+-max_log_scale)``, log steps of 0.1), allowing
+    a few pixels for the click's error; the best normalised correlation wins and is refined on
+    a grid a quarter as fine. It needs no SIFT match at all, so it holds where a map of another
+    date leaves too few right matches to outvote the wrong ones; a small patch pins the heading
+    better than the scale, so the result is a candidate to try, not a verdict.
+
+    Args:
+        frame_grey: ``(H, W)`` uint8 frame (corrected pixels, any scale).
+        base_grey: ``(Hb, Wb)`` uint8 base map.
+        seed_frame, seed_base: the seed, ``(2,)`` each, in those images' pixels.
+        config: ``patch_radius_px``, ``patch_min_ncc`` and ``max_log_scale``.
+        base_valid: optional ``(Hb, Wb)`` bool, where the base has content.
+        seed_error_px: recorded in the prior.
+
+    Returns:
+        A :class:`SimilarityPrior` (``votes`` 0; ``ambiguity`` the best correlation at least
+        3 cells away over the best), or None when the patch leaves the base or nothing
+        correlates to ``patch_min_ncc``.
+    """
+    p0, q0 = np.asarray(seed_frame, float).reshape(2), np.asarray(seed_base, float).reshape(2)
+    radius, margin = config.patch_radius_px, _PATCH_MARGIN_PX
+    hb, wb = base_grey.shape[:2]
+    level = int(np.clip(round(math.log2(max(min(hb, wb) / 6.0 / radius, 1.0))), 0, 4))
+    base = _pyramid(base_grey, level)[-1]
+    valid = None
+    if base_valid is not None:
+        valid = _pyramid(base_valid.astype(np.float32), level)[-1] > 0.99
+    qc = (q0 + 0.5) / 2**level - 0.5
+    x0, y0 = int(round(qc[0])), int(round(qc[1]))
+    r = radius + margin
+    if x0 - r < 0 or y0 - r < 0 or x0 + r >= base.shape[1] or y0 + r >= base.shape[0]:
+        return None
+    window = base[y0 - r : y0 + r + 1, x0 - r : x0 + r + 1]
+    centre = np.ones((2 * radius + 1,) * 2, bool)
+    if valid is not None:
+        centre = valid[y0 - radius : y0 + radius + 1, x0 - radius : x0 + radius + 1]
+        if centre.mean() < 0.5:
+            return None
+    frames = _pyramid(frame_grey, _PATCH_MAX_LEVEL)
+
+    def score(heading_deg: float, log_scale: float) -> float:
+        step = 2.0**level / math.exp(log_scale)  # frame px per base-level px
+        lf = int(np.clip(math.floor(math.log2(max(step, 1.0))), 0, _PATCH_MAX_LEVEL))
+        k = step / 2.0**lf
+        t = math.radians(heading_deg)
+        a = k * np.array([[math.cos(t), math.sin(t)], [-math.sin(t), math.cos(t)]])
+        off = (p0 + 0.5) / 2.0**lf - 0.5 - a @ np.array([radius, radius], float)
+        warp = np.hstack([a, off[:, None]])
+        img = frames[lf]
+        size = (2 * radius + 1, 2 * radius + 1)
+        flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+        tpl = cv2.warpAffine(img, warp, size, flags=flags)
+        inside = cv2.warpAffine(np.ones_like(img), warp, size, flags=flags) > 0.99
+        mask = centre & inside
+        if mask.mean() < 0.5 or float(tpl[mask].std()) < 1.0:
+            return -1.0
+        if mask.all():
+            out = cv2.matchTemplate(window, tpl, cv2.TM_CCOEFF_NORMED)
+        else:
+            out = cv2.matchTemplate(window, tpl, cv2.TM_CCOEFF_NORMED, mask=mask.astype(np.uint8))
+        out = np.nan_to_num(out, nan=-1.0, posinf=-1.0, neginf=-1.0)
+        return float(out.max())
+
+    headings = np.arange(0.0, 360.0, _PATCH_STEP_DEG)
+    n_log = int(math.floor(config.max_log_scale / _PATCH_STEP_LOG))
+    logs = np.arange(-n_log, n_log + 1) * _PATCH_STEP_LOG
+    grid = np.array([[score(h, ls) for ls in logs] for h in headings])
+    i, j = np.unravel_index(int(np.argmax(grid)), grid.shape)
+    best = float(grid[i, j])
+    if not best >= config.patch_min_ncc:
+        return None
+    far = _far_from(int(i), int(j), len(headings), len(logs))
+    rival = float(grid[far].max()) if far.any() else 0.0
+    fine = [
+        (score(headings[i] + dh, logs[j] + dl), dh, dl)
+        for dh in np.arange(-2, 3) * _PATCH_STEP_DEG / 4
+        for dl in np.arange(-2, 3) * _PATCH_STEP_LOG / 4
+    ]
+    top, dh, dl = max(fine, key=lambda f: f[0])
+    return SimilarityPrior(
+        float((headings[i] + dh) % 360.0),
+        float(math.exp(logs[j] + dl)),
+        p0,
+        q0,
+        "seed",
+        0,
+        max(rival, 0.0) / max(top, 1e-12),
+        seed_error_px,
+    )
+
+
+def _pyramid(image: NDArray, levels: int) -> list[NDArray[np.float32]]:
+    """``[image, pyrDown(image), ...]``, ``levels + 1`` float32 images (each at least 1 px)."""
+    out = [np.asarray(image, np.float32)]
+    for _ in range(levels):
+        if min(out[-1].shape[:2]) < 2:
+            out.append(out[-1])
+        else:
+            out.append(cv2.pyrDown(out[-1]))
+    return out
+
+
+def _far_from(i: int, j: int, n_h: int, n_s: int) -> NDArray[np.bool_]:
+    """Cells at least 3 cells from ``(i, j)`` in heading (circular) or scale."""
+    di = np.minimum(np.abs(np.arange(n_h) - i), n_h - np.abs(np.arange(n_h) - i))[:, None]
+    dj = np.abs(np.arange(n_s) - j)[None, :]
+    return (di >= 3) | (dj >= 3)
 
 
 def priors_without_seed(
@@ -515,7 +660,7 @@ def guided_matches(
         np.log(np.maximum(base_kp.size[safe], 1e-12) / np.maximum(frame_kp.size[:, None], 1e-12))
         - log_s
     )
-    angle_gap = _angle_gap_deg(base_kp.angle[safe] - frame_kp.angle[:, None], heading_deg)
+    angle_gap = angle_gap_deg(base_kp.angle[safe] - frame_kp.angle[:, None], heading_deg)
     valid &= (size_gap <= config.attribute_tolerance_log_scale) & (
         angle_gap <= config.attribute_tolerance_deg
     )
