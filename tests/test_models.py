@@ -412,7 +412,8 @@ def test_levenberg_marquardt_stops_where_the_jacobian_or_steps_are_not_finite():
 def _start_under_the_floor(coef: float):
     """Degree-2 identity with denominator ``1 + coef * u * v`` on five points at the corners
     and centre of [-0.5, 0.5]^2 (normalised), their destinations and helpers."""
-    from registration.models import _exponents, _identity_params
+    from registration.rational import _identity_params
+    from registration.rational_fit import _exponents
 
     degree = 2
     sn = np.array([[-0.5, -0.5], [0.5, -0.5], [-0.5, 0.5], [0.5, 0.5], [0.0, 0.0]])
@@ -429,7 +430,7 @@ def test_a_fit_from_a_start_under_the_floor_keeps_the_starts_own_floor():
     MIN_DENOMINATOR (a previous fit that ended on the floor, then rounded) keeps a barrier at
     its own smallest denominator: no step may go lower. Without it the barrier was off and a
     re-anchored long-flight frame's fit put a pole inside the frame (a corner 172 px off)."""
-    from registration.models import _BARRIER_RESIDUAL, MIN_DENOMINATOR, _geometric_fun
+    from registration.rational_fit import _BARRIER_RESIDUAL, MIN_DENOMINATOR, _geometric_fun
 
     # Denominator 1 - 3.8 u v: 0.05 at (0.5, 0.5) and (-0.5, -0.5), its minimum over the box.
     degree, sn, dst, norm, p0, uv = _start_under_the_floor(-3.8)
@@ -449,7 +450,7 @@ def test_a_fit_from_a_start_that_folds_in_its_domain_still_never_folds_at_its_po
     has no floor to keep; a step that folds the map at one of the points (denominator <= 0
     there) must still be refused (barrier residual), or a long Gauss-Newton step can land on a
     fold that fits outliers (a long flight's anchor failed so)."""
-    from registration.models import _BARRIER_RESIDUAL, _design, _geometric_fun, _split
+    from registration.rational_fit import _BARRIER_RESIDUAL, _design, _geometric_fun, _split
 
     degree, sn, dst, norm, p0, uv = _start_under_the_floor(-3.8)
     domain_n = np.array([[1.0, 1.0]])  # 1 - 3.8 < 0: the start folds there

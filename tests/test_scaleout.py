@@ -291,7 +291,7 @@ def test_long_flight_in_chunks_stays_accurate_and_resumes_mid_chunk(tmp_path):
     base map at any heading and becomes an anchor. Error against the truth over a 9x7 grid
     (stage local), measured: mean 1.012 px, worst frame 1.78 px (one chain: 1.031 and 1.58;
     an anchor whose fit lost its barrier put a pole in a corner: 3.94 px, see
-    models._geometric_fun).
+    rational_fit._geometric_fun).
     A run resumed after frames at the end of each chunk were lost (anchors among the frames
     kept) gives the same models."""
     n, chunk = 24, 6
