@@ -1,0 +1,695 @@
+"""From matched samples to a displacement field (paper section 5): keypoints and gated
+matching inside each neighbourhood, the per-cell REQCON consensus with its moving-car guards,
+the neighbour check and the filling of rejected cells, and the robust spline fit
+(``LocalConfig.fit = "spline"``). See :mod:`registration.local` for the stage itself.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from registration.coords import as_points
+from registration.local_field import (
+    FEW_MATCHES,
+    NEIGHBOUR_OUTLIER,
+    NO_CONSENSUS,
+    OK,
+    OUTSIDE,
+    RIVAL_MOTION,
+    DisplacementField,
+    FieldStats,
+    KeypointSet,
+    LocalConfig,
+    grid_nodes,
+)
+
+log = logging.getLogger(__name__)
+
+
+# --------------------------------------------------------------------------------------------
+# Keypoints and matching
+
+
+def detect_keypoints(
+    grey: NDArray,
+    config: LocalConfig = LocalConfig(),
+    *,
+    mask: NDArray | None = None,
+    origin: tuple[float, float] = (0.0, 0.0),
+) -> KeypointSet:
+    """SIFT keypoints of a grey uint8 crop, positions in base px (crop px + ``origin``).
+
+    Args:
+        grey: ``(H, W)`` uint8.
+        mask: ``(H, W)`` bool/uint8, where the image has data; eroded by ``mask_erode_px``.
+    """
+    grey = np.asarray(grey)
+    if grey.ndim != 2 or grey.dtype != np.uint8:
+        raise ValueError(f"expected a grey uint8 (H, W) image, got {grey.dtype} {grey.shape}")
+    cv_mask = None
+    if mask is not None:
+        mask = np.asarray(mask)
+        if mask.shape != grey.shape:
+            raise ValueError(f"mask shape {mask.shape} differs from image shape {grey.shape}")
+        cv_mask = (mask > 0).astype(np.uint8) * 255
+        if config.mask_erode_px > 0:
+            k = 2 * config.mask_erode_px + 1
+            cv_mask = cv2.erode(cv_mask, np.ones((k, k), np.uint8))
+    sift = cv2.SIFT_create(
+        nOctaveLayers=config.sift_n_octave_layers,
+        contrastThreshold=config.sift_contrast_threshold,
+        edgeThreshold=config.sift_edge_threshold,
+        sigma=config.sift_sigma,
+    )
+    kps, desc = sift.detectAndCompute(grey, cv_mask)
+    if not kps:
+        return KeypointSet(np.zeros((0, 2)), np.zeros((0, 128), np.float32))
+    xy = np.array([k.pt for k in kps], np.float64) + np.asarray(origin, np.float64)
+    return KeypointSet(xy, np.asarray(desc, np.float32))
+
+
+def gated_ratio_matches(
+    reg_xy: NDArray, reg_desc: NDArray, ref_xy: NDArray, ref_desc: NDArray, config: LocalConfig
+) -> tuple[NDArray, NDArray]:
+    """Match registered keypoints to reference keypoints within ``max_displacement_px``.
+
+    Both sets are in base px, so a true match lies within the global stage's residual. The
+    ratio test is applied among these gated candidates only: repetitive structure farther away
+    than any plausible residual cannot veto a distinctive local match. A keypoint with a single
+    gated candidate is accepted (REQCON removes the odd mismatch). A reference keypoint claimed
+    by several registered ones keeps only the closest descriptor.
+
+    Returns:
+        ``(i_reg, i_ref)`` index arrays of the matches.
+    """
+    from scipy.spatial import cKDTree
+
+    empty = np.zeros(0, np.intp), np.zeros(0, np.intp)
+    if len(reg_xy) == 0 or len(ref_xy) == 0:
+        return empty
+    pairs = cKDTree(reg_xy).sparse_distance_matrix(
+        cKDTree(ref_xy), config.max_displacement_px, output_type="ndarray"
+    )
+    if len(pairs) == 0:
+        return empty
+    i = pairs["i"].astype(np.intp)
+    j = pairs["j"].astype(np.intp)
+    a = np.asarray(reg_desc, np.float32)
+    b = np.asarray(ref_desc, np.float32)
+    d2 = np.einsum("ij,ij->i", a[i] - b[j], a[i] - b[j])
+    order = np.lexsort((d2, i))  # by registered keypoint, then descriptor distance
+    i, j, d2 = i[order], j[order], d2[order]
+    first = np.r_[True, i[1:] != i[:-1]]
+    idx_first = np.nonzero(first)[0]
+    has_second = np.r_[idx_first[1:], len(i)] - idx_first > 1
+    lo = d2[idx_first]
+    hi = np.where(has_second, d2[np.minimum(idx_first + 1, len(i) - 1)], np.inf)
+    ok = ~has_second | (np.sqrt(lo) < config.ratio * np.sqrt(hi))
+    i_reg, i_ref, dist = i[idx_first][ok], j[idx_first][ok], lo[ok]
+    if len(i_ref):
+        o = np.argsort(dist, kind="stable")
+        _, keep = np.unique(i_ref[o], return_index=True)
+        keep = np.sort(o[keep])
+        i_reg, i_ref = i_reg[keep], i_ref[keep]
+    return i_reg, i_ref
+
+
+# --------------------------------------------------------------------------------------------
+# Consensus
+
+
+@dataclass(frozen=True)
+class CellConsensus:
+    """Result of :func:`cell_consensus`: ``vector`` (2,) base px at the cell centre (NaN on
+    failure), ``kept`` (M,) bool, ``residual_px`` mean residual of the kept matches, ``status``."""
+
+    vector: NDArray[np.float64]
+    kept: NDArray[np.bool_]
+    residual_px: float
+    status: int
+
+
+def _fit_cells(rel: NDArray, disp: NDArray, kept: NDArray, model: str, cell_px: float):
+    """Least-squares displacement model per cell over its kept matches.
+
+    Args:
+        rel: ``(C, M, 2)`` match positions relative to the cell centres (padding anywhere).
+        disp: ``(C, M, 2)`` displacements.
+        kept: ``(C, M)`` bool, the matches to fit.
+
+    Returns:
+        ``(vector (C, 2) at the centre, predicted displacement (C, M, 2))``. Cells with fewer
+        than 6 kept matches, or whose kept matches spread (standard deviation along either
+        principal axis) less than ``cell_px / 8``, get a translation (their mean).
+    """
+    w = kept.astype(np.float64)[..., None]  # (C, M, 1)
+    n = w[..., 0].sum(axis=1)
+    safe_n = np.maximum(n, 1.0)[:, None]
+    vec = (w * disp).sum(axis=1) / safe_n
+    pred = np.broadcast_to(vec[:, None, :], disp.shape)
+    if model != "affine":
+        return vec, pred
+    mu = (w * rel).sum(axis=1) / safe_n
+    c = (rel - mu[:, None, :]) * np.sqrt(w)
+    cov = np.matmul(c.transpose(0, 2, 1), c) / np.maximum(n - 1, 1.0)[:, None, None]
+    a, b, d = cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]
+    eig_min = (a + d) / 2 - np.sqrt(((a - d) / 2) ** 2 + b**2)
+    affine = (n >= 6) & (np.sqrt(np.maximum(eig_min, 0.0)) >= cell_px / 8.0)
+    if not affine.any():
+        return vec, pred
+    design = np.concatenate([np.ones(rel.shape[:2] + (1,)), rel], axis=2)[affine]  # (A, M, 3)
+    weighted_t = (design * w[affine]).transpose(0, 2, 1)  # (A, 3, M)
+    coef = np.linalg.solve(weighted_t @ design, weighted_t @ disp[affine])  # (A, 3, 2)
+    vec = vec.copy()
+    vec[affine] = coef[:, 0, :]
+    pred = np.array(pred)
+    pred[affine] = design @ coef
+    return vec, pred
+
+
+def consensus_cells(
+    pos: NDArray, disp: NDArray, centres: NDArray, members: NDArray, config: LocalConfig
+) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+    """REQCON consensus of many neighbourhoods at once (see :func:`cell_consensus`).
+
+    Args:
+        pos, disp: ``(N, 2)`` base px of all matches and their displacements.
+        centres: ``(C, 2)`` cell centres.
+        members: ``(C, M)`` int, each cell's match indices padded with -1.
+
+    Returns:
+        ``(vectors (C, 2), kept (C, M) bool, residual_px (C,), status (C,) int8)``; vectors are
+        NaN where the status is not OK.
+    """
+    n_cells, width = members.shape
+    slot = members >= 0
+    idx = np.where(slot, members, 0)
+    rel = pos[idx] - centres[:, None, :]
+    d_all = disp[idx]
+    kept = slot.copy()
+    n = slot.sum(axis=1)
+    status = np.full(n_cells, OK, np.int8)
+    status[n < config.min_matches] = FEW_MATCHES
+    kept[n < config.min_matches] = False
+    vectors = np.full((n_cells, 2), np.nan)
+    resid = np.full(n_cells, np.nan)
+    max_res = config.reqcon_max_residual_px
+    active = np.flatnonzero(n >= config.min_matches)
+    # The active cells' arrays shrink with them (most cells settle in a few rounds).
+    rel_a, d_a, k = rel[active], d_all[active], kept[active]
+    while len(active):
+        v, pred = _fit_cells(rel_a, d_a, k, config.cell_model, config.cell_px)
+        diff = d_a - pred
+        r = np.sqrt(diff[..., 0] ** 2 + diff[..., 1] ** 2)
+        nk = k.sum(axis=1)
+        mean_r = np.where(k, r, 0.0).sum(axis=1) / nk
+        done = mean_r < config.reqcon_target_px
+        if max_res is not None:
+            done &= np.where(k, r, -np.inf).max(axis=1) <= max_res
+        resid[active] = mean_r
+        vectors[active[done]] = v[done]
+        n_drop = np.maximum(1, np.ceil(config.reqcon_drop_fraction * nk).astype(int))
+        fail = ~done & (nk - n_drop < config.min_matches)
+        status[active[fail]] = NO_CONSENSUS
+        kept[active] = k
+        go = ~done & ~fail
+        if go.any():
+            # Drop each cell's n_drop worst kept matches.
+            order = np.argsort(np.where(k[go], -r[go], np.inf), axis=1, kind="stable")
+            rank = np.empty_like(order)
+            np.put_along_axis(rank, order, np.arange(width)[None, :], axis=1)
+            k = k[go] & (rank >= n_drop[go, None])
+            rel_a, d_a = rel_a[go], d_a[go]
+        active = active[go]
+    # Rival motion: a second coherent group among the rejected matches, of similar support.
+    if config.rival_ratio > 0:
+        n_kept = kept.sum(axis=1)
+        n_rej = n - n_kept
+        suspect = (status == OK) & (
+            n_rej >= np.maximum(config.min_matches, config.rival_ratio * n_kept)
+        )
+        for c in np.flatnonzero(suspect):
+            rej = d_all[c][slot[c] & ~kept[c]]
+            if _rival_motion(rej, d_all[c][kept[c]].mean(axis=0), int(n_kept[c]), config):
+                status[c] = RIVAL_MOTION
+    vectors[status != OK] = np.nan
+    return vectors, kept, resid, status
+
+
+def _rival_motion(rejected: NDArray, consensus: NDArray, n_kept: int, config: LocalConfig) -> bool:
+    """Whether the rejected displacements hold a coherent group of similar support to the kept
+    set, away from the consensus. Group centres are tried at (at most 64, evenly chosen)
+    rejected matches: a coherent group is dense, so any of its members finds (nearly) all of it."""
+    cand = rejected[:: max(1, len(rejected) // 64)]
+    dd = np.sqrt(((cand[:, None, :] - rejected[None, :, :]) ** 2).sum(axis=2))
+    counts = (dd <= config.rival_radius_px).sum(axis=1)
+    best = int(np.argmax(counts))
+    if counts[best] < max(config.min_matches, config.rival_ratio * n_kept):
+        return False
+    c2 = np.median(rejected[dd[best] <= config.rival_radius_px], axis=0)
+    return bool(np.linalg.norm(c2 - consensus) > 2 * config.rival_radius_px)
+
+
+def cell_consensus(
+    pos: ArrayLike, disp: ArrayLike, centre: ArrayLike, config: LocalConfig = LocalConfig()
+) -> CellConsensus:
+    """One neighbourhood's consensus displacement by REQCON plus the rival-motion guard.
+
+    REQCON (paper 4.3.2, 5): fit the model to all matches, drop the worst ``reqcon_drop_fraction``
+    (at least one), refit, until the mean residual of the kept matches is below
+    ``reqcon_target_px`` (and, with ``reqcon_max_residual_px``, none is further than that). For
+    a translation the least-squares fit is the mean of the kept displacement vectors, so no
+    numerical optimiser is needed. :func:`consensus_cells` does the same for many cells at once.
+
+    Args:
+        pos: ``(M, 2)`` base px of the matches (reference keypoints).
+        disp: ``(M, 2)`` displacement registered - reference, base px.
+        centre: ``(2,)`` the cell centre, where the vector is reported.
+    """
+    pos = as_points(pos, "pos") if len(np.asarray(pos)) else np.zeros((0, 2))
+    disp = as_points(disp, "disp") if len(np.asarray(disp)) else np.zeros((0, 2))
+    if len(pos) != len(disp):
+        raise ValueError(f"pos and disp must have the same length, got {len(pos)} and {len(disp)}")
+    centre = np.asarray(centre, np.float64).reshape(1, 2)
+    members = np.arange(len(pos))[None, :]
+    vectors, kept, resid, status = consensus_cells(pos, disp, centre, members, config)
+    return CellConsensus(vectors[0], kept[0], float(resid[0]), int(status[0]))
+
+
+def neighbour_check(
+    vectors: NDArray, valid: NDArray, tolerance_px: float, min_count: int = 3
+) -> NDArray[np.bool_]:
+    """Cells whose measured vector is further than ``tolerance_px`` from the median of their
+    measured 8-neighbours (needs ``min_count`` of them). All cells are judged against the same
+    input, so one bad cell cannot condemn a good neighbour unless bad cells are the majority of
+    that neighbour's neighbours.
+
+    Returns:
+        ``(Gy, Gx)`` bool, True = reject.
+    """
+    gy, gx = valid.shape
+    # The 8 neighbours of every cell side by side: (Gy, Gx, 8, 2), NaN where not measured.
+    padded = np.pad(
+        np.where(valid[..., None], vectors, np.nan),
+        ((1, 1), (1, 1), (0, 0)),
+        constant_values=np.nan,
+    )
+    shifts = [(di, dj) for di in (-1, 0, 1) for dj in (-1, 0, 1) if (di, dj) != (0, 0)]
+    nb = np.stack([padded[1 + di : 1 + di + gy, 1 + dj : 1 + dj + gx] for di, dj in shifts], 2)
+    count = np.isfinite(nb[..., 0]).sum(axis=2)
+    judged = valid & (count >= min_count)
+    reject = np.zeros_like(valid, dtype=bool)
+    if judged.any():
+        med = np.nanmedian(nb[judged], axis=1)
+        reject[judged] = np.linalg.norm(vectors[judged] - med, axis=1) > tolerance_px
+    return reject
+
+
+def fill_invalid(vectors: NDArray, valid: NDArray) -> NDArray[np.float32]:
+    """Fill the vectors of invalid cells ring by ring with the mean of their already known
+    8-neighbours (nearest-valid extrapolation that averages where several are equally near).
+    All-invalid grids become zeros."""
+    out = np.where(valid[..., None], vectors, 0.0).astype(np.float32)
+    known = valid.copy()
+    if not known.any():
+        return np.zeros_like(out)
+    gy, gx = known.shape
+    while not known.all():
+        kf = known.astype(np.float32)
+        pad_k = np.pad(kf, 1)
+        pad_v = np.pad(out * kf[..., None], ((1, 1), (1, 1), (0, 0)))
+        cnt = sum(
+            pad_k[1 + di : 1 + di + gy, 1 + dj : 1 + dj + gx]
+            for di in (-1, 0, 1)
+            for dj in (-1, 0, 1)
+        )
+        tot = sum(
+            pad_v[1 + di : 1 + di + gy, 1 + dj : 1 + dj + gx]
+            for di in (-1, 0, 1)
+            for dj in (-1, 0, 1)
+        )
+        new = (~known) & (cnt > 0)
+        out[new] = tot[new] / cnt[new][:, None]
+        known = known | new
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Estimation
+
+
+def estimate_field_from_keypoints(
+    registered_kp: Any,
+    reference_kp: Any,
+    width: int,
+    height: int,
+    config: LocalConfig = LocalConfig(),
+    *,
+    origin: tuple[float, float] = (0.0, 0.0),
+    valid_mask: NDArray | None = None,
+) -> tuple[DisplacementField, FieldStats]:
+    """Displacement field from SIFT keypoints already detected (both in base px).
+
+    Lets a caller detect the mid base image's keypoints once per sequence (or carry the frame's
+    keypoints over from the global stage through its transform) instead of once per frame.
+
+    Args:
+        registered_kp, reference_kp: objects with ``.xy`` (N, 2) base px and ``.descriptors``.
+        width, height, origin: the crop of base coordinates the field covers.
+        valid_mask: ``(height, width)`` where both images have data (for the "outside" test).
+    """
+    t0 = time.perf_counter()
+    reg_xy = np.asarray(registered_kp.xy, np.float64).reshape(-1, 2)
+    ref_xy = np.asarray(reference_kp.xy, np.float64).reshape(-1, 2)
+    reg_desc = np.asarray(registered_kp.descriptors, np.float32)
+    ref_desc = np.asarray(reference_kp.descriptors, np.float32)
+    # Reference keypoints may cover the whole mid base image: keep those near the crop.
+    m = config.max_displacement_px + config.cell_px
+    near = (
+        (ref_xy[:, 0] >= origin[0] - m)
+        & (ref_xy[:, 0] <= origin[0] + width + m)
+        & (ref_xy[:, 1] >= origin[1] - m)
+        & (ref_xy[:, 1] <= origin[1] + height + m)
+    )
+    if not near.all():
+        ref_xy, ref_desc = ref_xy[near], ref_desc[near]
+    # Match once over the whole crop (the gate makes matching local anyway); the matches are
+    # then bucketed by the cell their reference keypoint falls in.
+    a, b = gated_ratio_matches(reg_xy, reg_desc, ref_xy, ref_desc, config)
+    pos = ref_xy[b]
+    field_, stats = estimate_field_from_matches(
+        pos, reg_xy[a] - pos, width, height, config, origin=origin, valid_mask=valid_mask
+    )
+    stats.n_keypoints_registered = len(reg_xy)
+    stats.n_keypoints_reference = len(ref_xy)
+    stats.time_match_s = time.perf_counter() - t0
+    return field_, stats
+
+
+def _box_counts(mask: NDArray, cx: NDArray, cy: NDArray, half: float) -> NDArray[np.int64]:
+    """``(Gy, Gx)`` non-zero pixels of ``mask`` in the boxes of side ``2 half`` around the crop
+    px ``(cx[j], cy[i])`` (clipped to the crop; box edges rounded to whole pixels). Exact, in
+    one pass over the mask: row bands summed at the boxes' row edges, then cumulated over the
+    columns (cheaper than a whole integral image of a crop of tens of megapixels)."""
+    h, w = mask.shape
+
+    def edges(c: NDArray, n: int) -> tuple[NDArray, NDArray]:
+        lo = np.clip(np.floor(c - half + 0.5), 0, n).astype(np.int64)
+        hi = np.clip(np.floor(c + half + 0.5), 0, n).astype(np.int64)
+        return lo, hi
+
+    r0, r1 = edges(cy, h)
+    c0, c1 = edges(cx, w)
+    rows = np.unique(np.r_[0, h, r0, r1])
+    # The mask's rows summed between consecutive row edges (one pass), then cumulated: the
+    # integral image at every row edge and column.
+    m = (mask > 0).view(np.uint8)
+    bands = np.stack(
+        [
+            cv2.reduce(m[a:b], 0, cv2.REDUCE_SUM, dtype=cv2.CV_32S)[0]
+            for a, b in zip(rows[:-1], rows[1:], strict=True)
+        ]
+    ).astype(np.int64)
+    integral = np.zeros((len(rows), w + 1), np.int64)
+    integral[1:, 1:] = np.cumsum(np.cumsum(bands, axis=0), axis=1)
+    ri0, ri1 = np.searchsorted(rows, r0), np.searchsorted(rows, r1)
+    a = integral[ri1[:, None], c1[None, :]] - integral[ri0[:, None], c1[None, :]]
+    b = integral[ri1[:, None], c0[None, :]] - integral[ri0[:, None], c0[None, :]]
+    return a - b
+
+
+def _cell_members(
+    pos: NDArray, cxs: NDArray, cys: NDArray, half: float, usable: NDArray[np.bool_]
+) -> tuple[NDArray, NDArray, NDArray]:
+    """The samples of each usable cell (``c - half < p < c + half`` on both axes), ordered by
+    x, then y, then index: ``(rows (C,), columns (C,), members (C, M) padded with -1)``, cells
+    in row-major order."""
+    n = len(pos)
+    gy, gx = usable.shape
+    if n == 0 or not usable.any():
+        ii, jj = np.nonzero(usable)
+        return ii, jj, np.full((len(ii), 0), -1, np.int64)
+    sp_x = cxs[1] - cxs[0] if gx > 1 else 1.0
+    sp_y = cys[1] - cys[0] if gy > 1 else 1.0
+
+    # Candidate cells of each sample along one axis: the cells whose centre lies within
+    # ``half`` of it (at most ceil(2 half / spacing) + 1 of them), checked exactly below.
+    def candidates(p: NDArray, c: NDArray, sp: float) -> tuple[NDArray, NDArray]:
+        k = int(np.ceil(2 * half / sp)) + 1 if len(c) > 1 else 1
+        first = np.floor((p - half - c[0]) / sp).astype(np.int64)
+        idx = first[:, None] + np.arange(k + 1)[None, :]
+        ok = (idx >= 0) & (idx < len(c))
+        cc = c[np.clip(idx, 0, len(c) - 1)]
+        ok &= (p[:, None] > cc - half) & (p[:, None] < cc + half)
+        return idx, ok
+
+    jx, okx = candidates(pos[:, 0], cxs, sp_x)
+    iy, oky = candidates(pos[:, 1], cys, sp_y)
+    sample = np.arange(n)
+    s_all, i_all, j_all = [], [], []
+    for a in range(iy.shape[1]):
+        for b in range(jx.shape[1]):
+            ok = oky[:, a] & okx[:, b]
+            s_all.append(sample[ok])
+            i_all.append(iy[ok, a])
+            j_all.append(jx[ok, b])
+    s_all, i_all, j_all = np.concatenate(s_all), np.concatenate(i_all), np.concatenate(j_all)
+    keep = usable[i_all, j_all]
+    s_all, i_all, j_all = s_all[keep], i_all[keep], j_all[keep]
+    cell = i_all * gx + j_all
+    # Order within a cell: x, then y, then index (the order of a stable sort by y, then by x).
+    order = np.lexsort((s_all, pos[s_all, 1], pos[s_all, 0], cell))
+    s_all, cell = s_all[order], cell[order]
+    cells = np.flatnonzero(usable.ravel())
+    counts = np.bincount(cell, minlength=gy * gx)[cells]
+    members = np.full((len(cells), int(counts.max()) if len(cells) else 0), -1, np.int64)
+    starts = np.r_[0, np.cumsum(counts)[:-1]]
+    slot = np.arange(len(s_all)) - np.repeat(starts, counts)
+    members[np.repeat(np.arange(len(cells)), counts), slot] = s_all
+    return cells // gx, cells % gx, members
+
+
+def estimate_field_from_matches(
+    pos: ArrayLike,
+    disp: ArrayLike,
+    width: int,
+    height: int,
+    config: LocalConfig = LocalConfig(),
+    *,
+    origin: tuple[float, float] = (0.0, 0.0),
+    valid_mask: NDArray | None = None,
+) -> tuple[DisplacementField, FieldStats]:
+    """Displacement field from point matches: the per-cell consensus, the moving-car guard and
+    the filling of rejected cells (``config.fit == "cells"``), or :func:`estimate_field_spline`
+    (``"spline"``, no moving-car guard: its Tukey weights drop what disagrees with the fit).
+
+    Args:
+        pos: ``(M, 2)`` base px of the matches in the reference (they pick the cell).
+        disp: ``(M, 2)`` displacement registered - reference, base px.
+        width, height, origin: the crop of base coordinates the field covers.
+        valid_mask: ``(height, width)`` where both images have data (for the "outside" test).
+    """
+    if config.fit == "spline":
+        return estimate_field_spline(pos, disp, width, height, config, origin=origin)
+    t0 = time.perf_counter()
+    all_pos = np.asarray(pos, np.float64).reshape(-1, 2)
+    all_disp = np.asarray(disp, np.float64).reshape(-1, 2)
+    (x0, y0), (gx, gy) = grid_nodes(width, height, config.spacing_px, origin)
+    status = np.full((gy, gx), OUTSIDE, np.int8)
+    n_match = np.zeros((gy, gx), np.int32)
+    n_kept = np.zeros((gy, gx), np.int32)
+    resid = np.full((gy, gx), np.nan, np.float32)
+    vec = np.zeros((gy, gx, 2), np.float64)
+    half = config.cell_px / 2.0
+    cxs = x0 + config.spacing_px * np.arange(gx, dtype=np.float64)
+    cys = y0 + config.spacing_px * np.arange(gy, dtype=np.float64)
+    usable = np.ones((gy, gx), bool)
+    if valid_mask is not None:
+        vm = np.asarray(valid_mask)
+        if vm.shape != (height, width):
+            raise ValueError(
+                f"valid_mask shape {vm.shape} differs from the crop ({height}, {width})"
+            )
+        inside = _box_counts(vm, cxs - origin[0], cys - origin[1], half)
+        usable = inside >= config.min_valid_fraction * float(config.cell_px) ** 2
+    ii, jj, members = _cell_members(all_pos, cxs, cys, half, usable)
+    if len(ii):
+        vectors_c, kept_c, resid_c, status_c = consensus_cells(
+            all_pos, all_disp, np.c_[cxs[jj], cys[ii]], members, config
+        )
+        status[ii, jj] = status_c
+        n_match[ii, jj] = (members >= 0).sum(axis=1)
+        n_kept[ii, jj] = kept_c.sum(axis=1)
+        resid[ii, jj] = resid_c
+        ok = status_c == OK
+        vec[ii[ok], jj[ok]] = vectors_c[ok]
+    valid = status == OK
+    if config.neighbour_tolerance_px is not None:
+        bad = neighbour_check(vec, valid, config.neighbour_tolerance_px, config.neighbour_min_count)
+        status[bad] = NEIGHBOUR_OUTLIER
+        valid &= ~bad
+    vectors = fill_invalid(vec, valid)
+    field_ = DisplacementField((x0, y0), float(config.spacing_px), vectors, valid)
+    stats = FieldStats(
+        cell_status=status,
+        cell_matches=n_match,
+        cell_kept=n_kept,
+        cell_residual_px=resid,
+        time_match_s=time.perf_counter() - t0,
+    )
+    log.debug("local field: %s", stats.counts())
+    return field_, stats
+
+
+# The spline fit (LocalConfig.fit = "spline"): Tukey's biweight constant (95 % efficiency for
+# Gaussian residuals), the floor of the robust scale (template and flow samples are never better
+# than ~0.1 px; a smaller scale would reject samples for the grid's own approximation error) and
+# the reweighting rounds (the weights settle in 3-4; measured on the reference frames of the
+# hard profiles).
+SPLINE_TUKEY_C = 4.685
+SPLINE_MIN_SIGMA_PX = 0.1
+SPLINE_ITERATIONS = 6
+
+
+def _bilinear_design(pos: NDArray, origin: tuple[float, float], spacing: float, gx: int, gy: int):
+    """Sparse ``(N, Gy * Gx)`` matrix of the bilinear weights of each position on the node grid
+    (node ``(i, j)`` is column ``i * Gx + j``); positions must lie within the nodes' span."""
+    from scipy.sparse import csr_matrix
+
+    u = (pos - np.asarray(origin, np.float64)) / spacing
+    j0 = np.minimum(np.floor(u[:, 0]).astype(np.intp), max(gx - 2, 0))
+    i0 = np.minimum(np.floor(u[:, 1]).astype(np.intp), max(gy - 2, 0))
+    fx, fy = u[:, 0] - j0, u[:, 1] - i0
+    j1, i1 = np.minimum(j0 + 1, gx - 1), np.minimum(i0 + 1, gy - 1)
+    n = len(pos)
+    rows = np.tile(np.arange(n), 4)
+    cols = np.concatenate([i0 * gx + j0, i0 * gx + j1, i1 * gx + j0, i1 * gx + j1])
+    vals = np.concatenate([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy])
+    return csr_matrix((vals, (rows, cols)), shape=(n, gx * gy))
+
+
+def _second_differences(gx: int, gy: int):
+    """Sparse matrix of the second differences of a ``(Gy, Gx)`` node grid along x, along y and
+    across (its null space is the affine functions of the node position)."""
+    from scipy.sparse import csr_matrix
+
+    idx = np.arange(gx * gy).reshape(gy, gx)
+    blocks = []  # (node index arrays, coefficients) per kind of difference
+    if gx >= 3:
+        blocks.append(([idx[:, :-2], idx[:, 1:-1], idx[:, 2:]], (1.0, -2.0, 1.0)))
+    if gy >= 3:
+        blocks.append(([idx[:-2], idx[1:-1], idx[2:]], (1.0, -2.0, 1.0)))
+    if gx >= 2 and gy >= 2:
+        corners = [idx[:-1, :-1], idx[:-1, 1:], idx[1:, :-1], idx[1:, 1:]]
+        blocks.append((corners, (1.0, -1.0, -1.0, 1.0)))
+    rows, cols, vals, r0 = [], [], [], 0
+    for nodes, coef in blocks:
+        m = nodes[0].size
+        for a, c in zip(nodes, coef, strict=True):
+            rows.append(r0 + np.arange(m))
+            cols.append(a.ravel())
+            vals.append(np.full(m, c))
+        r0 += m
+    if not rows:
+        return csr_matrix((0, gx * gy))
+    return csr_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(r0, gx * gy)
+    )
+
+
+def estimate_field_spline(
+    pos: ArrayLike,
+    disp: ArrayLike,
+    width: int,
+    height: int,
+    config: LocalConfig = LocalConfig(),
+    *,
+    origin: tuple[float, float] = (0.0, 0.0),
+) -> tuple[DisplacementField, FieldStats]:
+    """Displacement field from samples by robust, regularised least squares (``fit="spline"``).
+
+    The node vectors ``v`` minimise ``sum_i w_i |B_i v - d_i|^2 + lam |D v|^2``: ``B_i`` the
+    bilinear weights of sample ``i`` (so the field :meth:`DisplacementField.sample` returns
+    reproduces the samples), ``D`` the second differences of the nodes along x, y and across,
+    ``lam = spline_smoothness * samples / nodes``. The weights ``w_i`` are Tukey's biweight of
+    the residual over ``SPLINE_TUKEY_C`` robust standard deviations (1.4826 MAD of the samples
+    still weighted, at least ``SPLINE_MIN_SIGMA_PX``), ``SPLINE_ITERATIONS`` rounds from equal
+    weights. Nodes beyond the samples continue the field's slope (the penalty's null space is
+    affine) instead of repeating the nearest cell's vector.
+
+    Args:
+        pos: ``(M, 2)`` base px of the samples; disp: ``(M, 2)`` displacements (base px).
+        width, height, origin: the crop of base coordinates the field covers (nodes on the
+            base lattice of ``spacing_px``, :func:`grid_nodes`); samples outside the nodes'
+            span are not used.
+
+    Returns:
+        ``(field, stats)``: ``field.valid`` marks nodes with at least one sample's worth of
+        (robust- and bilinear-) weight; per node in ``stats``: the samples touching it
+        (``cell_matches``), those with a positive weight (``cell_kept``), their weighted mean
+        residual; status "ok", "few_matches" (some weight, under one sample's worth) or
+        "outside" (none).
+    """
+    from scipy.sparse import diags, identity
+    from scipy.sparse.linalg import spsolve
+
+    t0 = time.perf_counter()
+    p = np.asarray(pos, np.float64).reshape(-1, 2)
+    d = np.asarray(disp, np.float64).reshape(-1, 2)
+    spacing = float(config.spacing_px)
+    (x0, y0), (gx, gy) = grid_nodes(width, height, spacing, origin)
+    span = np.array([x0 + (gx - 1) * spacing, y0 + (gy - 1) * spacing])
+    use = np.isfinite(p).all(axis=1) & np.isfinite(d).all(axis=1)
+    use &= (p >= (x0, y0)).all(axis=1) & (p <= span).all(axis=1)
+    p, d = p[use], d[use]
+    n_nodes = gx * gy
+    vectors = np.zeros((gy, gx, 2), np.float32)
+    status = np.full((gy, gx), OUTSIDE, np.int8)
+    n_match = np.zeros((gy, gx), np.int32)
+    n_kept = np.zeros((gy, gx), np.int32)
+    resid_node = np.full((gy, gx), np.nan, np.float32)
+    if len(p) < max(config.min_matches, 3):
+        field_ = DisplacementField((x0, y0), spacing, vectors, np.zeros((gy, gx), bool))
+        stats = FieldStats(status, n_match, n_kept, resid_node)
+        stats.time_match_s = stats.time_total_s = time.perf_counter() - t0
+        return field_, stats
+    design = _bilinear_design(p, (x0, y0), spacing, gx, gy)
+    penalty = _second_differences(gx, gy)
+    regulariser = (config.spline_smoothness * len(p) / n_nodes) * (penalty.T @ penalty)
+    w = np.ones(len(p))
+    for it in range(SPLINE_ITERATIONS):
+        normal = design.T @ diags(w) @ design + regulariser
+        ridge = 1e-9 * max(float(normal.diagonal().max()), 1.0)
+        v = spsolve((normal + ridge * identity(n_nodes)).tocsc(), design.T @ (w[:, None] * d))
+        v = np.asarray(v).reshape(n_nodes, 2)
+        r = np.linalg.norm(design @ v - d, axis=1)
+        if it == SPLINE_ITERATIONS - 1:
+            break
+        sigma = max(1.4826 * float(np.median(r[w > 0])), SPLINE_MIN_SIGMA_PX)
+        u = r / (SPLINE_TUKEY_C * sigma)
+        w = np.where(u < 1, (1 - u**2) ** 2, 0.0)
+    touching = (design > 0).astype(np.float64)
+    support = np.asarray(design.T @ w).reshape(gy, gx)
+    n_match[:] = np.asarray(touching.sum(axis=0)).reshape(gy, gx)
+    kept = (w > 0).astype(np.float64)
+    n_kept[:] = np.asarray(touching.T @ kept).reshape(gy, gx)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        resid_node[:] = (np.asarray(design.T @ (w * r)).reshape(gy, gx) / support).astype(
+            np.float32
+        )
+    valid = support >= 1.0
+    status[(support > 0) & ~valid] = FEW_MATCHES
+    status[valid] = OK
+    resid_node[~valid] = np.nan
+    field_ = DisplacementField((x0, y0), spacing, v.reshape(gy, gx, 2).astype(np.float32), valid)
+    stats = FieldStats(status, n_match, n_kept, resid_node)
+    stats.time_match_s = stats.time_total_s = time.perf_counter() - t0
+    log.debug("spline field: %s", stats.counts())
+    return field_, stats

@@ -1,0 +1,162 @@
+"""Dense samples for the local stage from DIS optical flow (``LocalConfig.method = "flow"``):
+flow between a registered crop and the reference, and the frame-side flow against a prepared
+mid base image (:class:`FlowReference`). See :mod:`registration.local` for the stage itself.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from registration import features, warp
+from registration.coords import rescale
+from registration.local_field import LocalConfig
+
+DIS_PRESETS = {
+    "ultrafast": cv2.DISOPTICAL_FLOW_PRESET_ULTRAFAST,
+    "fast": cv2.DISOPTICAL_FLOW_PRESET_FAST,
+    "medium": cv2.DISOPTICAL_FLOW_PRESET_MEDIUM,
+}
+
+
+def flow_matches(
+    registered: NDArray,
+    reference: NDArray,
+    config: LocalConfig = LocalConfig(),
+    *,
+    valid_mask: NDArray | None = None,
+    origin: tuple[float, float] = (0.0, 0.0),
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Matches for ``method="flow"``: dense DIS optical flow (Kroeger et al. 2016,
+    cv2.DISOpticalFlow) from the reference to the registered image, sampled every
+    ``flow_step_px`` where both images have data at least ``flow_margin_px`` around.
+
+    The flow at reference pixel ``x`` is where ``x``'s content sits in the registered image,
+    i.e. a displacement sample ``d(x)``; each sample votes in its neighbourhood exactly like a
+    SIFT match, so REQCON and the moving-car guard apply unchanged.
+
+    Returns:
+        ``(pos, disp)``: ``(M, 2)`` base px of the samples and ``(M, 2)`` displacements.
+    """
+    h, w = reference.shape
+    dis = cv2.DISOpticalFlow_create(DIS_PRESETS[config.flow_preset])
+    flow = dis.calc(np.ascontiguousarray(reference), np.ascontiguousarray(registered), None)
+    step = config.flow_step_px
+    ys, xs = np.mgrid[step // 2 : h : step, step // 2 : w : step]
+    if valid_mask is not None:
+        k = 2 * config.flow_margin_px + 1
+        inner = cv2.erode((np.asarray(valid_mask) > 0).astype(np.uint8), np.ones((k, k), np.uint8))
+        ok = inner[ys, xs] > 0
+        ys, xs = ys[ok], xs[ok]
+    else:
+        m = config.flow_margin_px
+        ok = (xs >= m) & (xs < w - m) & (ys >= m) & (ys < h - m)
+        ys, xs = ys[ok], xs[ok]
+    pos = np.c_[xs.ravel(), ys.ravel()].astype(np.float64) + np.asarray(origin, np.float64)
+    disp = flow[ys.ravel(), xs.ravel()].astype(np.float64)
+    # The gate of the SIFT path: a residual beyond max_displacement_px is not the ground.
+    keep = np.einsum("ij,ij->i", disp, disp) <= config.max_displacement_px**2
+    return pos[keep], disp[keep]
+
+
+@dataclass(frozen=True)
+class FlowReference:
+    """The mid base image prepared once per sequence for :func:`estimate_field_in_frame`.
+
+    Attributes:
+        valid: ``(Hb, Wb)`` bool, where the mid base image has content (base px).
+        small: the grey mid base image resampled with area averaging to
+            ``(round(Hb * scale), round(Wb * scale))``.
+        small_valid: ``small``'s pixels whose every source pixel is valid.
+        scale_xy: ``small`` px = ``(base px + 0.5) * scale_xy - 0.5`` (per axis: exact also when
+            ``Wb * scale`` is not an integer).
+    """
+
+    valid: NDArray[np.bool_]
+    small: NDArray[np.uint8]
+    small_valid: NDArray[np.bool_]
+    scale_xy: NDArray[np.float64]
+
+
+def prepare_flow_reference(
+    grey: NDArray[np.uint8], valid: NDArray[np.bool_], scale: float
+) -> FlowReference:
+    """See :class:`FlowReference`; ``grey`` and ``valid`` are ``(Hb, Wb)`` in base px."""
+    small, scale_xy = _area_resize(grey, scale)
+    small_valid, _ = _area_resize(valid.astype(np.uint8) * 255, scale)
+    return FlowReference(np.asarray(valid, bool), small, small_valid == 255, scale_xy)
+
+
+def _area_resize(image: NDArray, scale: float) -> tuple[NDArray, NDArray[np.float64]]:
+    """``image`` resampled by about ``scale`` (:func:`features.downscale`) and the exact
+    per-axis scale of the result."""
+    if scale == 1:
+        return image, np.ones(2)
+    out = features.downscale(image, scale)
+    return out, np.array([out.shape[1] / image.shape[1], out.shape[0] / image.shape[0]])
+
+
+def flow_scale(width: int, config: LocalConfig) -> float:
+    """The scale the flow of a ``width`` px wide frame is computed at (``flow_scale``, raised
+    so the flow image is at least ``flow_min_width_px`` wide)."""
+    if config.flow_min_width_px <= 0:
+        return config.flow_scale
+    return max(config.flow_scale, min(1.0, config.flow_min_width_px / width))
+
+
+def frame_flow_matches(
+    frame_grey: NDArray[np.uint8],
+    base_from_frame: Callable[[NDArray], NDArray],
+    reference: FlowReference,
+    config: LocalConfig = LocalConfig(),
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Displacement samples against the mid base image, measured in the frame's own geometry.
+
+    The mid base image is warped into the frame (at :func:`flow_scale`) through the global
+    mapping ``base_from_frame``, and DIS optical flow runs from it to the frame: where the warped
+    reference shows base point ``B = g(p)`` at frame point ``p``, the frame shows that content at
+    ``p + f(p)``. So ``d(B) = g(p + f(p)) - g(p)`` is the field of the module docstring at
+    ``B``, exact through ``g`` (no small-displacement approximation). Compared with comparing
+    the two in base pixels (:func:`flow_matches`), the frame is never resampled, the costly
+    inverse of the global model is never evaluated, and the flow image is the frame's size
+    rather than its footprint's bounding box.
+
+    Args:
+        frame_grey: ``(H, W)`` uint8 raw frame.
+        base_from_frame: the global mapping, ``(N, 2)`` raw frame px -> base px (NaN = none).
+        reference: the mid base image (:func:`prepare_flow_reference`).
+
+    Returns:
+        ``(pos, disp)``: ``(M, 2)`` base px ``B`` and displacements ``d(B)``, base px.
+    """
+    h, w = frame_grey.shape
+    s = flow_scale(w, config)
+    small, s = _area_resize(frame_grey, s)
+    hs, ws = small.shape
+    rs = reference.scale_xy
+
+    def base_from_small(p: NDArray) -> NDArray:
+        return base_from_frame(rescale(p, 1.0 / s))
+
+    smap = warp.source_map_from_function(lambda p: rescale(base_from_small(p), rs), ws, hs, step=8)
+    warped = warp.remap(reference.small, smap, interpolation="linear")
+    both = warp.remap(reference.small_valid.astype(np.uint8), smap, interpolation="nearest") > 0
+    both &= np.isfinite(smap).all(axis=2)
+    dis = cv2.DISOpticalFlow_create(DIS_PRESETS[config.flow_preset])
+    flow = dis.calc(warped, np.ascontiguousarray(small), None)
+    step = max(1, round(config.flow_step_px * s[0]))
+    margin = round(config.flow_margin_px * s[0])
+    inner = cv2.erode(both.astype(np.uint8), np.ones((2 * margin + 1,) * 2, np.uint8))
+    ys, xs = np.mgrid[step // 2 : hs : step, step // 2 : ws : step]
+    ok = inner[ys, xs] > 0
+    ys, xs = ys[ok], xs[ok]
+    p = np.c_[xs, ys].astype(np.float64)
+    pos = base_from_small(p)
+    disp = base_from_small(p + flow[ys, xs]) - pos
+    keep = np.isfinite(pos).all(axis=1) & np.isfinite(disp).all(axis=1)
+    keep[keep] = np.einsum("ij,ij->i", disp[keep], disp[keep]) <= config.max_displacement_px**2
+    return pos[keep], disp[keep]
