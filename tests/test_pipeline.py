@@ -234,6 +234,41 @@ def test_frames_from_video_and_glob(sim, tmp_path):
     assert len(open_frames(str(sim / "frames" / "00000[0-2].png"))) == 3
 
 
+def test_video_frames_read_on_from_an_open_reader_equal_a_fresh_seek(sim, tmp_path):
+    """A video's reader stays open between frames (README "Registration speed": the next frame
+    is a decode, not a new ffmpeg and a seek). Frames read in order, after a jump back, from a
+    copy and from a pickled source (Dask workers) are those a fresh reader seeks to."""
+    import copy
+    import pickle
+
+    from registration.render import write_video
+
+    frames = [read_image(p) for p in sorted((sim / "frames").glob("*.png"))]
+    video = tmp_path / "clip.mp4"
+    write_video(frames, video, fps=5)
+
+    def fresh(k):
+        src = open_frames(video)
+        try:
+            return src.get(k)
+        finally:
+            src.close()
+
+    expected = [fresh(k) for k in range(N_FRAMES)]
+    src = open_frames(video)
+    order = [0, 1, 2, 3, 1, 2, 5, 4]  # on, back, a jump ahead, back one
+    for k in order:
+        assert np.array_equal(src.get(k), expected[k]), f"frame {k}"
+    assert src._open_video is not None  # kept open between frames
+    for other in (copy.copy(src), pickle.loads(pickle.dumps(src))):
+        assert other._open_video is None
+        assert np.array_equal(other.get(3), expected[3])
+        other.close()
+    src.close()
+    assert src._open_video is None and np.array_equal(src.get(0), expected[0])
+    src.close()
+
+
 def test_opencv_baseline_scores_through_the_same_evaluation(sim, result):
     from registration.baseline import register_baseline
 
