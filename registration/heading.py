@@ -12,6 +12,11 @@ location gate come from the data, not from a north-up assumption:
   log scale) peaks at the truth even with a few percent right matches. A vote counts only when
   the two keypoints' own SIFT orientation and size differences agree with it (a right match
   agrees; a random one rarely does).
+* **One seed, few votes** (:func:`prior_from_patch`): across years and sensors a handful of
+  right matches can be outvoted (or nothing votes). The images themselves then give a second
+  estimate: the map's patch around the click is correlated with the frame resampled around its
+  click at every heading and scale. The coarse step tries both gates and keeps the better
+  supported registration.
 * **Two seeds** (:func:`prior_from_seeds`) fix heading and scale exactly.
 * **No seed** (:func:`priors_without_seed`): each match's keypoint orientation and size
   difference plus its position give a whole similarity; the 4-D Hough transform of Lowe (2004,
@@ -52,6 +57,7 @@ from registration.models import Similarity
 __all__ = [
     "HeadingConfig",
     "SimilarityPrior",
+    "angle_gap_deg",
     "attribute_differences",
     "gate_by_prior",
     "guided_matches",
@@ -220,6 +226,7 @@ def attribute_differences(
 
 
 def angle_gap_deg(a: NDArray, b: NDArray | float) -> NDArray:
+    """Smallest absolute difference between headings, degrees in [0, 180]."""
     d = (np.asarray(a) - b) % 360.0
     return np.minimum(d, 360.0 - d)
 
