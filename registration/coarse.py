@@ -606,8 +606,7 @@ def fit_coarse(
 def _seed_priors(seeds, harris, frame, base, matches, attr, config) -> list[SimilarityPrior]:
     """The prior(s) of the seed(s), in coarse pixels (empty when no match votes)."""
     sf, sb = frame.scale, base.scale
-    fr = np.array([s[:2] for s in seeds], float)
-    fr = fr if harris is None else harris.corrected_from_raw(fr)
+    fr = _seed_frame_points(seeds, harris)
     bs = np.array([s[2:] for s in seeds], float)
     if len(seeds) == 2:
         prior = heading.prior_from_seeds(fr, bs)
@@ -621,9 +620,19 @@ def _seed_priors(seeds, harris, frame, base, matches, attr, config) -> list[Simi
         if prior is None:
             return []
         prior = prior.rescaled(1.0 / sf, 1.0 / sb)
+    return [_with_click_error(prior, config).rescaled(sf, sb)]
+
+
+def _seed_frame_points(seeds, harris) -> NDArray:
+    """The seeds' frame points in corrected pixels, ``(n, 2)``."""
+    fr = np.array([s[:2] for s in seeds], float)
+    return fr if harris is None else harris.corrected_from_raw(fr)
+
+
+def _with_click_error(prior: SimilarityPrior, config) -> SimilarityPrior:
+    """A full-scale seed prior whose anchor may be off by the clicks' error in both images."""
     err = config.heading.seed_error_px * (1.0 + prior.scale)
-    prior = dataclasses.replace(prior, anchor_error_px=err)
-    return [prior.rescaled(sf, sb)]
+    return dataclasses.replace(prior, anchor_error_px=err)
 
 
 def _patch_prior(seed, harris, view, cbase, s_f, s_b, priors, config) -> list[SimilarityPrior]:
@@ -631,8 +640,7 @@ def _patch_prior(seed, harris, view, cbase, s_f, s_b, priors, config) -> list[Si
     in coarse pixels, as a list of at most one prior: empty when it finds nothing or agrees
     with the first of ``priors`` within the gate's tolerances."""
     hcfg = config.heading
-    fr = np.array([seed[:2]], float)
-    fr = fr if harris is None else harris.corrected_from_raw(fr)
+    fr = _seed_frame_points([seed], harris)
     valid = None
     if cbase.valid is not None:
         valid = features.downscale(cbase.valid.astype(np.uint8) * 255, s_b) > 250
@@ -643,7 +651,8 @@ def _patch_prior(seed, harris, view, cbase, s_f, s_b, priors, config) -> list[Si
     )  # fmt: skip
     if found is None:
         return []
-    found = dataclasses.replace(found, anchor_error_px=hcfg.seed_error_px * (1.0 + found.scale))
+    # The click error is in full-scale pixels, as for the SIFT prior.
+    found = _with_click_error(found.rescaled(1.0 / s_f, 1.0 / s_b), config).rescaled(s_f, s_b)
     if priors:
         first = priors[0]
         same_heading = float(heading.angle_gap_deg(found.heading_deg, first.heading_deg)) <= (

@@ -162,3 +162,28 @@ def test_correlation_rounds_register_across_inverted_contrast(scene):
     assert out.rounds == 4
     # Measured 0.802 px (27.7 px when intensities are correlated instead).
     assert _error(scene, out.model).mean() < 0.802 * MARGIN
+
+
+def test_patch_prior_at_a_coarse_scale_keeps_the_click_error_in_full_scale_pixels():
+    """The image-correlation prior of one click (``_patch_prior``) is a coarse-pixel prior like
+    the SIFT one: its heading and scale are the truth's (scale in coarse units), and its anchor
+    error is the clicks' error (``seed_error_px`` in each image, full-scale px) at the base's
+    coarse scale, not the full-scale figure (a gate 4x too wide at 1/4 scale)."""
+    from registration.coarse import CoarseBase, _patch_prior
+    from tests.conftest import shared_data
+
+    folder = shared_data("srif-optical-optical")
+    frame = cv2.resize(cv2.imread(str(folder / "pair3_2.jpg")), (1024, 1024))
+    seed_f = np.array([500.0, 520.0])
+    seed_b = np.array([760.0, 700.0])
+    truth = Similarity.from_rotation(120.0, 0.75, seed_f, seed_b)
+    base = cv2.warpAffine(frame, truth.matrix[:2], (1500, 1400), flags=cv2.INTER_LINEAR)
+    cfg = get_preset("default").coarse
+    s = 0.25
+    cbase = CoarseBase(base, cfg, base.max(axis=2) > 0)
+    view = frame_view(frame, 0.0, "corrected")
+    (prior,) = _patch_prior((*seed_f, *(seed_b + (1.5, -1.0))), None, view, cbase, s, s, [], cfg)
+    assert abs((prior.heading_deg - 120.0 + 180) % 360 - 180) < 3.0
+    assert prior.scale == pytest.approx(0.75, rel=0.06)  # equal coarse scales: the same ratio
+    full_error = cfg.heading.seed_error_px * (1.0 + 0.75)
+    assert prior.anchor_error_px == pytest.approx(full_error * s, rel=0.06)
