@@ -76,11 +76,9 @@ def audit_truth(im1, im2, valid, gt: np.ndarray) -> tuple[int, float, np.ndarray
     if fix is None:
         return 0, float("nan"), gt
     h, w = g1.shape
-    corners = np.array([[0, 0], [w - 1, 0], [0, h - 1], [w - 1, h - 1]], float)
-    truth = corners @ gt[:, :2].T + gt[:, 2]
-    moved = truth @ fix[:, :2].T + fix[:, 2]
     audited = fix[:, :2] @ gt + np.c_[np.zeros((2, 2)), fix[:, 2]]
-    return int(inliers.sum()), float(np.mean(np.linalg.norm(moved - truth, axis=1))), audited
+    shift = corner_error(lambda p: p @ audited[:, :2].T + audited[:, 2], gt, w, h)
+    return int(inliers.sum()), shift, audited
 
 
 def pair_ids() -> list[int]:

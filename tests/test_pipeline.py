@@ -263,6 +263,9 @@ def test_video_frames_read_on_from_an_open_reader_equal_a_fresh_seek(sim, tmp_pa
         assert np.array_equal(src.get(k), expected[k]), f"frame {k}"
         assert len(src._video_block) < VIDEO_BACKWARD_BLOCK
     assert src._open_video is not None  # kept open between frames
+    src.get(5)
+    assert np.array_equal(src.get(4), expected[4])
+    assert sorted(src._video_block) == [0, 1, 2, 3]  # one seek decoded the frames before 4
     for other in (copy.copy(src), pickle.loads(pickle.dumps(src))):
         assert other._open_video is None
         assert np.array_equal(other.get(3), expected[3])
