@@ -261,7 +261,7 @@ def test_ortholoc_uav_photo_against_an_orthophoto_of_another_date():
     The reference needs the ground's height, which the sample does not give: it is fitted
     here, independently of our pipeline, to plain OpenCV SIFT + MAGSAC matches between the photo
     and the same-date orthophoto (DOP): z0 = -12.75 m, 1.3 px median residual (the SOURCE's
-    estimate, -11 m, leaves 8.8 px). Measured: median 1.68 px, mean 2.92 px (the mean is
+    estimate, -11 m, leaves 8.8 px). Measured: median 1.47 px, mean 2.01 px (the mean is
     pulled by the frame's far edge, where the ground plane model itself is least reliable)."""
     k, pose, query, dop, xdop = _ortholoc()
     kq, kd = cv2.SIFT.create(), cv2.SIFT.create()
@@ -290,9 +290,11 @@ def test_ortholoc_uav_photo_against_an_orthophoto_of_another_date():
     assert fine, fine.reason
     err = np.hypot(*(fine.base_from_corrected.apply(grid) - _apply(ref, grid)).T)
     assert np.median(err) < 2.0, f"median {np.median(err):.2f} px"
-    # Measured with OpenCV 4.14 (the pinned build): median 1.68 px, mean 2.92 px (5.0's SIFT
+    # Measured with OpenCV 4.14 (the pinned build): median 1.47 px, mean 2.01 px; 1.68 and
+    # 2.92 px before the click's heading and scale were also estimated by image correlation
+    # (too few SIFT matches vote here: HeadingConfig.patch_below_votes) (5.0's SIFT
     # gives 1.27 and 2.19 on the same CPU; README, "Known limits").
-    assert err.mean() < 2.92 * 1.3, f"mean {err.mean():.2f} px (measured 2.92)"
+    assert err.mean() < 2.01 * 1.3, f"mean {err.mean():.2f} px (measured 2.01)"
     # Without a click: the coarse step lands at 3.08 px mean; the fine step kept a similarity
     # 40.1 px off while its projective candidate, fitted from the polyprojective's projective
     # part, folded. Measured now: the projective, median 1.39 px, mean 1.93 px.
