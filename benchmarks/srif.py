@@ -34,51 +34,72 @@ def corner_error(mapping, gt: np.ndarray, w: int, h: int) -> float:
     return float(np.mean(err)) if np.isfinite(err).all() else float("inf")
 
 
-# A pair's published truth counts as contradicted by its images when at least this many
-# patches agree on a correction that moves image 1's corners more than this many px.
-AUDIT_MIN_PATCHES = 15
-AUDIT_MIN_OFFSET_PX = 10.0
+# A pair's images hold another plane than its truth's when at least this many patches agree on a
+# correction moving image 1's corners more than this many px, and at least this many times as
+# many patches follow it as follow the published truth (within 2 px).
+PLANE_MIN_PATCHES = 15
+PLANE_MIN_OFFSET_PX = 10.0
+PLANE_MIN_RATIO = 2.0
 
 
-def audit_truth(im1, im2, valid, gt: np.ndarray) -> tuple[int, float, np.ndarray]:
-    """Check the ground truth against the images themselves, independently of our pipeline:
-    image 1 warped by the truth is cut into 48 px patches on a 32 px grid, each searched for in
-    image 2 within +-16 px (normalised correlation >= 0.5; both images' content only), and a
-    similarity RANSAC (2 px) on the patch shifts gives the correction the images ask for.
-    Returns ``(patches agreeing on it, its mean displacement of image 1's corners px, the
-    corrected truth 2x3)``; ``(n, nan, gt)`` with under 8 patches."""
+def dominant_plane(im1, im2, valid, gt: np.ndarray) -> tuple[int, int, float, np.ndarray]:
+    """Which plane most of the images' texture follows, independently of our pipeline: image 1
+    warped by the truth is cut into 48 px patches on a 16 px grid, each searched for in image 2
+    within +-24 px (normalised correlation >= 0.5; both images' content only), and a similarity
+    RANSAC (2 px) on the patch shifts gives the correction most patches agree on.
+
+    On SRIF this finds the roofs of large buildings, not errors of the truth: on pairs 19, 94
+    and 145 (corrections of 15-17 px, inspected at full resolution) rails and parking-lot
+    markings line up under the published truth and are doubled under the correction, while the
+    roofs do the opposite (relief displacement between two viewpoints). A registration that
+    lands on the correction has followed the roofs, not the ground.
+
+    Returns ``(patches agreeing on the correction, patches agreeing with the truth within 2 px,
+    the correction's mean displacement of image 1's corners px, the corrected truth 2x3)``;
+    ``(n, 0, nan, gt)`` with under 8 patches."""
     g1 = cv2.cvtColor(im1, cv2.COLOR_BGR2GRAY)
     g2 = cv2.cvtColor(im2, cv2.COLOR_BGR2GRAY)
     hb, wb = g2.shape
     warped = cv2.warpAffine(g1, gt, (wb, hb), flags=cv2.INTER_LINEAR)
     inside = cv2.warpAffine(np.ones_like(g1), gt, (wb, hb)) > 0
     both = inside & valid
+    r, m = 24, 48  # search radius, half the search window
     src, dst = [], []
-    for y in range(48, hb - 48, 32):
-        for x in range(48, wb - 48, 32):
-            if not both[y - 40 : y + 40, x - 40 : x + 40].all():
+    for y in range(m, hb - m, 16):
+        for x in range(m, wb - m, 16):
+            if not both[y - m : y + m, x - m : x + m].all():
                 continue
             patch = warped[y - 24 : y + 24, x - 24 : x + 24]
             if patch.std() < 8:
                 continue
-            score = cv2.matchTemplate(g2[y - 40 : y + 40, x - 40 : x + 40], patch,
+            score = cv2.matchTemplate(g2[y - m : y + m, x - m : x + m], patch,
                                       cv2.TM_CCOEFF_NORMED)  # fmt: skip
             _, top, _, (dx, dy) = cv2.minMaxLoc(score)
             if top >= 0.5:
                 src.append((x, y))
-                dst.append((x + dx - 16, y + dy - 16))
+                dst.append((x + dx - r, y + dy - r))
     if len(src) < 8:
-        return len(src), float("nan"), gt
+        return len(src), 0, float("nan"), gt
     src, dst = np.array(src, float), np.array(dst, float)
+    with_truth = int(np.count_nonzero(np.hypot(*(dst - src).T) < 2.0))
     # OpenCV's RANSAC seeds its own generator the same way on every call: reproducible.
     fix, inliers = cv2.estimateAffinePartial2D(src, dst, method=cv2.RANSAC,
                                                ransacReprojThreshold=2.0)  # fmt: skip
     if fix is None:
-        return 0, float("nan"), gt
+        return 0, with_truth, float("nan"), gt
     h, w = g1.shape
-    audited = fix[:, :2] @ gt + np.c_[np.zeros((2, 2)), fix[:, 2]]
-    shift = corner_error(lambda p: p @ audited[:, :2].T + audited[:, 2], gt, w, h)
-    return int(inliers.sum()), shift, audited
+    corrected = fix[:, :2] @ gt + np.c_[np.zeros((2, 2)), fix[:, 2]]
+    shift = corner_error(lambda p: p @ corrected[:, :2].T + corrected[:, 2], gt, w, h)
+    return int(inliers.sum()), with_truth, shift, corrected
+
+
+def follows_another_plane(n_plane: int, n_truth: int, shift_px: float) -> bool:
+    """Whether :func:`dominant_plane`'s figures say most texture follows another plane."""
+    return (
+        n_plane >= PLANE_MIN_PATCHES
+        and shift_px > PLANE_MIN_OFFSET_PX
+        and n_plane >= PLANE_MIN_RATIO * n_truth
+    )
 
 
 def pair_ids() -> list[int]:
@@ -148,24 +169,22 @@ def run(args) -> dict:
         pairs = pairs[: args.frames]  # `--frames N` limits the pairs for a quick look
     keys = ("seeded_coarse", "seeded_fine", "unseeded_coarse", "unseeded_fine", "opencv")
     errs = {k: [] for k in keys}
-    audited_errs = {k: [] for k in keys}  # against the audited truth where it differs
+    plane_errs = {k: [] for k in keys}  # against the other plane's correction, where flagged
     times = {k: [] for k in ("seeded", "unseeded", "opencv")}
     failures: dict[str, int] = {}
-    contradicted: list[tuple[int, int, float]] = []
+    other_plane: list[tuple[int, int, int, float]] = []
     for n, i in enumerate(pairs):
         im1, im2, valid, gt = load_pair(i)
         h, w = im1.shape[:2]
-        n_agree, offset, audited = audit_truth(im1, im2, valid, gt)
-        if n_agree >= AUDIT_MIN_PATCHES and offset > AUDIT_MIN_OFFSET_PX:
-            contradicted.append((i, n_agree, offset))
-        else:
-            audited = gt
+        n_plane, n_truth, offset, corrected = dominant_plane(im1, im2, valid, gt)
+        flagged = follows_another_plane(n_plane, n_truth, offset)
+        if flagged:
+            other_plane.append((i, n_plane, n_truth, offset))
 
-        def record(key, mapping, truths=(gt, audited), size=(w, h)):
-            for out, truth in zip((errs, audited_errs), truths, strict=True):
-                out[key].append(
-                    float("inf") if mapping is None else corner_error(mapping, truth, *size)
-                )
+        def record(key, mapping, size=(w, h), gt=gt, flagged=flagged, corrected=corrected):
+            errs[key].append(float("inf") if mapping is None else corner_error(mapping, gt, *size))
+            near = flagged and mapping is not None
+            plane_errs[key].append(corner_error(mapping, corrected, *size) if near else np.nan)
 
         seed = seed_click(i, im1, valid, gt)
         for mode, s in (("seeded", seed), ("unseeded", None)):
@@ -191,7 +210,13 @@ def run(args) -> dict:
                "unseeded_fine": "unseeded", "opencv": "opencv"}  # fmt: skip
     rows = {k: {**_rates(arr[k]), "time_s": float(np.mean(times[time_of[k]]))} for k in arr}
     for k in rows:
-        rows[k]["audited_success_10px"] = float(np.mean(np.array(audited_errs[k]) < 10.0))
+        miss = arr[k] >= 10.0
+        rows[k]["misses_on_other_plane_pairs"] = int(
+            np.count_nonzero(miss & np.isfinite(np.array(plane_errs[k])))
+        )
+        rows[k]["misses_on_the_other_plane"] = int(
+            np.count_nonzero(miss & (np.array(plane_errs[k]) < 10.0))
+        )
     labels = {
         "seeded_coarse": "ours, one click (2 px off), coarse",
         "seeded_fine": "ours, one click (2 px off), coarse + fine",
@@ -201,23 +226,24 @@ def run(args) -> dict:
     }
     md = [
         f"{len(pairs)} pairs; success = mean corner error under 10 px / 5 px against the "
-        "ground-truth similarity; time per pair = coarse + fine for ours. The last column "
-        f"scores the {len(contradicted)} pairs whose images contradict their published truth "
-        f"(at least {AUDIT_MIN_PATCHES} patches agree on a correction that moves image 1's "
-        f"corners over {AUDIT_MIN_OFFSET_PX:.0f} px; `audit_truth`) against the corrected "
-        "truth instead.",
+        "ground-truth similarity; time per pair = coarse + fine for ours. The last column: of "
+        f"the misses, how many are on the {len(other_plane)} pairs whose texture mostly follows "
+        "another plane than the truth's (large roofs; `dominant_plane`), and how many of those "
+        "lie within 10 px of that plane (the registration followed the roofs).",
         "",
         "| pipeline | success < 10 px | success < 5 px | median corner error px | time per pair s "
-        "| success < 10 px, audited truth |",
+        "| misses on roof-plane pairs (on the roofs) |",
         "|---|---:|---:|---:|---:|---:|",
         *(
             f"| {labels[k]} | {100 * r['success_10px']:.1f} % | {100 * r['success_5px']:.1f} % "
-            f"| {r['median_px']:.2f} | {r['time_s']:.3f} | {100 * r['audited_success_10px']:.1f} % |"
+            f"| {r['median_px']:.2f} | {r['time_s']:.3f} | {r['misses_on_other_plane_pairs']} "
+            f"({r['misses_on_the_other_plane']}) |"
             for k, r in rows.items()
         ),
         "",
-        "Truth contradicted by the images (pair: agreeing patches, corner shift px): "
-        + (", ".join(f"{i}: {n}, {off:.1f}" for i, n, off in contradicted) or "none"),
+        "Texture following another plane than the truth (pair: patches with it / with the "
+        "truth, corner shift px): "
+        + (", ".join(f"{i}: {n}/{t}, {off:.1f}" for i, n, t, off in other_plane) or "none"),
     ]
     if failures:
         md += ["", "Refusals: " + "; ".join(f"{k} ({v})" for k, v in sorted(failures.items()))]
@@ -225,8 +251,9 @@ def run(args) -> dict:
         "rows": rows,
         "n_pairs": len(pairs),
         "failures": failures,
-        "contradicted_truth": [
-            {"pair": i, "patches": n, "shift_px": o} for i, n, o in contradicted
+        "other_plane": [
+            {"pair": i, "patches": n, "patches_with_truth": t, "shift_px": o}
+            for i, n, t, o in other_plane
         ],
         "markdown": "\n".join(md),
     }

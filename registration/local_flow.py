@@ -43,7 +43,7 @@ def flow_matches(
         ``(pos, disp)``: ``(M, 2)`` base px of the samples and ``(M, 2)`` displacements.
     """
     h, w = reference.shape
-    dis = cv2.DISOpticalFlow_create(DIS_PRESETS[config.flow_preset])
+    dis = dis_flow(config)
     flow = dis.calc(np.ascontiguousarray(reference), np.ascontiguousarray(registered), None)
     step = config.flow_step_px
     ys, xs = np.mgrid[step // 2 : h : step, step // 2 : w : step]
@@ -100,6 +100,14 @@ def _area_resize(image: NDArray, scale: float) -> tuple[NDArray, NDArray[np.floa
     return out, np.array([out.shape[1] / image.shape[1], out.shape[0] / image.shape[0]])
 
 
+def dis_flow(config: LocalConfig):
+    """OpenCV's DIS optical flow with ``config``'s preset and refinement."""
+    dis = cv2.DISOpticalFlow_create(DIS_PRESETS[config.flow_preset])
+    if config.flow_refinement_iterations is not None:
+        dis.setVariationalRefinementIterations(config.flow_refinement_iterations)
+    return dis
+
+
 def flow_scale(width: int, config: LocalConfig) -> float:
     """The scale the flow of a ``width`` px wide frame is computed at (``flow_scale``, raised
     so the flow image is at least ``flow_min_width_px`` wide)."""
@@ -144,9 +152,9 @@ def frame_flow_matches(
 
     smap = warp.source_map_from_function(lambda p: rescale(base_from_small(p), rs), ws, hs, step=8)
     warped = warp.remap(reference.small, smap, interpolation="linear")
-    both = warp.remap(reference.small_valid.astype(np.uint8), smap, interpolation="nearest") > 0
-    both &= np.isfinite(smap).all(axis=2)
-    dis = cv2.DISOpticalFlow_create(DIS_PRESETS[config.flow_preset])
+    # Map pixels without a source (NaN) sample outside the image, which reads as no content.
+    both = warp.remap(warp.as_uint8_mask(reference.small_valid), smap, interpolation="nearest") > 0
+    dis = dis_flow(config)
     flow = dis.calc(warped, np.ascontiguousarray(small), None)
     step = max(1, round(config.flow_step_px * s[0]))
     margin = round(config.flow_margin_px * s[0])

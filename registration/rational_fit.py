@@ -220,10 +220,11 @@ def _geometric_fun(
         parts.append(_design(domain_n, degree))
     phi_all = np.vstack(parts)
     barrier = np.full(2 * len(sn), _BARRIER_RESIDUAL)
-    start_min = float(np.min(phi_all @ _split(p0, degree)[2]))
+    c0 = _split(p0, degree)[2]
+    start_min = float(np.min(phi_all @ c0))
     use_barrier = degree >= 2 and start_min > 0
     floor = min(MIN_DENOMINATOR, start_min)
-    no_fold = degree >= 2 and not use_barrier and bool(np.min(phi @ _split(p0, degree)[2]) > 0)
+    no_fold = degree >= 2 and not use_barrier and bool(np.min(phi @ c0) > 0)
 
     def fun(p: Array) -> Array:
         a, b, c = _split(p, degree)

@@ -392,6 +392,7 @@ def test_flow_method_is_not_dragged_by_cars(flat_cell):
         ({"ratio": 1.5}, "ratio must be in"),
         ({"method": "orb"}, "method must be 'sift' or 'flow', got 'orb'"),
         ({"flow_preset": "slow"}, "flow_preset must be ultrafast, fast or medium, got 'slow'"),
+        ({"flow_refinement_iterations": -1}, "flow_refinement_iterations must be None or >= 0"),
         ({"cell_model": "quadratic"}, "cell_model must be"),
         ({"fit": "tps"}, "fit must be 'cells' or 'spline', got 'tps'"),
         ({"spline_smoothness": 0.0}, "spline_smoothness must be positive, got 0.0"),
@@ -434,16 +435,19 @@ def similarity(angle_deg, scale, offset):
     return apply
 
 
-@pytest.mark.parametrize("scale", [1.0, 0.5])
-def test_field_measured_in_frame_geometry_recovers_a_known_field(scale):
+@pytest.mark.parametrize(("scale", "refinement"), [(1.0, None), (0.5, None), (0.5, 0)])
+def test_field_measured_in_frame_geometry_recovers_a_known_field(scale, refinement):
     """The flow between the frame and the mid base image warped into it gives the field in base
-    px exactly through the global mapping, at full and at half scale."""
+    px exactly through the global mapping, at full and at half scale, and without DIS's
+    variational refinement."""
     base = to_u8(128 + 40 * texture(1000, 900, 11))
     valid = np.ones(base.shape, bool)
     valid[:, 900:] = False  # the mid base image ends inside the frame's footprint
     g = similarity(6.0, 1.1, np.array([120.0, 60.0]))
     frame = frame_of_base(base, g, smooth_field, W, H)
-    cfg = replace(FLOW, flow_scale=scale, flow_preset="medium")
+    cfg = replace(
+        FLOW, flow_scale=scale, flow_preset="medium", flow_refinement_iterations=refinement
+    )
     reference = local.prepare_flow_reference(
         np.where(valid, base, 0).astype(np.uint8), valid, scale
     )
@@ -632,3 +636,11 @@ def test_estimate_field_from_matches_dispatches_on_fit(rng):
     a, _ = local.estimate_field_from_matches(pos, disp, W, H, cfg)
     b, _ = local.estimate_field_spline(pos, disp, W, H, cfg)
     assert np.array_equal(a.vectors, b.vectors) and np.array_equal(a.valid, b.valid)
+
+
+def test_flow_refinement_iterations_reach_dis():
+    from registration.local_flow import dis_flow
+
+    assert dis_flow(replace(FLOW, flow_preset="medium")).getVariationalRefinementIterations() == 5
+    cfg = replace(FLOW, flow_preset="medium", flow_refinement_iterations=0)
+    assert dis_flow(cfg).getVariationalRefinementIterations() == 0
