@@ -486,32 +486,54 @@ class _Searches:
             self._ref = prepare_search(ref, fn, size, cfg.search_radius, cfg, valid)
         return self._ref
 
+    def windowed(self, n_windows: int, win: int) -> bool:
+        """Whether warping the reference over ``n_windows`` search windows of side ``2 win + 1``
+        costs less than over the whole canvas: they cover under half of it (an intra-sensor
+        frame's sparse grid; not the reference frame's dense one, whose windows overlap)."""
+        if self._ref is not None:
+            return False
+        _, _, _, (fw, fh), cfg = self._args
+        pad = cfg.search_radius
+        return n_windows * (2 * win + 1) ** 2 < 0.5 * (fw + 2 * pad) * (fh + 2 * pad)
+
+    def ref_windows(self, win_centres: NDArray[np.int64], win: int):
+        """The reference warped over the search windows only (:meth:`_warp_windows`)."""
+        ref, fn, valid, _, _ = self._args
+        return self._warp_windows(ref, fn, valid, win_centres, win)
+
     def fallback_windows(
         self, i: int, win_centres: NDArray[np.int64], win: int
     ) -> tuple[list[NDArray[np.uint8]], NDArray[np.bool_]]:
-        """The ``i``-th fallback warped into frame geometry over the search windows of side
-        ``2 win + 1`` around ``win_centres`` (padded-canvas px) only, pixel for pixel as
-        :func:`prepare_search` would warp it over the whole canvas: ``(windows, unusable)``,
-        ``unusable`` where a window touches pixels without content. A fallback completes the
-        reference at a few windows, usually along one or two edges of the frame, so the model
-        (a numerical inverse for the previous frame) is evaluated and the image resampled only
-        there."""
-        _, _, _, (fw, fh), cfg = self._args
+        """The ``i``-th fallback warped over the search windows only (:meth:`_warp_windows`). A
+        fallback completes the reference at a few windows, usually along one or two edges of
+        the frame, so the model (a numerical inverse for the previous frame) is evaluated and
+        the image resampled only there."""
+        cfg = self._args[4]
         fb = self.fallbacks[i]
         image = self._fallback_images.get(i)
         if image is None:
             image = self._fallback_images[i] = _signal(fb.image, cfg)
+        return self._warp_windows(image, fb.ref_from_frame, fb.valid, win_centres, win)
+
+    def _warp_windows(
+        self, image, ref_from_frame, valid, win_centres: NDArray[np.int64], win: int
+    ) -> tuple[list[NDArray[np.uint8]], NDArray[np.bool_]]:
+        """``image`` warped into frame geometry over the search windows of side ``2 win + 1``
+        around ``win_centres`` (padded-canvas px) only, pixel for pixel as
+        :func:`prepare_search` would warp it over the whole canvas: ``(windows, unusable)``,
+        ``unusable`` where a window touches pixels without content."""
+        _, _, _, (fw, fh), cfg = self._args
         pad = cfg.search_radius
         boxes = np.c_[win_centres - win, win_centres + win + 1]
         maps = warp.source_maps_in_boxes(
-            fb.ref_from_frame, fw + 2 * pad, fh + 2 * pad, boxes, step=cfg.map_step_px,
+            ref_from_frame, fw + 2 * pad, fh + 2 * pad, boxes, step=cfg.map_step_px,
             origin=(-pad, -pad),
         )  # fmt: skip
         # All windows (one size) stacked into one map: one remap instead of one per window.
         side = 2 * win + 1
         stacked = np.stack(maps).reshape(len(maps) * side, side, 2)
         windows = warp.remap(image, stacked, interpolation="linear").reshape(-1, side, side)
-        unusable = _invalid(stacked, image.shape, fb.valid).reshape(-1, side * side).any(axis=1)
+        unusable = _invalid(stacked, image.shape, valid).reshape(-1, side * side).any(axis=1)
         return list(windows), unusable
 
 
@@ -536,13 +558,18 @@ def _assign_windows(centres, pred, ref, ref_valid, fallbacks, searches, config):
     win = half + rad  # half-size of the searched window
     which = np.full(len(centres), -1, np.int64)
     if config.warp_reference:
-        ref_search = searches.ref()
         win_centres = centres + rad
-        which[~_box_any(ref_search.invalid, win_centres, win)] = 0
-        windows = [
-            _window(ref_search.image, c, win) if w == 0 else None
-            for c, w in zip(win_centres, which, strict=True)
-        ]
+        if searches.windowed(len(win_centres), win):
+            found, unusable = searches.ref_windows(win_centres, win)
+            which[~unusable] = 0
+            windows = [w if not bad else None for w, bad in zip(found, unusable, strict=True)]
+        else:
+            ref_search = searches.ref()
+            which[~_box_any(ref_search.invalid, win_centres, win)] = 0
+            windows = [
+                _window(ref_search.image, c, win) if w == 0 else None
+                for c, w in zip(win_centres, which, strict=True)
+            ]
         for i in range(len(fallbacks)):
             todo = np.flatnonzero(which < 0)
             if len(todo) == 0:

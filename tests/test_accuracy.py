@@ -126,6 +126,7 @@ def test_default_preset_local_stage_improves_every_frame(default_result, default
     assert default_report.summary["unregistered"]["mean"] > 10
 
 
+@pytest.mark.slow
 def test_paper_preset_accuracy_on_a_short_sequence(paper_result, paper_report):
     """The paper's exact choices on the first three frames: every stage within its measured
     error, the local field lowering the motion, and the run recorded as the paper's

@@ -354,6 +354,7 @@ def test_seed_clicks_are_raw_pixels_replace_and_undo(tmp_path, small_seq, make_a
     assert app.state.seed is None and app.state.seed2 is None
 
 
+@pytest.mark.slow
 def test_seed_heading_typed_correction_and_failure_reason(tmp_path, small_seq, make_app):
     from registration.synth import load_truth
 

@@ -9,6 +9,7 @@ import dataclasses
 import json
 
 import numpy as np
+import pytest
 
 from app.cli import main as cli_main
 from app.commands.bench import PROFILE_RUNS
@@ -16,6 +17,7 @@ from benchmarks.register import our_runs, tenths
 from registration.synth import PROFILES
 
 
+@pytest.mark.slow
 def test_register_bench_on_a_hard_flight_reports_each_method_over_the_flight(capsys):
     """paper-hard, 15 frames at 480x360 (the fewest that meet its 0.6° shake): ours (default
     preset) and both baselines, each with finite errors per tenth; ours fails no frame, keeps

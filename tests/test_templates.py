@@ -271,3 +271,38 @@ def test_min_templates_shrinks_the_spacing_for_small_frames():
     assert len(small) >= 200 and len(template_grid(640, 480, TemplateConfig(spacing_px=100))) < 40
     step = np.diff(np.unique(small[:, 0]))
     assert (step == step[0]).all() and step[0] < 100
+
+
+def test_sparse_grid_warps_only_its_windows_to_the_same_points(monkeypatch):
+    """A sparse grid (an intra-sensor frame's) warps the reference over its search windows
+    only; the control points are those of the whole-canvas warp, to the bit, also where the
+    reference has no content."""
+    from registration import templates
+
+    ref = real_grey("songdo-vision-drone", "images", "00972.jpg", scale=0.25)  # 960x540
+    valid = np.ones(ref.shape, bool)
+    valid[:, 700:] = False  # windows there are unusable
+    frame_size = (560, 360)
+    truth = bent_warp((ref.shape[1], ref.shape[0]), frame_size)
+    frame = warp_into(ref, truth, *frame_size)
+    coarse, coarse_inv = coarse_model((ref.shape[1], ref.shape[0]), frame_size)
+    cfg = TemplateConfig(spacing_px=160, min_templates=0, edge_template_px=31)
+    calls = []
+    real = templates._Searches.ref_windows
+
+    def spy(self, *args):
+        calls.append(len(args[0]))
+        return real(self, *args)
+
+    monkeypatch.setattr(templates._Searches, "ref_windows", spy)
+    sparse = template_control_points(frame, ref, coarse, coarse_inv, cfg, ref_valid=valid)
+    assert calls and len(sparse) >= 8
+    monkeypatch.setattr(templates._Searches, "windowed", lambda self, n, win: False)
+    whole = template_control_points(frame, ref, coarse, coarse_inv, cfg, ref_valid=valid)
+    assert len(sparse) == len(whole)
+    for name in ("src", "dst", "score", "source"):
+        np.testing.assert_array_equal(getattr(sparse, name), getattr(whole, name))
+    # Dense grids (the reference frame's) warp the whole canvas once.
+    calls.clear()
+    template_control_points(frame, ref, coarse, coarse_inv, TemplateConfig(spacing_px=25))
+    assert not calls
