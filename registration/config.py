@@ -148,14 +148,21 @@ REFERENCE_TEMPLATE_SPACING_PX = 25
 REANCHOR_COVERAGE = 0.75
 # Coarse SIFT keypoints per intra-sensor frame in the default preset (IntraConfig).
 INTRA_COARSE_NFEATURES = 2000
-# Intra-sensor templates of the default preset: every 100 px without the dithered
+# Intra-sensor templates of the default preset: every 150 px without the dithered
 # re-correlation. The global model of a frame is limited by what a polyprojective can represent
 # (rolling shutter under lens distortion), not by the control points' precision, and the local
 # stage removes the rest: on simulated 2560x1920 frames, motion after global 0.474 px with 1912
 # dithered templates every 50 px (0.89 s), 0.472 px with 511 undithered every 100 px (0.30 s);
-# after local 0.102 and 0.099 px. Smaller frames get a denser grid (at least 200 templates:
-# 640x480 frames would otherwise have 24, too few for REQCON on 17 coefficients).
-INTRA_TEMPLATE = {"spacing_px": 100, "dither_iterations": 0, "min_templates": 200}
+# after local 0.102 and 0.099 px. Every 150 px (~280 templates with the edge ring) against 100
+# (~555), one thread, 2560x1920: fine step 0.217 -> 0.156 s per frame, error after local
+# 0.4944 -> 0.4933 px (default flight, 6 frames) and 3.26 -> 3.10 px (paper-hard, 15 frames);
+# long flight at 1920x1440 (120 frames): fine 0.216 -> 0.165 s, after local 0.7545 -> 0.7510 px,
+# after global 1.420 -> 1.459 px (the global model follows fewer points; the local stage
+# removes the difference).
+# Smaller frames get a denser grid (at least 200 templates: 640x480 frames would otherwise have
+# 24, too few for REQCON on 17 coefficients), so below ~1600 px wide (4:3) the spacing changes
+# nothing.
+INTRA_TEMPLATE = {"spacing_px": 150, "dither_iterations": 0, "min_templates": 200}
 
 
 # The default preset's coarse step (registration.coarse): never smaller than 640 px (1/4 of the
