@@ -380,8 +380,8 @@ def _invalid(smap: NDArray, ref_shape: tuple[int, ...], ref_valid: NDArray | Non
     """Pixels of a source map without reference content: outside the reference (NaN fails
     every comparison, so pixels without a source too) or where ``ref_valid`` is False."""
     rh, rw = ref_shape[:2]
-    # One pass of OpenCV over the (H, W, 2) map instead of four numpy comparisons (~50 ms on a
-    # 2560x1920 frame's map); bounds inclusive, NaN out of range, as the comparisons were.
+    # One pass of OpenCV over the (H, W, 2) map instead of four numpy comparisons (6 against
+    # 13 ms on a 2560x1920 frame's map); bounds inclusive, NaN out of range, as they were.
     invalid = cv2.inRange(smap, (0.0, 0.0), (rw - 1.0, rh - 1.0)) == 0
     if ref_valid is not None:
         invalid |= warp.remap(warp.as_uint8_mask(ref_valid), smap, interpolation="nearest") == 0

@@ -36,7 +36,7 @@ def pixel_grid(width: int, height: int) -> NDArray[np.float32]:
 
 def as_uint8_mask(mask: NDArray) -> NDArray[np.uint8]:
     """A bool (or 0/1) mask as uint8 for :func:`remap`: a bool array is viewed, not copied (a
-    copy of a map-sized mask per frame cost ~18 ms)."""
+    copy of a map-sized mask per frame cost 2-18 ms)."""
     mask = np.asarray(mask)
     if mask.dtype == np.bool_:
         return mask.view(np.uint8)
