@@ -267,7 +267,7 @@ def coarse_features(
     small = features.downscale(grey, s)
     small_mask = None
     if mask is not None:
-        small_mask = (features.downscale(mask.astype(np.uint8) * 255, s) > 250).astype(np.uint8)
+        small_mask = features.downscale_mask(mask, s).astype(np.uint8)
         small_mask = cv2.erode(small_mask, np.ones((7, 7), np.uint8))
     kp = features.detect_sift(small, config.sift, mask=small_mask)
     if view is not None and view.harris is not None and len(kp.xy):
@@ -643,7 +643,7 @@ def _patch_prior(seed, harris, view, cbase, s_f, s_b, priors, config) -> list[Si
     fr = _seed_frame_points([seed], harris)
     valid = None
     if cbase.valid is not None:
-        valid = features.downscale(cbase.valid.astype(np.uint8) * 255, s_b) > 250
+        valid = features.downscale_mask(cbase.valid, s_b)
     found = heading.prior_from_patch(
         features.downscale(view.grey, s_f), features.downscale(cbase.grey, s_b),
         rescale(fr, s_f)[0], rescale(np.array([seed[2:]], float), s_b)[0], hcfg,

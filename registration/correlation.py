@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from registration.coords import image_size, rescale
-from registration.features import downscale
+from registration.features import downscale, downscale_mask
 from registration.models import Projective
 from registration.robust import RansacConfig, ransac
 from registration.templates import TemplateConfig, gradient_magnitude, template_control_points
@@ -170,7 +170,7 @@ def _match_round(images: _Gradients, model, side: int, search: int, config: Corr
     small, base_small = downscale(images.frame, s), downscale(images.base, s_b)
     valid_small = None
     if images.valid is not None:
-        valid_small = downscale(np.asarray(images.valid, np.uint8) * 255, s_b) > 250
+        valid_small = downscale_mask(images.valid, s_b)
 
     def base_from_small(xy: NDArray) -> NDArray:
         return rescale(model.apply(images.to_corrected(rescale(xy, 1.0 / s))), s_b)

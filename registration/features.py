@@ -121,6 +121,12 @@ def downscale(image: NDArray, scale: float = 0.25) -> NDArray:
     return cv2.resize(img, size, interpolation=cv2.INTER_AREA)
 
 
+def downscale_mask(mask: NDArray, scale: float) -> NDArray[np.bool_]:
+    """A content mask (``(H, W)``, non-zero = content) at ``scale`` (:func:`downscale`): True
+    where the area it averages is (all but 2 %) content."""
+    return downscale(np.asarray(mask, bool).astype(np.uint8) * 255, scale) > 250
+
+
 # --------------------------------------------------------------------------------------------
 # SIFT keypoints and ratio-test matching (paper 4.3.1 steps 4-5)
 # --------------------------------------------------------------------------------------------

@@ -22,6 +22,7 @@ from registration.features import (
     SiftConfig,
     detect_sift,
     downscale,
+    downscale_mask,
     gridded_sift_control_points,
     match_ratio,
     to_grey,
@@ -380,3 +381,15 @@ def test_gridded_sift_empty_and_flat_inputs():
         gridded_sift_control_points(ref, [ref])
     with pytest.raises(ValueError, match="decimate"):
         GriddedSiftConfig(decimate=0)
+
+
+def test_downscale_mask_keeps_only_areas_wholly_of_content():
+    """A 1/4-scale content mask is True where its 4x4 block is all content: a no-data band
+    ending mid-block makes that block False, whatever the mask's dtype (bool, 0/1, 0/255)."""
+    mask = np.ones((40, 64), bool)
+    mask[:, :10] = False  # blocks 0-1 (columns 0-7) wholly, block 2 (columns 8-11) half
+    small = downscale_mask(mask, 0.25)
+    assert small.shape == (10, 16) and small.dtype == bool
+    assert not small[:, :3].any() and small[:, 3:].all()
+    for other in (mask.astype(np.uint8), mask.astype(np.uint8) * 255):
+        np.testing.assert_array_equal(downscale_mask(other, 0.25), small)
