@@ -136,42 +136,80 @@ class CellConsensus:
     status: int
 
 
-def _fit_cells(rel: NDArray, disp: NDArray, kept: NDArray, model: str, cell_px: float):
-    """Least-squares displacement model per cell over its kept matches.
+class _CellSums:
+    """Per-cell sums over the kept matches that the least-squares fits of :func:`consensus_cells`
+    need: the count, the positions' first and second moments and their products with the
+    displacements. REQCON only ever removes matches, so the sums are updated by subtracting the
+    dropped ones instead of being recomputed over every kept match in every round.
 
     Args:
         rel: ``(C, M, 2)`` match positions relative to the cell centres (padding anywhere).
         disp: ``(C, M, 2)`` displacements.
-        kept: ``(C, M)`` bool, the matches to fit.
-
-    Returns:
-        ``(vector (C, 2) at the centre, predicted displacement (C, M, 2))``. Cells with fewer
-        than 6 kept matches, or whose kept matches spread (standard deviation along either
-        principal axis) less than ``cell_px / 8``, get a translation (their mean).
+        kept: ``(C, M)`` bool, the matches summed.
     """
-    w = kept.astype(np.float64)[..., None]  # (C, M, 1)
-    n = w[..., 0].sum(axis=1)
-    safe_n = np.maximum(n, 1.0)[:, None]
-    vec = (w * disp).sum(axis=1) / safe_n
-    pred = np.broadcast_to(vec[:, None, :], disp.shape)
-    if model != "affine":
+
+    def __init__(self, rel: NDArray, disp: NDArray, kept: NDArray):
+        self.n, self.sr, self.sd, self.srr, self.srd = self._sums(rel, disp, kept)
+
+    @staticmethod
+    def _sums(rel: NDArray, disp: NDArray, w: NDArray) -> tuple[NDArray, ...]:
+        w = w.astype(np.float64)
+        wr_t = (rel * w[..., None]).transpose(0, 2, 1)  # (C, 2, M)
+        n = w.sum(axis=1)  # (C,)
+        sr = wr_t.sum(axis=2)  # (C, 2): positions
+        sd = (disp * w[..., None]).sum(axis=1)  # (C, 2): displacements
+        return n, sr, sd, wr_t @ rel, wr_t @ disp  # and (C, 2, 2) position x position, x disp.
+
+    def remove(self, rel: NDArray, disp: NDArray, drop: NDArray) -> None:
+        """Subtract the matches ``drop`` (``(C, K)`` bool over ``rel``/``disp`` ``(C, K, 2)``)."""
+        n, sr, sd, srr, srd = self._sums(rel, disp, drop)
+        self.n, self.sr, self.sd = self.n - n, self.sr - sr, self.sd - sd
+        self.srr, self.srd = self.srr - srr, self.srd - srd
+
+    def subset(self, rows: NDArray) -> None:
+        """Keep the cells ``rows`` (bool or index over the cells)."""
+        self.n, self.sr, self.sd = self.n[rows], self.sr[rows], self.sd[rows]
+        self.srr, self.srd = self.srr[rows], self.srd[rows]
+
+    def fit(self, rel: NDArray, model: str, cell_px: float) -> tuple[NDArray, NDArray]:
+        """Least-squares displacement model per cell over its kept matches.
+
+        Returns:
+            ``(vector (C, 2) at the centre, predicted displacement (C, M, 2) at rel)``. Cells
+            with fewer than 6 kept matches, or whose kept matches spread (standard deviation
+            along either principal axis) less than ``cell_px / 8``, get a translation (their
+            mean).
+        """
+        safe_n = np.maximum(self.n, 1.0)[:, None]
+        vec = self.sd / safe_n
+        pred = np.broadcast_to(vec[:, None, :], rel.shape)
+        if model != "affine":
+            return vec, pred
+        mu = self.sr / safe_n
+        # Covariance of the kept positions: (sum r r^T - n mu mu^T) / (n - 1).
+        cov = (self.srr - self.n[:, None, None] * mu[:, :, None] * mu[:, None, :]) / np.maximum(
+            self.n - 1, 1.0
+        )[:, None, None]
+        a, b, d = cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]
+        eig_min = (a + d) / 2 - np.sqrt(((a - d) / 2) ** 2 + b**2)
+        affine = (self.n >= 6) & (np.sqrt(np.maximum(eig_min, 0.0)) >= cell_px / 8.0)
+        if not affine.any():
+            return vec, pred
+        # Normal equations of d = c0 + [x, y] @ C over the kept matches: design rows [1, x, y].
+        n_a = len(np.flatnonzero(affine))
+        normal = np.empty((n_a, 3, 3))
+        normal[:, 0, 0] = self.n[affine]
+        normal[:, 0, 1:] = normal[:, 1:, 0] = self.sr[affine]
+        normal[:, 1:, 1:] = self.srr[affine]
+        rhs = np.empty((n_a, 3, 2))
+        rhs[:, 0, :] = self.sd[affine]
+        rhs[:, 1:, :] = self.srd[affine]
+        coef = np.linalg.solve(normal, rhs)  # (A, 3, 2)
+        vec = vec.copy()
+        vec[affine] = coef[:, 0, :]
+        pred = np.array(pred)
+        pred[affine] = coef[:, None, 0, :] + rel[affine] @ coef[:, 1:, :]
         return vec, pred
-    mu = (w * rel).sum(axis=1) / safe_n
-    c = (rel - mu[:, None, :]) * np.sqrt(w)
-    cov = np.matmul(c.transpose(0, 2, 1), c) / np.maximum(n - 1, 1.0)[:, None, None]
-    a, b, d = cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]
-    eig_min = (a + d) / 2 - np.sqrt(((a - d) / 2) ** 2 + b**2)
-    affine = (n >= 6) & (np.sqrt(np.maximum(eig_min, 0.0)) >= cell_px / 8.0)
-    if not affine.any():
-        return vec, pred
-    design = np.concatenate([np.ones(rel.shape[:2] + (1,)), rel], axis=2)[affine]  # (A, M, 3)
-    weighted_t = (design * w[affine]).transpose(0, 2, 1)  # (A, 3, M)
-    coef = np.linalg.solve(weighted_t @ design, weighted_t @ disp[affine])  # (A, 3, 2)
-    vec = vec.copy()
-    vec[affine] = coef[:, 0, :]
-    pred = np.array(pred)
-    pred[affine] = design @ coef
-    return vec, pred
 
 
 def consensus_cells(
@@ -204,8 +242,9 @@ def consensus_cells(
     active = np.flatnonzero(n >= config.min_matches)
     # The active cells' arrays shrink with them (most cells settle in a few rounds).
     rel_a, d_a, k = rel[active], d_all[active], kept[active]
+    sums = _CellSums(rel_a, d_a, k)
     while len(active):
-        v, pred = _fit_cells(rel_a, d_a, k, config.cell_model, config.cell_px)
+        v, pred = sums.fit(rel_a, config.cell_model, config.cell_px)
         diff = d_a - pred
         r = np.sqrt(diff[..., 0] ** 2 + diff[..., 1] ** 2)
         nk = k.sum(axis=1)
@@ -221,12 +260,14 @@ def consensus_cells(
         kept[active] = k
         go = ~done & ~fail
         if go.any():
-            # Drop each cell's n_drop worst kept matches.
-            order = np.argsort(np.where(k[go], -r[go], np.inf), axis=1, kind="stable")
-            rank = np.empty_like(order)
-            np.put_along_axis(rank, order, np.arange(width)[None, :], axis=1)
-            k = k[go] & (rank >= n_drop[go, None])
-            rel_a, d_a = rel_a[go], d_a[go]
+            k, rel_a, d_a, r, n_drop = k[go], rel_a[go], d_a[go], r[go], n_drop[go]
+            sums.subset(go)
+            drop = _worst_kept(r, k, n_drop)  # (G, K) slot indices, -1 past each cell's n_drop
+            rows = np.arange(len(drop))[:, None]
+            slots = np.maximum(drop, 0)
+            sums.remove(rel_a[rows, slots], d_a[rows, slots], drop >= 0)
+            k = k.copy()
+            k[np.broadcast_to(rows, drop.shape)[drop >= 0], drop[drop >= 0]] = False
         active = active[go]
     # Rival motion: a second coherent group among the rejected matches, of similar support.
     if config.rival_ratio > 0:
@@ -241,6 +282,28 @@ def consensus_cells(
                 status[c] = RIVAL_MOTION
     vectors[status != OK] = np.nan
     return vectors, kept, resid, status
+
+
+def _worst_kept(r: NDArray, kept: NDArray, n_drop: NDArray) -> NDArray[np.int64]:
+    """Each row's ``n_drop`` kept slots of largest ``r`` (ties: the lower slot first, as a stable
+    sort gives), as ``(C, max n_drop)`` slot indices padded with -1. Only the candidates are
+    sorted: a partition finds each row's ``max n_drop`` largest first."""
+    width = r.shape[1]
+    k_max = int(n_drop.max())
+    neg = np.where(kept, -r, np.inf)
+    if k_max < width:
+        cand = np.argpartition(neg, k_max - 1, axis=1)[:, :k_max]
+        # The partition's boundary may split equal values arbitrarily: take every slot tied
+        # with the k_max-th value too, so that the stable order below decides the ties.
+        bound = np.take_along_axis(neg, cand, axis=1).max(axis=1)
+        if (np.isfinite(bound) & ((neg == bound[:, None]).sum(axis=1) > 1)).any():
+            cand = np.argsort(neg, axis=1, kind="stable")[:, :k_max]
+    else:
+        cand = np.broadcast_to(np.arange(width), neg.shape)
+    vals = np.take_along_axis(neg, cand, axis=1)
+    order = np.lexsort((cand, vals), axis=1)
+    worst = np.take_along_axis(cand, order, axis=1)[:, :k_max]
+    return np.where(np.arange(k_max)[None, :] < n_drop[:, None], worst, -1)
 
 
 def _rival_motion(rejected: NDArray, consensus: NDArray, n_kept: int, config: LocalConfig) -> bool:
@@ -429,7 +492,7 @@ def _cell_members(
     pos: NDArray, cxs: NDArray, cys: NDArray, half: float, usable: NDArray[np.bool_]
 ) -> tuple[NDArray, NDArray, NDArray]:
     """The samples of each usable cell (``c - half < p < c + half`` on both axes), ordered by
-    x, then y, then index: ``(rows (C,), columns (C,), members (C, M) padded with -1)``, cells
+    index: ``(rows (C,), columns (C,), members (C, M) padded with -1)``, cells
     in row-major order."""
     n = len(pos)
     gy, gx = usable.shape
@@ -464,8 +527,8 @@ def _cell_members(
     keep = usable[i_all, j_all]
     s_all, i_all, j_all = s_all[keep], i_all[keep], j_all[keep]
     cell = i_all * gx + j_all
-    # Order within a cell: x, then y, then index (the order of a stable sort by y, then by x).
-    order = np.lexsort((s_all, pos[s_all, 1], pos[s_all, 0], cell))
+    # Order within a cell: by index (one sort of a unique integer key).
+    order = np.argsort(cell * n + s_all)
     s_all, cell = s_all[order], cell[order]
     cells = np.flatnonzero(usable.ravel())
     counts = np.bincount(cell, minlength=gy * gx)[cells]
