@@ -2,14 +2,15 @@
 (ORB + brute-force Hamming + MAGSAC++ to the reference frame), on one simulated sequence (or a
 given scene), scored against the exact truth, all in the same run.
 
-Ours: the ``default`` and ``paper`` presets; with ``--profile NAME`` (a hard simulated flight,
-issue 11) the default preset only (the paper preset costs ~4 s per 1280x960 frame and is not what
-the hard flights measure). The default preset runs as ``aerialreg register`` runs it: the fast
-intra-sensor coarse step (``IntraConfig.fast_coarse``) and both cores (``register_sequence``'s
-``overlap``); ``--speed-options`` adds it on one thread (``overlap=False``) and, on one thread,
-with the paper's SIFT coarse step for every frame (``fast_coarse=False``), each as its own row,
-and the default run reading the frames from the simulator's H.264 video instead of its PNGs (as
-a flight arrives; the decoding differs, and the compression changes the pixels a little).
+Ours: the ``default``, ``fast`` and ``paper`` presets; with ``--profile NAME`` (a hard simulated
+flight, issue 11) the default and fast presets only (the paper preset costs ~4 s per 1280x960
+frame and is not what the hard flights measure). The presets run as ``aerialreg register`` runs
+them: the fast intra-sensor coarse step (``IntraConfig.fast_coarse``) and both cores
+(``register_sequence``'s ``overlap``); ``--speed-options`` adds the default preset on one thread
+(``overlap=False``) and, on one thread, with the paper's SIFT coarse step for every frame
+(``fast_coarse=False``), each as its own row, and the default and fast runs reading the frames
+from the simulator's H.264 video instead of its PNGs (as a flight arrives; the decoding differs,
+and the compression changes the pixels a little).
 
 Error per frame: mean over a dense grid of ground points against the truth; reported over the
 whole flight (pooled), and per frame averaged over the first, middle and last tenth of the
@@ -135,7 +136,8 @@ def _run_ours(key, config, overlap, seq, out) -> dict:
     t1 = time.perf_counter()
     result = register_sequence(
         seq.frames, seq.base, seq.truth.gamma, out, config=config,
-        preset=key if key in ("default", "paper") else None, seed=seq.seed, progress=progress,
+        preset=key if key in ("default", "paper", "fast") else None, seed=seq.seed,
+        progress=progress,
         overlap=overlap,
     )  # fmt: skip
     elapsed = time.perf_counter() - t1
@@ -168,7 +170,7 @@ def our_runs(args) -> list[tuple[str, object, bool]]:
     from registration.config import get_preset
 
     default = get_preset("default")
-    runs = [("default", default, True)]
+    runs = [("default", default, True), ("fast", get_preset("fast"), True)]
     if not args.profile:
         runs.append(("paper", get_preset("paper"), False))
     if args.speed_options:
@@ -197,6 +199,9 @@ def run(args) -> dict:
 
         video = dataclasses.replace(seq, frames=open_frames(seq.folder / "sequence.mp4"))
         rows["video"] = _run_ours("video", get_preset("default"), True, video, tmp / "video")
+        rows["fast_video"] = _run_ours(
+            "fast_video", get_preset("fast"), True, video, tmp / "fast_video"
+        )
 
     t1 = time.perf_counter()
     opencv = register_baseline(seq.frames, seq.base, seq.truth.gamma)
@@ -222,10 +227,14 @@ NAMES = {
     "serial": "default preset on one thread (`overlap=False`)",
     "sift": "same with the SIFT coarse step for every frame (`fast_coarse=False`)",
     "video": "default preset reading the H.264 video (`sequence.mp4`), both cores",
+    "fast": "fast preset (one flow per frame for both stages), both cores",
+    "fast_video": "fast preset reading the H.264 video, both cores",
     "opencv": "plain OpenCV (SIFT+FLANN+MAGSAC)",
     "stabilo": "Stabilo's recipe (ORB 2000+BF+MAGSAC++ to ref.)",
 }
-ORDER = ("paper", "default", "serial", "sift", "video", "opencv", "stabilo")
+ORDER = (
+    "paper", "default", "serial", "sift", "video", "fast", "fast_video", "opencv", "stabilo",
+)  # fmt: skip
 
 
 def _f(v: float | None, digits: int = 3) -> str:

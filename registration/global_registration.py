@@ -43,9 +43,17 @@ from registration.coarse import (
 from registration.coords import bbox_of, frame_outline, image_size, rescale
 from registration.fast_coarse import fast_coarse
 from registration.features import ControlPoints, GriddedSiftConfig, Keypoints
+from registration.intra_points import (
+    flow_points,
+    gridded_points,
+    intra_template_points,
+    template_points,
+)
+from registration.local_field import LocalConfig
+from registration.local_flow import FrameFlow
 from registration.models import Affine, PolyProjective, Projective, Similarity, quantized
 from registration.robust import FitResult, ReqconConfig, reqcon, simplest_supported
-from registration.templates import TemplateConfig, template_control_points
+from registration.templates import TemplateConfig
 
 __all__ = [
     "CoarseBase",
@@ -110,10 +118,15 @@ class IntraConfig:
             matching cost grows with the product of the two counts; 2000 leave over a thousand
             matches with the previous frame for RANSAC.
         control_points: ``"gridded_sift"`` (paper 4.4: SIFT in 50x50 windows every 100 px,
-            matched within corresponding windows) or ``"template"`` (normalised
-            cross-correlation of the template grid against the joint base, as in 4.3.2).
+            matched within corresponding windows), ``"template"`` (normalised
+            cross-correlation of the template grid against the joint base, as in 4.3.2) or
+            ``"flow"`` (beyond the paper: points from the frame's dense flow against the mid base
+            image, which the local stage then reuses instead of measuring its own, with
+            templates along the border and where the flow has none:
+            :func:`registration.intra_points.flow_points`).
         gridded: gridded-SIFT settings (paper: 50 px windows, 100 px spacing, decimate by 3).
-        template: template settings when ``control_points == "template"``.
+        template: template settings when ``control_points`` is ``"template"`` or ``"flow"``.
+        flow_point_spacing_px: with ``"flow"``, a control point every this many frame px.
         reqcon: REQCON settings (paper: 5 %, 2 px, Nelder-Mead).
         use_previous_frame: also match against the previously registered frame (paper 4.4's
             joint base), which keeps control points available when the helicopter drifts away
@@ -148,9 +161,10 @@ class IntraConfig:
 
     prediction_gate_px: float = 150.0
     coarse_nfeatures: int = 0
-    control_points: Literal["gridded_sift", "template"] = "gridded_sift"
+    control_points: Literal["gridded_sift", "template", "flow"] = "gridded_sift"
     gridded: GriddedSiftConfig = field(default_factory=GriddedSiftConfig)
     template: TemplateConfig = field(default_factory=TemplateConfig)
+    flow_point_spacing_px: int = 96
     reqcon: ReqconConfig = field(default_factory=ReqconConfig)
     use_previous_frame: bool = True
     reanchor_coverage: float = 0.0
@@ -170,15 +184,20 @@ class IntraConfig:
             raise ValueError(
                 f"IntraConfig.reanchor_coverage must be in [0, 1], got {self.reanchor_coverage}"
             )
-        if self.control_points not in ("gridded_sift", "template"):
+        if self.control_points not in ("gridded_sift", "template", "flow"):
             raise ValueError(
-                f"IntraConfig.control_points must be 'gridded_sift' or 'template', "
+                f"IntraConfig.control_points must be 'gridded_sift', 'template' or 'flow', "
                 f"got {self.control_points!r}"
             )
-        if self.control_points == "template" and not self.template.warp_reference:
+        if self.control_points != "gridded_sift" and not self.template.warp_reference:
             raise ValueError(
-                "IntraConfig: template control points need template.warp_reference=True "
-                "(the previous frame is searched in the frame's geometry)"
+                f"IntraConfig: {self.control_points} control points need "
+                "template.warp_reference=True (the previous frame is searched in the frame's "
+                "geometry)"
+            )
+        if self.flow_point_spacing_px < 1:
+            raise ValueError(
+                f"IntraConfig.flow_point_spacing_px must be >= 1, got {self.flow_point_spacing_px}"
             )
 
 
@@ -203,6 +222,9 @@ class FineResult:
     model_kind: str = "polyprojective"
     model_reason: str = ""
     sigma_px: float = float("nan")
+    # The frame's dense flow against the mid base image when its control points came from it
+    # (IntraConfig.control_points == "flow"), for the local stage to reuse; not written out.
+    flow: FrameFlow | None = None
 
     @classmethod
     def failed(cls, reason: str) -> FineResult:
@@ -402,7 +424,7 @@ def _fine_against_base(frame_raw, base, camera, model, cfg: FineConfig, match_in
     t0 = time.perf_counter()
     camera = as_camera(camera, frame_raw)
     view = frame_view(frame_raw, camera, match_in)
-    cps = _template_points(view, features.to_grey(base), model, cfg.template, ref_valid=base_valid)
+    cps = template_points(view, features.to_grey(base), model, cfg.template, ref_valid=base_valid)
     # The probes of robust.hull_coverage: how much of the frame the control points span.
     return _fit_fine(
         cps, model, cfg.degree, cfg.reqcon, t0, frame_domain(frame_raw, camera), cfg.check_support,
@@ -415,31 +437,6 @@ def frame_domain(frame_raw: NDArray, camera: Camera | float, n: int = 9) -> NDAr
     model must stay defined (no pole of the polyprojective inside the frame). ``camera``: the
     frame's :class:`registration.camera.Camera` (or its Harris γ)."""
     return as_camera(camera, frame_raw).grid(n, n)
-
-
-def _template_points(
-    view: FrameView, reference, base_from_corrected, template_cfg, *, ref_valid=None, fallback=None
-):
-    """Template control points of the view against a base-pixel reference (and a fallback
-    reference, see :func:`registration.templates.template_control_points`); ``src`` corrected
-    px."""
-    model = base_from_corrected
-    cps = template_control_points(
-        view.grey,
-        reference,
-        lambda xy: model.apply(view.to_corrected(xy)),
-        lambda b: view.from_corrected(model.inverse(b)),
-        template_cfg,
-        ref_valid=ref_valid,
-        fallback=fallback,
-    )
-    return _points_to_corrected(cps, view)
-
-
-def _points_to_corrected(cps: ControlPoints, view: FrameView) -> ControlPoints:
-    if view.harris is None or not len(cps.src):
-        return cps
-    return ControlPoints(view.to_corrected(cps.src), cps.dst, cps.score, cps.source)
 
 
 @dataclass
@@ -580,13 +577,15 @@ def register_intra(
     degree: int,
     match_in: str,
     rng: np.random.Generator | int | None = 0,
+    flow_cfg: LocalConfig | None = None,
 ) -> tuple[CoarseResult, FineResult, PreviousFrame | None]:
     """Register one frame against the joint base (paper 4.4).
 
     ``cfg`` are the intra-sensor settings, ``coarse_cfg`` the coarse step's (the mid base
     image's coarse SIFT; the frames' with :func:`intra_coarse_config`), ``degree`` that of the
     polyprojective (``FineConfig.degree``), ``match_in`` where control points are found
-    (``PipelineConfig.match_in``).
+    (``PipelineConfig.match_in``), ``flow_cfg`` the flow settings (the local stage's) that
+    ``cfg.control_points == "flow"`` needs.
 
     The coarse step is the fast path (:mod:`registration.fast_coarse`, with
     ``IntraConfig.fast_coarse``) or, when that is off or one of its checks fails, the SIFT step
@@ -622,11 +621,16 @@ def register_intra(
 
     t1 = time.perf_counter()
     model = coarse.base_from_corrected
+    flow = None
     if cfg.control_points == "gridded_sift":
         state.sift = features.detect_sift(view.grey, cfg.gridded.sift)
-        cps = _gridded_points(view, state.sift, model, joint, prev, cfg)
+        cps = gridded_points(view, state.sift, model, joint, prev, cfg)
+    elif cfg.control_points == "flow":
+        if flow_cfg is None:
+            raise ValueError("register_intra: flow control points need flow_cfg")
+        cps, flow = flow_points(view, model, joint, prev, cfg, flow_cfg)
     else:
-        cps = _intra_template_points(view, model, joint, prev, cfg)
+        cps = intra_template_points(view, model, joint, prev, cfg)
     if prev is not None and len(cps.src):
         # Points found in the previous frame (source 1) are in its raw pixels: to base pixels.
         from_prev = cps.source == 1
@@ -637,6 +641,7 @@ def register_intra(
     if not keep.all():
         cps = ControlPoints(cps.src[keep], cps.dst[keep], cps.score[keep], cps.source[keep])
     fine = _fit_fine(cps, model, degree, cfg.reqcon, t1, frame_domain(frame_raw, camera))
+    fine.flow = flow
     if not fine:
         return coarse, fine, None
     state.base_from_corrected = fine.base_from_corrected
@@ -682,59 +687,6 @@ def intra_sift_coarse(
     known.insert(0, None)
     n_base = sum(len(r[0].keypoints.xy) for r in refs)
     return fit_coarse(frame_coarse, refs, ccfg, gate, rng, n_base, known), frame_coarse
-
-
-def _gridded_points(view, frame_sift, model, joint: JointBase, prev, cfg) -> ControlPoints:
-    """Gridded-SIFT control points against the mid base image and the previous frame (paper
-    4.4), ``src`` corrected px."""
-    if joint.mid_sift is None:
-        joint.mid_sift = features.detect_sift(
-            joint.mid_grey, cfg.gridded.sift, mask=joint.mid_valid.astype(np.uint8)
-        )
-    refs_fine = [
-        features.Reference(
-            joint.mid_grey,
-            lambda xy: model.apply(view.to_corrected(xy)),
-            lambda b: view.from_corrected(model.inverse(b)),
-            joint.mid_sift,
-        )
-    ]
-    if prev is not None:
-        p = prev.base_from_corrected
-        pv = prev.view
-        if prev.sift is None:
-            prev.sift = features.detect_sift(pv.grey, cfg.gridded.sift)
-        refs_fine.append(
-            features.Reference(
-                pv.grey,
-                lambda xy: pv.from_corrected(p.inverse(model.apply(view.to_corrected(xy)))),
-                lambda xy: view.from_corrected(model.inverse(p.apply(pv.to_corrected(xy)))),
-                prev.sift,
-            )
-        )
-    cps = features.gridded_sift_control_points(
-        view.grey, refs_fine, cfg.gridded, frame_keypoints=frame_sift
-    )
-    return _points_to_corrected(cps, view)
-
-
-def _intra_template_points(view, model, joint: JointBase, prev, cfg) -> ControlPoints:
-    """Template control points against the mid base image, then the previous frame and the
-    base map where the ones before have no content (``src`` corrected px)."""
-    fallbacks = []
-    if prev is not None:
-        p, pv = prev.base_from_corrected, prev.view
-        fallbacks.append(features.Reference(
-            pv.grey, lambda xy: pv.from_corrected(p.inverse(model.apply(view.to_corrected(xy))))
-        ))  # fmt: skip
-    if cfg.base_fallback and joint.base_grey is not None:
-        fallbacks.append(features.Reference(
-            joint.base_grey, lambda xy: model.apply(view.to_corrected(xy)),
-            valid=joint.base_valid,
-        ))  # fmt: skip
-    return _template_points(
-        view, joint.mid_grey, model, cfg.template, ref_valid=joint.mid_valid, fallback=fallbacks
-    )
 
 
 def footprint_bbox(

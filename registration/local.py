@@ -75,7 +75,9 @@ from registration.local_fit import (
 )
 from registration.local_flow import (
     FlowReference,
+    FrameFlow,
     flow_matches,
+    flow_samples,
     flow_scale,
     frame_flow_matches,
     prepare_flow_reference,
@@ -148,6 +150,8 @@ def estimate_field_in_frame(
     base_from_frame: Callable[[NDArray], NDArray],
     reference: FlowReference,
     config: LocalConfig = LocalConfig(),
+    *,
+    flow: FrameFlow | None = None,
 ) -> tuple[DisplacementField, FieldStats] | tuple[None, None]:
     """Displacement field of a frame against the mid base image from :func:`frame_flow_matches`
     (``method="flow"``), over the base-pixel box the frame covers; the per-cell consensus and the
@@ -157,6 +161,9 @@ def estimate_field_in_frame(
         frame_grey: ``(H, W)`` uint8 raw frame.
         base_from_frame: the global mapping, ``(N, 2)`` raw frame px -> base px.
         reference: the mid base image (:func:`prepare_flow_reference`).
+        flow: the frame's flow against ``reference`` when already measured (by the global stage,
+            with raw frame px, through an earlier model: :func:`frame_flow`); None = measure it
+            through ``base_from_frame``.
 
     Returns:
         ``(field, stats)``, or ``(None, None)`` when the frame covers no base pixels.
@@ -178,7 +185,10 @@ def estimate_field_in_frame(
     x0, y0, x1, y1 = bbox_of(outline, (wb, hb))
     if x1 - x0 < 2 or y1 - y0 < 2:
         return None, None
-    pos, disp = frame_flow_matches(frame_grey, base_from_frame, reference, config)
+    if flow is None:
+        pos, disp = frame_flow_matches(frame_grey, base_from_frame, reference, config)
+    else:
+        pos, disp = flow_samples(flow, base_from_frame, config)
     t1 = time.perf_counter()
     # Where both have data, for the per-cell "outside" test: the footprint and the mid base.
     mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
@@ -277,6 +287,7 @@ __all__ = [
     "FLOW_OVERRIDES",
     "FieldStats",
     "FlowReference",
+    "FrameFlow",
     "KeypointSet",
     "LocalConfig",
     "NEIGHBOUR_OUTLIER",
@@ -297,6 +308,7 @@ __all__ = [
     "estimate_field_spline",
     "fill_invalid",
     "flow_matches",
+    "flow_samples",
     "flow_scale",
     "frame_field",
     "frame_flow_matches",
@@ -339,11 +351,12 @@ def reference_field(fine, base_size: tuple[int, int], config: LocalConfig, footp
     return estimate_field_from_matches(dst, disp, x1 - x0, y1 - y0, config, origin=(x0, y0))
 
 
-def frame_field(frame, camera: Camera, model, joint, config: LocalConfig):
+def frame_field(frame, camera: Camera, model, joint, config: LocalConfig, flow=None):
     """The displacement field of an intra-sensor frame against the mid base image (paper
     section 5): ``frame`` raw (H, W[, 3]) taken by ``camera``, ``model`` its
     ``base_from_corrected``, ``joint`` the :class:`registration.global_registration.JointBase`
-    (its flow reference or keypoints are prepared once and kept there). Returns
+    (its flow reference or keypoints are prepared once and kept there), ``flow`` the frame's
+    :class:`FrameFlow` (raw frame px) when the global stage measured it already. Returns
     ``(field, stats)`` or ``(None, None)``."""
     from registration.render import render_to_base
 
@@ -361,7 +374,7 @@ def frame_field(frame, camera: Camera, model, joint, config: LocalConfig):
             joint.flow_reference = prepare_flow_reference(
                 joint.mid_grey, joint.mid_valid, flow_scale(w, config)
             )
-        return estimate_field_in_frame(grey, base_from_raw, joint.flow_reference, config)
+        return estimate_field_in_frame(grey, base_from_raw, joint.flow_reference, config, flow=flow)
     box = bbox_of(model.apply(camera.outline()), (wb, hb), 2)
     x0, y0, x1, y1 = box
     if x1 - x0 < 2 or y1 - y0 < 2:

@@ -89,6 +89,12 @@ def test_default_preset_differs_from_the_paper_and_is_valid():
     assert default.coarse.ransac.refine == "lm" and default.fine.reqcon.optimizer == "lm"
     assert default.fine.reqcon.stop == "outliers"
     assert default.intra.control_points == "template" and default.local.method == "flow"
+    # The fast preset: the default one with control points from the frame's flow.
+    fast = get_preset("fast")
+    assert fast.intra.control_points == "flow"
+    assert default == dataclasses.replace(
+        fast, intra=dataclasses.replace(fast.intra, control_points="template")
+    )
     assert default.match_in == "raw" and default.reference_local is not None
     assert default.coarse.correlation.rounds and default.coarse.guided
 
@@ -159,11 +165,24 @@ def test_presets_survive_the_json_round_trip_of_result_json(name):
 
 
 def test_bad_names_are_one_line_errors():
-    with pytest.raises(ValueError, match="unknown preset 'fast'; choose from paper, default"):
-        get_preset("fast")
+    with pytest.raises(
+        ValueError, match="unknown preset 'quick'; choose from paper, default, fast"
+    ):
+        get_preset("quick")
     with pytest.raises(ValueError, match=r"unknown key config\.fine\.degre \(known:"):
         config_from_dict({"fine": {"degre": 3}})
     with pytest.raises(ValueError, match="config.coarse must be an object, got list"):
         config_from_dict({"coarse": [1]}, PipelineConfig)
     with pytest.raises(ValueError, match="models"):
         dataclasses.replace(PipelineConfig().coarse, models=("homography",))
+    intra = PipelineConfig().intra
+    with pytest.raises(ValueError, match="control_points must be 'gridded_sift', 'template' or"):
+        dataclasses.replace(intra, control_points="sift")
+    with pytest.raises(ValueError, match="flow control points need template.warp_reference=True"):
+        dataclasses.replace(
+            intra,
+            control_points="flow",
+            template=dataclasses.replace(intra.template, warp_reference=False),
+        )
+    with pytest.raises(ValueError, match="flow_point_spacing_px must be >= 1, got 0"):
+        dataclasses.replace(intra, flow_point_spacing_px=0)

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from registration import local, warp
+from registration import local, local_flow, warp
 from registration.local import (
     NEIGHBOUR_OUTLIER,
     NO_CONSENSUS,
@@ -467,6 +467,38 @@ def test_field_measured_in_frame_geometry_recovers_a_known_field(scale, refineme
         b_true = g(q) - smooth_field(b_true)
     b = local.local_frame_to_base(g, f, q)
     assert np.linalg.norm(b - b_true, axis=1).max() < 0.3
+
+
+def test_one_flow_through_the_coarse_model_serves_both_stages():
+    """The default preset measures a frame's flow once, through its coarse model (a few px off),
+    draws the global model's control points from it and lets the local stage reuse it through
+    the fine model: the points are true correspondences, and the field is the known one, as
+    when the flow is measured through the fine model itself."""
+    base = to_u8(128 + 40 * texture(1000, 900, 11))
+    valid = np.ones(base.shape, bool)
+    g = similarity(6.0, 1.1, np.array([120.0, 60.0]))
+    coarse = similarity(6.15, 1.101, np.array([122.5, 58.0]))
+    off = np.linalg.norm(
+        coarse(np.array([[0.0, 0], [639, 479]])) - g(np.array([[0.0, 0], [639, 479]])), axis=1
+    )
+    assert off.max() > 2.5  # the flow has to bridge what the coarse model misses
+    frame = frame_of_base(base, g, smooth_field, W, H)
+    cfg = replace(FLOW, flow_preset="medium")
+    reference = local.prepare_flow_reference(base, valid, 1.0)
+    flow = local_flow.frame_flow(frame, coarse, reference, cfg, point_step_px=48)
+    q, b = flow.point_frame_xy, flow.point_base_xy
+    assert len(q) >= 80
+    b_true = g(q)
+    for _ in range(30):
+        b_true = g(q) - smooth_field(b_true)
+    err = np.linalg.norm(b - b_true, axis=1)
+    assert np.median(err) < 0.1 and np.percentile(err, 95) < 0.3, err
+    f, stats = local.estimate_field_in_frame(frame, g, reference, cfg, flow=flow)
+    nodes = f.node_xy.reshape(-1, 2)
+    measured = f.valid.ravel()
+    assert measured.sum() >= 20, stats.counts()
+    err = np.linalg.norm(f.vectors.reshape(-1, 2)[measured] - smooth_field(nodes[measured]), axis=1)
+    assert np.median(err) < 0.1 and err.max() < 0.5, err
 
 
 def test_field_in_frame_needs_the_flow_method_and_a_grey_frame():

@@ -113,6 +113,31 @@ def test_failed_frame_is_marked_and_the_run_goes_on(sim, tmp_path):
     assert np.linalg.norm(res.frame_to_base(5, q) - truth.frame_to_base(5, q)) < 2.0
 
 
+def test_each_intra_frame_is_measured_by_one_flow(sim, tmp_path, monkeypatch):
+    """The fast preset's global stage draws a frame's control points from its dense flow
+    against the mid base image and the local stage reuses that flow: one DIS flow per
+    intra-sensor frame (both cores: the local stage runs in its own thread), and the frames land
+    on the truth."""
+    from registration import local_flow
+
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for k in range(4):
+        shutil.copy(sim / "frames" / f"{k:06d}.png", frames)
+    calls = []
+    dis_flow = local_flow.dis_flow
+    monkeypatch.setattr(local_flow, "dis_flow", lambda cfg: calls.append(1) or dis_flow(cfg))
+    res = run(sim, tmp_path / "out", preset="fast", frames_dir=frames, overlap=True)
+    assert [r["status"] for r in res.records] == ["ok"] * 4
+    assert len(calls) == 3
+    truth = load_truth(sim)
+    q = np.array([[100.0, 80.0], [320.0, 240.0], [540.0, 400.0]])
+    for k in (1, 2, 3):
+        err = np.linalg.norm(res.frame_to_base(k, q) - truth.frame_to_base(k, q), axis=1)
+        # Measured: at most 0.49 px (frame 3's corner).
+        assert err.max() < 0.49 * 1.3, (k, err)
+
+
 def test_reference_frame_that_cannot_be_registered_is_an_error(sim, tmp_path):
     noise = np.random.default_rng(0).integers(0, 255, read_image(sim / "base.png").shape, np.uint8)
     with pytest.raises(RegistrationFailed, match="reference frame 0"):
@@ -334,6 +359,6 @@ def test_register_benchmark_runs_end_to_end(capsys):
     out = json.loads(capsys.readouterr().out)
     assert code == 0
     rows = out["register"]["rows"]
-    assert set(rows) == {"paper", "default", "opencv", "stabilo"}
+    assert set(rows) == {"paper", "default", "fast", "opencv", "stabilo"}
     for row in rows.values():
         assert np.isfinite(row["global"]["mean"]) and row["times"]["total"] > 0

@@ -139,11 +139,11 @@ MUTATIONS: list[Mutation] = [
     _m(
         "previous_frame_fallback_disabled",
         "intra-sensor templates never fall back to the previous frame",
-        "registration/global_registration.py",
+        "registration/intra_points.py",
         [
             (
-                "        fallbacks = []\n        if prev is not None:\n",
-                "        fallbacks = []\n        if False:\n",
+                "    fallbacks = []\n    if prev is not None:\n",
+                "    fallbacks = []\n    if False:\n",
                 1,
             )
         ],  # fmt: skip
@@ -218,8 +218,8 @@ MUTATIONS: list[Mutation] = [
                 1,
             ),
             (
-                "from registration.features import downscale\n",
-                "from registration.features import downscale, to_grey\n",
+                "from registration.features import downscale, downscale_mask\n",
+                "from registration.features import downscale, downscale_mask, to_grey\n",
                 1,
             ),
         ],  # fmt: skip

@@ -72,7 +72,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--preset",
         default="default",
-        help="parameter preset: 'paper' (exactly the paper's choices) or 'default' (faster, at least as accurate)",
+        help=(
+            "parameter preset: 'paper' (exactly the paper's choices), 'default' (faster, at "
+            "least as accurate) or 'fast' (one flow per frame: ~20%% faster at 2560x1920, up "
+            "to 5%% more error on small frames)"
+        ),
     )
     p.add_argument(
         "--no-local",
