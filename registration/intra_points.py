@@ -4,9 +4,9 @@
 * :func:`template_points`: the template grid against one base-pixel reference (4.3.2).
 * :func:`gridded_points`: gridded SIFT against the mid base image and the previous frame (4.4).
 * :func:`intra_template_points`: templates against the mid base image, then the previous frame
-  and the base map where the ones before have no content (the default preset until flow points).
-* :func:`flow_points`: beyond the paper, the default preset's: points drawn from the dense flow
-  of the frame against the mid base image (the flow the local stage then reuses), templates only
+  and the base map where the ones before have no content (the default preset).
+* :func:`flow_points`: beyond the paper, the fast preset's: points drawn from the dense flow of
+  the frame against the mid base image (the flow the local stage then reuses), templates only
   along the frame's border and where the flow has no points.
 """
 
