@@ -14,6 +14,7 @@ import pytest
 from app.cli import main as cli_main
 from app.commands.bench import PROFILE_RUNS
 from benchmarks.register import our_runs, tenths
+from registration.config import get_preset
 from registration.synth import PROFILES
 
 
@@ -29,7 +30,8 @@ def test_register_bench_on_a_hard_flight_reports_each_method_over_the_flight(cap
     assert code == 0
     assert (out["profile"], out["size"], out["frames"]) == ("paper-hard", [480, 360], 15)
     rows = out["rows"]
-    assert list(rows) == ["default", "opencv", "stabilo"]  # no paper preset on a profile
+    # No paper preset on a profile.
+    assert list(rows) == ["default", "fast", "opencv", "stabilo"]
     for key, row in rows.items():
         for stage in ("global", "local"):
             errors = [row[stage]["mean"], *row[stage]["tenths"].values()]
@@ -51,7 +53,7 @@ def test_register_bench_on_a_hard_flight_reports_each_method_over_the_flight(cap
     assert ours["local"]["mean"] < rows["opencv"]["local"]["mean"]
     # The per-tenth table names each method once per stage.
     table = out["markdown"].split("| pipeline | stage |")[1]
-    assert table.count("| default preset |") == 2
+    assert table.count("| default preset |") == 2 and table.count("| fast preset (") == 2
     assert table.count("plain OpenCV") == 1 and table.count("Stabilo") == 1
 
 
@@ -61,13 +63,14 @@ def test_speed_options_add_one_thread_and_the_sift_coarse_step_as_rows():
         return {key: (config, overlap) for key, config, overlap in our_runs(args)}
 
     plain = runs()
-    assert list(plain) == ["default", "paper"]
+    assert list(plain) == ["default", "fast", "paper"]
     default, overlap = plain["default"]
     assert default.intra.fast_coarse and overlap  # as `aerialreg register` runs
-    assert list(runs(profile="long-flight")) == ["default"]
+    assert plain["fast"] == (get_preset("fast"), True)
+    assert list(runs(profile="long-flight")) == ["default", "fast"]
 
     more = runs(speed_options=True)
-    assert list(more) == ["default", "paper", "serial", "sift"]
+    assert list(more) == ["default", "fast", "paper", "serial", "sift"]
     assert more["serial"] == (default, False)
     sift_cfg, sift_overlap = more["sift"]
     assert not sift_cfg.intra.fast_coarse and not sift_overlap
