@@ -135,8 +135,9 @@ def flow_points(
             joint.mid_grey, joint.mid_valid, flow_scale(fw, flow_cfg)
         )
     tcfg = cfg.template
+    grid_px = grid_spacing(fw, fh, tcfg)
     # Never sparser than the template grid would be (its min_templates floor on small frames).
-    spacing = min(cfg.flow_point_spacing_px, grid_spacing(fw, fh, tcfg))
+    spacing = min(cfg.flow_point_spacing_px, grid_px)
     flow = frame_flow(
         view.grey, lambda q: model.apply(view.to_corrected(q)), joint.flow_reference, flow_cfg,
         point_step_px=spacing,
@@ -154,7 +155,7 @@ def flow_points(
     if len(holes):
         sets.append(intra_template_points(view, model, joint, prev, cfg, centres=holes))
     if tcfg.edge_template_px > 0:
-        ring = edge_ring(fw, fh, tcfg.edge_template_px, grid_spacing(fw, fh, tcfg))
+        ring = edge_ring(fw, fh, tcfg.edge_template_px, grid_px)
         ring_cfg = dataclasses.replace(tcfg, template_px=tcfg.edge_template_px, edge_template_px=0)
         sets.append(
             intra_template_points(

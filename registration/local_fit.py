@@ -226,7 +226,7 @@ def consensus_cells(
         ``(vectors (C, 2), kept (C, M) bool, residual_px (C,), status (C,) int8)``; vectors are
         NaN where the status is not OK.
     """
-    n_cells, width = members.shape
+    n_cells = len(members)
     slot = members >= 0
     idx = np.where(slot, members, 0)
     rel = pos[idx] - centres[:, None, :]

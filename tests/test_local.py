@@ -539,6 +539,30 @@ def sequential_reqcon(pos, disp, centre, cfg):
         idx = idx[np.sort(np.argsort(r, kind="stable")[:n_keep])]
 
 
+def test_worst_kept_breaks_ties_as_a_stable_sort(rng):
+    """REQCON drops each cell's worst kept matches; among equal residuals the lower slot goes
+    first, as the stable sort it replaced did, also when the tie straddles the partition's
+    boundary (rows 0 and 1 hold exact ties there; row 2 fewer kept slots than the most any row
+    drops)."""
+    from registration.local_fit import _worst_kept
+
+    r = rng.uniform(0, 1, (3, 12))
+    r[0, [2, 5, 9]] = 2.0  # three-way tie for the two worst
+    r[1, [1, 4]] = 3.0
+    r[1, [3, 7, 8]] = 2.5  # the second worst tied three ways
+    kept = np.ones((3, 12), bool)
+    kept[1, 8] = False
+    kept[2, 3:] = False
+    n_drop = np.array([2, 3, 2])
+    got = _worst_kept(r, kept, n_drop)
+    for i in range(3):
+        order = np.argsort(np.where(kept[i], -r[i], np.inf), kind="stable")[: n_drop[i]]
+        np.testing.assert_array_equal(got[i, : n_drop[i]], order)
+        assert (got[i, n_drop[i] :] == -1).all()
+    np.testing.assert_array_equal(got[0, :2], [2, 5])
+    np.testing.assert_array_equal(got[1, :3], [1, 4, 3])
+
+
 def test_batched_consensus_equals_one_cell_at_a_time(rng):
     """consensus_cells decides every cell as a plain one-cell-at-a-time REQCON does, and as
     cell_consensus does on that cell alone (with the rival-motion guard)."""
