@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 from registration import features
 from registration.features import ControlPoints
 from registration.local_field import LocalConfig
-from registration.local_flow import FrameFlow, flow_scale, frame_flow, prepare_flow_reference
+from registration.local_flow import FrameFlow, frame_flow, joint_flow_reference
 from registration.templates import edge_ring, grid_spacing, template_control_points, template_grid
 
 
@@ -130,16 +130,13 @@ def flow_points(
         local stage (:func:`registration.local.frame_field`).
     """
     fh, fw = view.grey.shape
-    if joint.flow_reference is None:
-        joint.flow_reference = prepare_flow_reference(
-            joint.mid_grey, joint.mid_valid, flow_scale(fw, flow_cfg)
-        )
+    reference = joint_flow_reference(joint, fw, flow_cfg)
     tcfg = cfg.template
     grid_px = grid_spacing(fw, fh, tcfg)
     # Never sparser than the template grid would be (its min_templates floor on small frames).
     spacing = min(cfg.flow_point_spacing_px, grid_px)
     flow = frame_flow(
-        view.grey, lambda q: model.apply(view.to_corrected(q)), joint.flow_reference, flow_cfg,
+        view.grey, lambda q: model.apply(view.to_corrected(q)), reference, flow_cfg,
         point_step_px=spacing,
     )  # fmt: skip
     sets = [

@@ -34,6 +34,7 @@ fields, applying and inverting a field) and re-exports the rest: the data and se
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import asdict
@@ -80,6 +81,7 @@ from registration.local_flow import (
     flow_samples,
     flow_scale,
     frame_flow_matches,
+    joint_flow_reference,
     prepare_flow_reference,
 )
 
@@ -351,6 +353,11 @@ def reference_field(fine, base_size: tuple[int, int], config: LocalConfig, footp
     return estimate_field_from_matches(dst, disp, x1 - x0, y1 - y0, config, origin=(x0, y0))
 
 
+# Local stages of several frames run at once (registration.overlap): the first to need the mid
+# base image's keypoints detects them, the others wait for it.
+_PREPARE_LOCK = threading.Lock()
+
+
 def frame_field(frame, camera: Camera, model, joint, config: LocalConfig, flow=None):
     """The displacement field of an intra-sensor frame against the mid base image (paper
     section 5): ``frame`` raw (H, W[, 3]) taken by ``camera``, ``model`` its
@@ -370,11 +377,8 @@ def frame_field(frame, camera: Camera, model, joint, config: LocalConfig, flow=N
     grey = features.to_grey(frame)
     if config.method == "flow":
         # Measured in the frame's geometry: no rendering of the frame into base pixels.
-        if joint.flow_reference is None:
-            joint.flow_reference = prepare_flow_reference(
-                joint.mid_grey, joint.mid_valid, flow_scale(w, config)
-            )
-        return estimate_field_in_frame(grey, base_from_raw, joint.flow_reference, config, flow=flow)
+        reference = joint_flow_reference(joint, w, config)
+        return estimate_field_in_frame(grey, base_from_raw, reference, config, flow=flow)
     box = bbox_of(model.apply(camera.outline()), (wb, hb), 2)
     x0, y0, x1, y1 = box
     if x1 - x0 < 2 or y1 - y0 < 2:
@@ -383,8 +387,9 @@ def frame_field(frame, camera: Camera, model, joint, config: LocalConfig, flow=N
     reference = joint.mid_grey[y0:y1, x0:x1]
     both = valid & joint.mid_valid[y0:y1, x0:x1]
     # The mid base image is the reference of every frame: detect its keypoints once.
-    if joint.local_keypoints is None:
-        joint.local_keypoints = detect_keypoints(joint.mid_grey, config, mask=joint.mid_valid)
+    with _PREPARE_LOCK:
+        if joint.local_keypoints is None:
+            joint.local_keypoints = detect_keypoints(joint.mid_grey, config, mask=joint.mid_valid)
     return estimate_field(
         registered,
         reference,

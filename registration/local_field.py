@@ -88,6 +88,8 @@ class LocalConfig:
         flow_refinement_iterations: DIS's variational refinement iterations (None: the
             preset's, 5 for "fast" and "medium"; 0 skips the refinement, a third of
             "medium"'s time at 1280x960).
+        flow_patch_stride: DIS's patch stride in px (None: the preset's, 3 for "medium", 4 for
+            the others); the patch search's cost falls with its square.
         flow_step_px: flow samples are taken every this many px (8 -> 625 votes per cell).
         flow_margin_px: samples closer than this to missing data are skipped (flow is
             unreliable at the footprint's edge).
@@ -134,6 +136,7 @@ class LocalConfig:
     neighbour_min_count: int = 3
     flow_preset: str = "medium"
     flow_refinement_iterations: int | None = None
+    flow_patch_stride: int | None = None
     flow_step_px: int = 8
     flow_margin_px: int = 8
     flow_scale: float = 1.0
@@ -166,6 +169,10 @@ class LocalConfig:
             raise ValueError(
                 "flow_refinement_iterations must be None or >= 0, got "
                 f"{self.flow_refinement_iterations}"
+            )
+        if self.flow_patch_stride is not None and self.flow_patch_stride < 1:
+            raise ValueError(
+                f"flow_patch_stride must be None or >= 1, got {self.flow_patch_stride}"
             )
         if not 0 < self.flow_scale <= 1:
             raise ValueError(f"flow_scale must be in (0, 1], got {self.flow_scale}")

@@ -1,10 +1,12 @@
 """Keeping both cores busy on a sequence: frames decoded ahead of the registration, and the
-local stage of one frame run while the next frame's global stage runs.
+local stages of frames run while the next frames' global stages run.
 
 Decoding a 2560x1920 frame (PNG: ~0.1 s of CPU; a video frame, sequentially: ~0.03 s) and
 the local stage (~0.05-0.2 s: with the default preset it only turns the global stage's flow into
-a field) are both mostly C code that releases the GIL, so a second thread runs them on the
-second core while the main thread registers:
+a field) are both mostly C code that releases the GIL, so background threads run them on the
+second core while the main thread registers. The global stages form a chain (each frame starts
+from its predecessor's model); the local stages do not, so two of them may run at once, and
+whichever core is free takes the next piece of work:
 
 * :class:`FramesAhead` returns exactly the frames the wrapped source returns (it only decodes
   them earlier, in the order the run will ask for them);
@@ -120,16 +122,19 @@ class FramesAhead:
 
 
 class LocalAhead:
-    """Runs a function (the local stage of a frame) in one background thread, one call at a
-    time, and hands the results back in submission order.
+    """Runs a function (the local stage of a frame) in up to ``workers`` background threads,
+    and hands the results back by key.
 
     ``submit(key, fn, *args)`` starts ``fn(*args)``; ``result(key)`` waits for it. With
     ``enabled=False`` the call runs at once in the caller's thread (same results, for runs that
     must not start threads). Exceptions are re-raised by ``result``.
     """
 
-    def __init__(self, enabled: bool = True) -> None:
-        self._pool = ThreadPoolExecutor(1, thread_name_prefix="local-ahead") if enabled else None
+    def __init__(self, enabled: bool = True, workers: int = 1) -> None:
+        if workers < 1:
+            raise ValueError(f"LocalAhead workers must be >= 1, got {workers}")
+        pool = ThreadPoolExecutor(workers, thread_name_prefix="local-ahead") if enabled else None
+        self._pool = pool
         self._futures: dict = {}
 
     def submit(self, key, fn: Callable, *args, **kwargs) -> None:
@@ -146,6 +151,10 @@ class LocalAhead:
     def pending(self) -> list:
         """Keys submitted and not yet collected, in submission order."""
         return list(self._futures)
+
+    def done(self, key) -> bool:
+        """Whether the call of ``key`` has finished (``result`` will not wait)."""
+        return self._futures[key].done()
 
     def result(self, key):
         return self._futures.pop(key).result()

@@ -393,6 +393,7 @@ def test_flow_method_is_not_dragged_by_cars(flat_cell):
         ({"method": "orb"}, "method must be 'sift' or 'flow', got 'orb'"),
         ({"flow_preset": "slow"}, "flow_preset must be ultrafast, fast or medium, got 'slow'"),
         ({"flow_refinement_iterations": -1}, "flow_refinement_iterations must be None or >= 0"),
+        ({"flow_patch_stride": 0}, "flow_patch_stride must be None or >= 1, got 0"),
         ({"cell_model": "quadratic"}, "cell_model must be"),
         ({"fit": "tps"}, "fit must be 'cells' or 'spline', got 'tps'"),
         ({"spline_smoothness": 0.0}, "spline_smoothness must be positive, got 0.0"),
@@ -694,9 +695,11 @@ def test_estimate_field_from_matches_dispatches_on_fit(rng):
     assert np.array_equal(a.vectors, b.vectors) and np.array_equal(a.valid, b.valid)
 
 
-def test_flow_refinement_iterations_reach_dis():
+def test_flow_refinement_iterations_and_patch_stride_reach_dis():
     from registration.local_flow import dis_flow
 
-    assert dis_flow(replace(FLOW, flow_preset="medium")).getVariationalRefinementIterations() == 5
-    cfg = replace(FLOW, flow_preset="medium", flow_refinement_iterations=0)
+    medium = dis_flow(replace(FLOW, flow_preset="medium"))
+    assert medium.getVariationalRefinementIterations() == 5 and medium.getPatchStride() == 3
+    cfg = replace(FLOW, flow_preset="medium", flow_refinement_iterations=0, flow_patch_stride=4)
     assert dis_flow(cfg).getVariationalRefinementIterations() == 0
+    assert dis_flow(cfg).getPatchStride() == 4

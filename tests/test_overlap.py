@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -73,6 +74,34 @@ def test_local_ahead_hands_back_results_and_errors_in_order():
             assert pool.result("a") == 42
             with pytest.raises(ZeroDivisionError):
                 pool.result("b")
+
+
+def test_local_ahead_runs_as_many_calls_at_once_as_it_has_workers():
+    """Two calls that each wait for the other (a barrier of 2) finish with two workers; with
+    one, the second cannot start while the first waits, and the first times out."""
+    for workers, finishes in ((2, True), (1, False)):
+        barrier = threading.Barrier(2, timeout=2)
+        with LocalAhead(True, workers=workers) as pool:
+            pool.submit("a", barrier.wait)
+            pool.submit("b", barrier.wait)
+            if finishes:
+                assert {pool.result("a"), pool.result("b")} == {0, 1}
+                continue
+            with pytest.raises(threading.BrokenBarrierError):
+                pool.result("a")
+            with pytest.raises(threading.BrokenBarrierError):  # the barrier broke for it too
+                pool.result("b")
+    with LocalAhead(True, workers=2) as pool:
+        gate = threading.Event()
+        pool.submit("waits", gate.wait, 5)
+        pool.submit("quick", int, 7)
+        while not pool.done("quick"):
+            gate.wait(0.01)
+        assert not pool.done("waits")
+        gate.set()
+        assert pool.result("quick") == 7 and pool.result("waits") is True
+    with pytest.raises(ValueError, match="workers must be >= 1, got 0"):
+        LocalAhead(True, workers=0)
 
 
 def test_overlap_gives_the_serial_result(sim_seq, default_result, tmp_path):
