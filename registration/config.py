@@ -17,8 +17,9 @@ provenance); this module only collects them. Presets:
   that fails).
 * ``fast``: the default preset with one dense flow per intra-sensor frame, which gives the
   global model's control points and the local field alike (:data:`INTRA_FLOW_POINT_SPACING_PX`):
-  ~20 % less time per 2560x1920 frame at the same error there, but up to 5 % more error on
-  640x480 flights (README, "Presets").
+  ~20 % less compute per 2560x1920 frame at the same error there, but up to 5 % more error on
+  640x480 flights (README, "Presets"). Faster where the stages run one after the other (Dask
+  workers, one core); with both cores in one process the default is faster.
 """
 
 from __future__ import annotations

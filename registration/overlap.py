@@ -160,8 +160,10 @@ class LocalAhead:
         return self._futures.pop(key).result()
 
     def close(self) -> None:
+        """Wait for the calls running; calls not started yet (a run stopped early: nobody will
+        ask for their results) are dropped."""
         if self._pool is not None:
-            self._pool.shutdown(wait=True)
+            self._pool.shutdown(wait=True, cancel_futures=True)
 
     def __enter__(self) -> LocalAhead:
         return self

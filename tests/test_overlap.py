@@ -104,6 +104,18 @@ def test_local_ahead_runs_as_many_calls_at_once_as_it_has_workers():
         LocalAhead(True, workers=0)
 
 
+def test_local_ahead_close_drops_calls_not_started():
+    """A run stopped early: the call running finishes, the one waiting for a worker never
+    starts."""
+    ran, gate = [], threading.Event()
+    pool = LocalAhead(True, workers=1)
+    pool.submit("running", gate.wait, 5)
+    pool.submit("waiting", ran.append, 1)
+    threading.Timer(0.2, gate.set).start()
+    pool.close()
+    assert gate.is_set() and ran == []
+
+
 def test_overlap_gives_the_serial_result(sim_seq, default_result, tmp_path):
     # default_result overlaps (the default for a run in one process).
     serial = register(sim_seq, tmp_path / "serial", overlap=False)

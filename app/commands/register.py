@@ -74,8 +74,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default="default",
         help=(
             "parameter preset: 'paper' (exactly the paper's choices), 'default' (faster, at "
-            "least as accurate) or 'fast' (one flow per frame: ~20%% faster at 2560x1920, up "
-            "to 5%% more error on small frames)"
+            "least as accurate) or 'fast' (one flow per frame: ~20%% less compute at "
+            "2560x1920, faster where frames run one stage after the other, e.g. Dask workers, "
+            "but not with both cores in one process; up to 5%% more error on small frames)"
         ),
     )
     p.add_argument(
