@@ -70,9 +70,8 @@ __all__ = [
 # stages. With one, the default preset's local stage (the longer of the two at 2560x1920) paced
 # the run and the main thread waited for it; with two, and the main thread no longer waiting for
 # the previous local stage before the next global one, whichever core is free takes the next
-# piece of work (2560x1920 flight, H.264, median of 5 alternated runs: 0.211 -> 0.167 s per
-# frame, together with the DIS patch stride of config.LOCAL_FLOW and the batched structure
-# centroids of the templates).
+# piece of work (2560x1920 flight, H.264, medians of alternated runs: README, "Registration
+# speed"; together with the DIS patch stride of config.LOCAL_FLOW).
 LOCAL_WORKERS = 2
 
 # What a chunk gives for each frame: ``(k, record, arrays)``, as ResultWriter.write_frame takes.
@@ -240,11 +239,12 @@ def run_chunk(context: ChunkContext, job: ChunkJob) -> Iterator[FrameOutput]:
     the joint base (an anchor) waits for the local stages in flight, so the result is the
     serial one to the bit.
     OpenCV's own threads (results do not depend on their number) are held to one while both
-    stages are heavy (template control points: the two threads keep both cores busy, more only
-    contend), and left alone when the global stage measures the frame's flow
-    (``IntraConfig.control_points == "flow"``): it is then the longer of the two, and its OpenCV
-    calls use the core the light local stage leaves idle (2560x1920 flight, H.264, median of 4
-    alternated runs: 0.274 s per frame held to one thread, 0.225 s not)."""
+    stages are heavy (template control points: the main thread and the local workers keep both
+    cores busy, more threads only contend), and left alone when the global stage measures the
+    frame's flow (``IntraConfig.control_points == "flow"``): it is then the longer of the two,
+    and its OpenCV calls use the core the light local stage leaves idle (measured with one
+    local worker, 2560x1920 flight, H.264, median of 4 alternated runs: 0.274 s per frame held
+    to one thread, 0.225 s not)."""
     ctx, cfg = context, context.config
     local_cfg = _local_config(cfg)
     joint = ctx.joint_base()

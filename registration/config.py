@@ -184,8 +184,8 @@ INTRA_TEMPLATE = {"spacing_px": 150, "dither_iterations": 0, "min_templates": 20
 #   1280x960, 16 frames: default flight 1.089 / 0.559 -> 1.081 / 0.562 px,
 #                        paper-hard 1.402 / 0.765 -> 1.302 / 0.738 px.
 # Flow points alone, without the edge ring, left the outermost 8 raw px at 3.18 px after global
-# against the template grid's 1.78 (1280x960, default flight): the flow keeps a margin there. A point every 128 px instead: 2560x1920 default flight
-# 0.518 px after local, paper-hard 3.14. One DIS flow per frame instead of a template grid and a
+# against the template grid's 1.78 (1280x960, default flight): the flow keeps a margin there. A
+# point every 128 px instead: 2560x1920 default flight 0.518 px after local, paper-hard 3.14. One DIS flow per frame instead of a template grid and a
 # second flow: see the README's speed section. Not the default: on 640x480 flights the flow
 # points are worse than the 75 px templates (the tests' sequence: other frames 0.480 -> 0.504 px
 # after local; the long flight's last tenth 0.825 -> 0.993 px), where the frame's flow runs at

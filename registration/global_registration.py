@@ -18,7 +18,9 @@ All models here are ``base_from_corrected``: corrected-frame pixels to base pixe
 from __future__ import annotations
 
 import dataclasses
+import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -470,6 +472,18 @@ class JointBase:
     previous_index: int | None = None
     local_keypoints: object | None = None
     flow_reference: object | None = None
+    _prepare_lock: threading.Lock = field(
+        default_factory=threading.Lock, init=False, repr=False, compare=False
+    )
+
+    def prepared(self, name: str, make: Callable[[], object]) -> object:
+        """The member ``name`` (``local_keypoints`` or ``flow_reference``), made by ``make()``
+        the first time it is asked for. Local stages of several frames run at once
+        (:mod:`registration.overlap`): the first to ask makes it, the others wait for it."""
+        with self._prepare_lock:
+            if getattr(self, name) is None:
+                setattr(self, name, make())
+            return getattr(self, name)
 
 
 @dataclass

@@ -34,7 +34,6 @@ fields, applying and inverting a field) and re-exports the rest: the data and se
 
 from __future__ import annotations
 
-import threading
 import time
 from collections.abc import Callable
 from dataclasses import asdict
@@ -353,11 +352,6 @@ def reference_field(fine, base_size: tuple[int, int], config: LocalConfig, footp
     return estimate_field_from_matches(dst, disp, x1 - x0, y1 - y0, config, origin=(x0, y0))
 
 
-# Local stages of several frames run at once (registration.overlap): the first to need the mid
-# base image's keypoints detects them, the others wait for it.
-_PREPARE_LOCK = threading.Lock()
-
-
 def frame_field(frame, camera: Camera, model, joint, config: LocalConfig, flow=None):
     """The displacement field of an intra-sensor frame against the mid base image (paper
     section 5): ``frame`` raw (H, W[, 3]) taken by ``camera``, ``model`` its
@@ -387,14 +381,14 @@ def frame_field(frame, camera: Camera, model, joint, config: LocalConfig, flow=N
     reference = joint.mid_grey[y0:y1, x0:x1]
     both = valid & joint.mid_valid[y0:y1, x0:x1]
     # The mid base image is the reference of every frame: detect its keypoints once.
-    with _PREPARE_LOCK:
-        if joint.local_keypoints is None:
-            joint.local_keypoints = detect_keypoints(joint.mid_grey, config, mask=joint.mid_valid)
+    keypoints = joint.prepared(
+        "local_keypoints", lambda: detect_keypoints(joint.mid_grey, config, mask=joint.mid_valid)
+    )
     return estimate_field(
         registered,
         reference,
         config,
         valid_mask=both,
         origin=(x0, y0),
-        reference_keypoints=joint.local_keypoints,
+        reference_keypoints=keypoints,
     )

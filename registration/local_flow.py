@@ -5,7 +5,6 @@ mid base image (:class:`FlowReference`). See :mod:`registration.local` for the s
 
 from __future__ import annotations
 
-import threading
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -92,20 +91,13 @@ def prepare_flow_reference(
     return FlowReference(np.asarray(valid, bool), small, small_valid == 255, scale_xy)
 
 
-# Local stages of several frames run at once (registration.overlap): the first to need the mid
-# base image's flow reference prepares it, the others wait for it.
-_PREPARE_LOCK = threading.Lock()
-
-
 def joint_flow_reference(joint, width: int, config: LocalConfig) -> FlowReference:
     """The flow reference of the joint base's mid base image for ``width`` px wide frames,
-    prepared once and kept in ``joint.flow_reference`` (thread-safe)."""
-    with _PREPARE_LOCK:
-        if joint.flow_reference is None:
-            joint.flow_reference = prepare_flow_reference(
-                joint.mid_grey, joint.mid_valid, flow_scale(width, config)
-            )
-        return joint.flow_reference
+    prepared once and kept in ``joint.flow_reference`` (``JointBase.prepared``)."""
+    return joint.prepared(
+        "flow_reference",
+        lambda: prepare_flow_reference(joint.mid_grey, joint.mid_valid, flow_scale(width, config)),
+    )
 
 
 def _area_resize(image: NDArray, scale: float) -> tuple[NDArray, NDArray[np.float64]]:

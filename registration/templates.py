@@ -646,6 +646,7 @@ def _correlate(frame, centres, windows, config):
     offsets = np.full((n, 2), np.nan)
     anchors = np.zeros((n, 2))
     use_structure = config.warp_reference and config.anchor == "structure"
+    ramp = np.arange(-half, half + 1, dtype=np.float32)
     min_std = config.min_template_std
 
     def run(chunk: NDArray[np.int64]) -> None:
@@ -662,6 +663,8 @@ def _correlate(frame, centres, windows, config):
             if peak is None:
                 continue
             scores[k], offsets[k] = peak
+            if use_structure:
+                anchors[k] = _structure_centroid(tpl, ramp)
 
     n_threads = max(1, min(_n_threads(), n // 64))
     chunks = np.array_split(np.arange(n), n_threads)
@@ -670,10 +673,6 @@ def _correlate(frame, centres, windows, config):
     else:
         with ThreadPoolExecutor(n_threads) as pool:
             list(pool.map(run, chunks))
-    if use_structure:
-        found = np.flatnonzero(np.isfinite(scores))
-        tpls = [_window(frame, centres[k], half) for k in found]
-        anchors[found] = structure_centroids(tpls, half)
     return scores, offsets, anchors
 
 
@@ -744,39 +743,28 @@ def _peak3(r: NDArray, method: str) -> tuple[float, float]:
     return min(max(px, -1.0), 1.0), min(max(py, -1.0), 1.0)
 
 
-def structure_centroids(tpls: list[NDArray[np.uint8]], half: int) -> NDArray[np.float64]:
-    """``(N, 2)`` offsets from the centres of templates ``tpls`` (each ``2 half + 1`` square) of
-    their structure-tensor-weighted centroids ``M^-1 sum G(u) u`` (see
-    ``TemplateConfig.anchor``), clipped to the template. One Sobel pass over the templates
-    stacked into one image (the rows where neighbours meet are border rows, left out anyway)
-    and array sums, in batches that bound the memory."""
-    side = 2 * half + 1
-    out = np.zeros((len(tpls), 2))
-    u = np.arange(-half + 1, half, dtype=np.float64)  # the inner rows'/columns' offsets
-    for b0 in range(0, len(tpls), STRUCTURE_BATCH):
-        stack = np.concatenate(tpls[b0 : b0 + STRUCTURE_BATCH]).reshape(-1, side)
-        n = stack.shape[0] // side
-        # Border rows/columns of Sobel see the reflected border or the next template: left out.
-        gx = cv2.Sobel(stack, cv2.CV_32F, 1, 0, ksize=3).reshape(n, side, side)[:, 1:-1, 1:-1]
-        gy = cv2.Sobel(stack, cv2.CV_32F, 0, 1, ksize=3).reshape(n, side, side)[:, 1:-1, 1:-1]
-        # Column sums (over y) and row sums (over x) of the tensor's entries, then in float64.
-        xx_col = (gx * gx).sum(axis=1, dtype=np.float64)
-        yy_row = (gy * gy).sum(axis=2, dtype=np.float64)
-        xy = gx * gy
-        xy_col, xy_row = xy.sum(axis=1, dtype=np.float64), xy.sum(axis=2, dtype=np.float64)
-        sxx, sxy, syy = xx_col.sum(axis=1), xy_col.sum(axis=1), yy_row.sum(axis=1)
-        mx = xx_col @ u + xy_row @ u
-        my = xy_col @ u + yy_row @ u
-        # Tikhonov term: along a straight edge M is singular and the centroid undefined there.
-        eps = 1e-2 * (sxx + syy)
-        a, d = sxx + eps, syy + eps
-        det = a * d - sxy * sxy
-        ok = det > 0
-        safe = np.where(ok, det, 1.0)
-        ox = np.where(ok, (d * mx - sxy * my) / safe, 0.0)
-        oy = np.where(ok, (a * my - sxy * mx) / safe, 0.0)
-        out[b0 : b0 + n] = np.clip(np.c_[ox, oy], -half, half)
-    return out
+def _structure_centroid(tpl: NDArray[np.uint8], ramp: NDArray[np.float32]) -> tuple[float, float]:
+    """Offset from the template centre of its structure-tensor-weighted centroid
+    ``M^-1 sum G(u) u`` (see ``TemplateConfig.anchor``), clipped to the template."""
+    gx = cv2.Sobel(tpl, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(tpl, cv2.CV_32F, 0, 1, ksize=3)
+    # Border rows/columns of Sobel see the reflected border; leave them out.
+    gx, gy = gx[1:-1, 1:-1], gy[1:-1, 1:-1]
+    u = ramp[1:-1]
+    xx, xy, yy = gx * gx, gx * gy, gy * gy
+    sxx, sxy, syy = float(xx.sum()), float(xy.sum()), float(yy.sum())
+    mx = float(xx.sum(axis=0) @ u) + float(xy.sum(axis=1) @ u)
+    my = float(xy.sum(axis=0) @ u) + float(yy.sum(axis=1) @ u)
+    # Tikhonov term: along a straight edge M is singular and the centroid undefined there.
+    eps = 1e-2 * (sxx + syy)
+    a, d = sxx + eps, syy + eps
+    det = a * d - sxy * sxy
+    if not det > 0:
+        return 0.0, 0.0
+    h = float(ramp[-1])
+    ox = (d * mx - sxy * my) / det
+    oy = (a * my - sxy * mx) / det
+    return min(max(ox, -h), h), min(max(oy, -h), h)
 
 
 def _ncc3x3(sub: NDArray, tpl_unit: NDArray[np.float32]) -> NDArray[np.float32]:
@@ -791,10 +779,6 @@ def _ncc3x3(sub: NDArray, tpl_unit: NDArray[np.float32]) -> NDArray[np.float32]:
     s2 = np.einsum("ij,ij->i", v, v)
     den = np.sqrt(np.maximum(s2 - s1 * s1 / n, 1e-12))
     return (num / den).reshape(3, 3)
-
-
-# Templates per batch of structure_centroids: 256 templates of 75 px hold ~50 MB of gradients.
-STRUCTURE_BATCH = 256
 
 
 def _n_threads() -> int:

@@ -7,11 +7,15 @@ from __future__ import annotations
 import json
 import shutil
 import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from registration import chunks
+from registration.global_registration import JointBase
 from registration.io import FrameReadError, open_frames
 from registration.overlap import FramesAhead, LocalAhead
 from registration.synth import SimConfig, simulate
@@ -120,6 +124,45 @@ def test_overlap_gives_the_serial_result(sim_seq, default_result, tmp_path):
     # default_result overlaps (the default for a run in one process).
     serial = register(sim_seq, tmp_path / "serial", overlap=False)
     _assert_same(Path(default_result.out_dir), Path(serial.out_dir))
+
+
+def test_overlapped_run_starts_the_next_local_stage_while_one_runs(
+    sim_seq, default_result, monkeypatch, tmp_path
+):
+    """The first intra-sensor frame's local stage waits until the second one's starts: that
+    happens only when the main thread went on to the next global stage without waiting for it
+    and a second local worker took the next local stage. The result is unchanged."""
+    second_started = threading.Event()
+    calls: list[int] = []
+    waited: list[bool] = []
+    local_stage = chunks._local_stage
+
+    def first_waits_for_second(*args):
+        calls.append(1)
+        if len(calls) == 1:
+            waited.append(second_started.wait(20))
+        else:
+            second_started.set()
+        return local_stage(*args)
+
+    monkeypatch.setattr(chunks, "_local_stage", first_waits_for_second)
+    overlapped = register(sim_seq, tmp_path / "overlapped", overlap=True)
+    assert waited == [True] and len(calls) >= 3
+    _assert_same(Path(default_result.out_dir), Path(overlapped.out_dir))
+
+
+def test_joint_base_prepares_a_member_once_for_concurrent_callers():
+    joint = JointBase(np.zeros((8, 8), np.uint8), np.ones((8, 8), bool))
+    calls: list[int] = []
+
+    def make():
+        calls.append(1)
+        time.sleep(0.2)  # both callers arrive while the first one makes it
+        return object()
+
+    with ThreadPoolExecutor(2) as pool:
+        got = list(pool.map(lambda _: joint.prepared("flow_reference", make), range(2)))
+    assert calls == [1] and got[0] is got[1] is joint.flow_reference
 
 
 @pytest.fixture(scope="module")

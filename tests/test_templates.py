@@ -8,12 +8,10 @@ import cv2
 import numpy as np
 import pytest
 
-from registration import templates
 from registration.features import ControlPoints, Reference, to_grey
 from registration.io import read_image
 from registration.templates import (
     TemplateConfig,
-    structure_centroids,
     subpixel_peak,
     template_control_points,
     template_grid,
@@ -161,38 +159,6 @@ def test_structure_anchor_follows_the_texture_and_reduces_error():
         on_grid = np.isin(cp.src, template_grid(*frame_size)).all()
         assert on_grid == (anchor == "centre")
     assert med["structure"] < 0.9 * med["centre"], med
-
-
-def _one_structure_centroid(tpl: np.ndarray) -> tuple[float, float]:
-    """The structure centroid of one template, written out from its definition (float64)."""
-    half = tpl.shape[0] // 2
-    gx = cv2.Sobel(tpl, cv2.CV_64F, 1, 0, ksize=3)[1:-1, 1:-1]
-    gy = cv2.Sobel(tpl, cv2.CV_64F, 0, 1, ksize=3)[1:-1, 1:-1]
-    u = np.arange(-half + 1, half, dtype=np.float64)
-    ux, uy = np.meshgrid(u, u)
-    m = np.array([[(gx * gx).sum(), (gx * gy).sum()], [(gx * gy).sum(), (gy * gy).sum()]])
-    v = np.array([(gx * gx * ux + gx * gy * uy).sum(), (gx * gy * ux + gy * gy * uy).sum()])
-    m += 1e-2 * np.trace(m) * np.eye(2)
-    if not np.linalg.det(m) > 0:  # flat: no structure, the centre
-        return 0.0, 0.0
-    return tuple(np.clip(np.linalg.solve(m, v), -half, half))
-
-
-def test_batched_structure_centroids_equal_the_definition(monkeypatch):
-    """Templates stacked into one Sobel pass, in batches (3 here, across 8 templates): each
-    centroid as computed alone from its definition, a flat template's at the centre."""
-    tex = texture(300, 200, seed=3)
-    tex[:, 200:] = 90  # flat
-    centres = [(30, 30), (60, 100), (100, 45), (150, 150), (190, 60), (205, 100), (260, 40)]
-    tpls = [tex[y - 15 : y + 16, x - 15 : x + 16] for x, y in centres]
-    tpls.append(np.zeros((31, 31), np.uint8))
-    monkeypatch.setattr(templates, "STRUCTURE_BATCH", 3)
-    got = structure_centroids(tpls, 15)
-    want = np.array([_one_structure_centroid(t) for t in tpls])
-    np.testing.assert_allclose(got, want, atol=1e-6)
-    assert np.abs(want[:5]).max() > 0.5  # textures whose centroid is not the centre
-    assert got[5, 0] < -5  # the template straddling the flat part leans to the textured side
-    assert (got[6:] == 0).all()  # flat templates: the centre
 
 
 def test_structure_anchor_moves_to_the_textured_side():
