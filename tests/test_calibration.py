@@ -185,6 +185,8 @@ def test_auto_gamma_on_generated_chart(gamma):
     assert est.method == "auto" and est.n_lines >= 10
     assert est.confident and est.uncertainty <= CONFIDENT_SIGMA
     assert abs(est.gamma - gamma) <= 2 * est.uncertainty
+    # Clean straight edges join into the same lines whatever γ they are linked at.
+    assert est.link_spread < 0.001
 
 
 REAL = [
@@ -203,13 +205,30 @@ def test_auto_gamma_on_real_images_is_honest(folder, name, size):
         raw, _, mask = simulate_raw_frame(scene, HarrisModel(gamma, *size), return_mask=True)
         est = estimate_gamma_auto(raw, mask=None if mask.all() else mask)
         err = abs(est.gamma - gamma)
-        assert est.uncertainty < 0.05, (name, gamma, est.uncertainty)
+        # Not blown up on these line-rich frames: measured up to 0.068 (Songdo at 0.7, error
+        # 0.007), where the edges linked from 0.05 below settle 0.068 away (link_spread).
+        assert est.uncertainty < 0.08, (name, gamma, est.uncertainty)
         assert err <= 3 * est.uncertainty, (name, gamma, est.gamma, est.uncertainty)
         if est.confident:
             confident += 1
             assert err <= 0.02, (name, gamma, est.gamma)
     if "hyang" in folder:  # a line-rich frame: the confident path is exercised on real data
         assert confident >= 1
+
+
+def test_auto_gamma_uncertainty_reaches_where_the_edges_settle_when_linked_elsewhere():
+    """SDD bookstore/video4 through γ = 1.0 at 960x720 (as in ``aerialreg bench distortion``):
+    the pieces linked at the estimate agree on 0.923, 0.077 off, and the lines alone claim
+    ±0.011 (7σ). Linked from 0.05 either side they settle up to 0.070 away (measured): the
+    uncertainty reaches that, so the error is within 2σ and the estimate is not confident."""
+    path = shared_data("sdd-reference-frames", "bookstore", "video4", "reference.jpg")
+    scene = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    raw, _, mask = simulate_raw_frame(scene, HarrisModel(1.0, 960, 720), return_mask=True)
+    est = estimate_gamma_auto(raw, mask=None if mask.all() else mask)
+    assert est.link_spread > 0.05 and est.uncertainty == est.link_spread, est.link_spread
+    assert abs(est.gamma - 1.0) <= 2 * est.uncertainty, (est.gamma, est.uncertainty)
+    assert not est.confident and "which pieces join into lines" in est.evidence
+    assert est.to_dict()["link_spread"] == est.link_spread
 
 
 def test_auto_gamma_says_when_a_frame_has_no_lines():
