@@ -16,7 +16,8 @@ straightest streets (γ = 0.7 for its camera). This module measures straightness
 * :func:`estimate_gamma_auto`: the same from the image alone: line segments are detected,
   snapped sub-pixel, chained into long edges for a first robust γ, then regrouped into lines
   where they are collinear in the corrected frame and refitted
-  (:mod:`registration.straight_edges`); an optional mask keeps blank borders out.
+  (:mod:`registration.straight_edges`), the uncertainty reaching wherever they settle when
+  linked from either side of the estimate; an optional mask keeps blank borders out.
 
 The distortion centre and the question whether one parameter is enough are in
 :mod:`registration.lens_fit`; LINES.json (the GUI's polylines) in
@@ -919,7 +920,10 @@ def estimate_gamma_auto(
     the frame corrected with that γ (:func:`registration.straight_edges.link_collinear`) and
     refitted, twice: long lines across the frame carry most of γ's information. Lines that are
     not straight at any γ, or whose own γ disagrees with the rest (curved kerbs, roundabouts,
-    trees), are dropped (:func:`estimate_gamma_from_lines` with ``inlier_px``).
+    trees), are dropped (:func:`estimate_gamma_from_lines` with ``inlier_px``). Which pieces
+    join depends on the γ they are linked at, so they are linked again from
+    ``LINK_SPREAD_START`` either side of the estimate, and its uncertainty reaches wherever they
+    settle (``link_spread``).
 
     Args:
         image: ``(H, W)`` or ``(H, W, C)`` raw image (BGR for colour; any dtype).
