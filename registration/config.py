@@ -121,12 +121,16 @@ RANSAC_MAX_ITERATIONS = 10000
 # 1280x960 flow: 123 -> 92 ms), and the error after local does not move (against the truth,
 # stride 3 -> 4: 2560x1920 default flight 0.514 -> 0.514 px, paper-hard 3.302 -> 3.298;
 # 1280x960 paper-hard 0.765 -> 0.766; 640x480 long flight, 120 frames, 0.682 -> 0.683).
+# The local stage's base-px lengths grow with the map's resolution when the reference frame maps
+# a frame px to more than 1.5 base px (LocalConfig.base_scale_above; the simulated flights at
+# the map's own resolution are at 1.1-1.2 and keep the paper's lengths).
 LOCAL_FLOW = {
     "flow_preset": "medium",
     "flow_patch_stride": 4,
     "flow_scale": 0.5,
     "flow_min_width_px": 1280,
     "flow_step_px": 16,
+    "base_scale_above": 1.5,
 }
 # The reference frame's field from its template matches (beyond the paper): one robust,
 # regularised least-squares fit of nodes 100 px apart to every match (local.LocalConfig.fit =

@@ -12,6 +12,7 @@ stages themselves live in their modules: ``coarse``, ``global_registration``, ``
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import threading
@@ -45,6 +46,7 @@ from registration.global_registration import (
 )
 from registration.io import FrameSource
 from registration.local import reference_field
+from registration.models import model_from_dict
 from registration.render import render_to_base
 from registration.result import MID_BASE, RegistrationResult, ResultWriter, make_metadata
 from registration.result import frame_arrays as _frame_arrays
@@ -183,6 +185,7 @@ def register_sequence(
         mid, valid, model = _reference_step(
             frames, base, camera, seed, reference_frame, config, writer, reference, base_valid
         )
+        config = _local_at_base_resolution(config, camera, model)
         n_done = sum(writer.done(k) for k in range(n))
         if progress:
             progress(n_done, n)
@@ -272,6 +275,18 @@ def _reference_step(
     }
     writer.write_frame(ref, record, _frame_arrays(fine, field_, field_stats))
     return mid, valid, record["model"]
+
+
+def _local_at_base_resolution(config: PipelineConfig, camera: Camera, model: dict):
+    """``config`` with the other frames' local stage set for the base map's resolution
+    (:meth:`registration.local.LocalConfig.for_base_scale` at the reference frame's scale, base
+    px per frame px at its centre). Derived from the recorded model, so a resumed run or a
+    Dask worker uses the same settings."""
+    c = camera.corrected_from_raw([[(camera.width - 1) / 2, (camera.height - 1) / 2]])[0]
+    b = model_from_dict(model).apply(np.array([c, c + (1.0, 0.0), c + (0.0, 1.0)]))
+    scale = float(np.sqrt(abs(np.linalg.det(np.c_[b[1] - b[0], b[2] - b[0]]))))
+    local = config.local.for_base_scale(scale)
+    return config if local is config.local else dataclasses.replace(config, local=local)
 
 
 def _write_mosaic(writer: ResultWriter, ctx: ChunkContext) -> None:

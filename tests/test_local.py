@@ -703,3 +703,22 @@ def test_flow_refinement_iterations_and_patch_stride_reach_dis():
     cfg = replace(FLOW, flow_preset="medium", flow_refinement_iterations=0, flow_patch_stride=4)
     assert dis_flow(cfg).getVariationalRefinementIterations() == 0
     assert dis_flow(cfg).getPatchStride() == 4
+
+
+def test_local_lengths_grow_with_a_map_finer_than_the_frames():
+    from registration.config import get_preset
+
+    cfg = get_preset("default").local  # cells 200 base px every 100, above 1.5 base px/frame px
+    assert cfg.for_base_scale(1.2) is cfg and cfg.for_base_scale(1.5) is cfg
+    assert cfg.for_base_scale(0.5) is cfg  # a coarser map keeps them
+    paper = get_preset("paper").local  # the paper's lengths whatever the map
+    assert paper.for_base_scale(2.5) is paper
+    finer = cfg.for_base_scale(2.38)
+    assert (finer.cell_px, finer.spacing_px, finer.mask_erode_px) == (476, 238, 14)
+    assert finer.max_displacement_px == pytest.approx(2.38 * cfg.max_displacement_px)
+    assert finer.reqcon_target_px == pytest.approx(2.38 * cfg.reqcon_target_px)
+    assert finer.neighbour_tolerance_px == pytest.approx(2.38 * cfg.neighbour_tolerance_px)
+    # Flow samples are taken in the frame: their step and margin stay in frame px.
+    assert (finer.flow_step_px, finer.flow_margin_px) == (cfg.flow_step_px, cfg.flow_margin_px)
+    with pytest.raises(ValueError, match="base_scale_above must be None or >= 1, got 0.5"):
+        replace(cfg, base_scale_above=0.5)
