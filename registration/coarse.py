@@ -40,7 +40,12 @@ from numpy.typing import NDArray
 from registration import features, heading
 from registration.camera import Camera, as_camera
 from registration.coords import frame_outline, image_size, rescale
-from registration.correlation import CorrelationConfig, agreement, refine_by_correlation
+from registration.correlation import (
+    CorrelationConfig,
+    agreement,
+    gradient_images,
+    refine_by_correlation,
+)
 from registration.distortion import HarrisModel
 from registration.features import Keypoints, SiftConfig
 from registration.heading import HeadingConfig, SimilarityPrior
@@ -781,12 +786,14 @@ def _correlate(result, view, cbase, prior, seeds, s_f, cfg, rng, probes, s_b) ->
         chosen, kind = _select_model(*small, cfg.models, model.rescaled(s_f, s_f), probes)
         return chosen.rescaled(1.0 / s_f, 1.0 / s_f), kind
 
+    if not starts:
+        return
+    images = gradient_images(
+        view.grey, view.to_corrected, view.from_corrected, cbase.grey, cbase.valid
+    )
     best = None
     for model, kind in starts:
-        out = refine_by_correlation(
-            view.grey, view.to_corrected, view.from_corrected, cbase.grey, cbase.valid, model,
-            cfg.correlation, select, rng, kind,
-        )  # fmt: skip
+        out = refine_by_correlation(images, model, cfg.correlation, select, rng, kind)
         if out.rounds and (best is None or out.inliers > best.inliers):
             best = out
     if best is None:
@@ -794,9 +801,8 @@ def _correlate(result, view, cbase, prior, seeds, s_f, cfg, rng, probes, s_b) ->
     if result.success:
         # The SIFT model stays unless the images agree clearly better with the refined one
         # (another date or sensor can pull correlation by a few pixels where SIFT was right).
-        args = (view.grey, view.to_corrected, view.from_corrected, cbase.grey, cbase.valid)
-        before = agreement(*args, result.base_from_corrected, cfg.correlation)
-        after = agreement(*args, best.model, cfg.correlation)
+        before = agreement(images, result.base_from_corrected, cfg.correlation)
+        after = agreement(images, best.model, cfg.correlation)
         result.correlation_inliers = after
         if not after > _CORRELATION_GAIN * before:
             return

@@ -16,7 +16,7 @@ import pytest
 
 from registration.coarse import coarse_register, frame_view
 from registration.config import get_preset
-from registration.correlation import CorrelationConfig, refine_by_correlation
+from registration.correlation import CorrelationConfig, gradient_images, refine_by_correlation
 from registration.distortion import HarrisModel
 from registration.features import detect_sift, match_ratio, to_grey
 from registration.heading import attribute_differences, prior_from_seed
@@ -154,10 +154,10 @@ def test_correlation_rounds_register_across_inverted_contrast(scene):
     assert _error(scene, start).mean() > 15.0  # measured 21.5 px
     view = frame_view(scene["frame"], truth.gamma, "raw")
     inverted = 255 - to_grey(scene["base"])
+    images = gradient_images(view.grey, view.to_corrected, view.from_corrected, inverted, None)
     out = refine_by_correlation(
-        view.grey, view.to_corrected, view.from_corrected, inverted, None, start,
-        get_preset("default").coarse.correlation, lambda s, d, m: (m, "projective"),
-        np.random.default_rng(0),
+        images, start, get_preset("default").coarse.correlation,
+        lambda s, d, m: (m, "projective"), np.random.default_rng(0),
     )  # fmt: skip
     assert out.rounds == 4
     # Measured 0.802 px (27.7 px when intensities are correlated instead).
