@@ -29,7 +29,8 @@ OK, OUTSIDE, FEW_MATCHES, NO_CONSENSUS, RIVAL_MOTION, NEIGHBOUR_OUTLIER = range(
 
 @dataclass(frozen=True)
 class LocalConfig:
-    """Settings of the displacement-field stage (paper section 5). All lengths in base pixels.
+    """Settings of the displacement-field stage (paper section 5). Lengths in base pixels, except
+    ``flow_step_px`` and ``flow_margin_px`` (frame pixels: the flow is sampled in the frame).
 
     Attributes:
         method: how displacement samples inside a neighbourhood are found. "sift" (paper 5:
