@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 
 from registration.coords import image_size, rescale
 from registration.features import downscale, downscale_mask
-from registration.models import Projective
+from registration.models import Projective, scale_at_frame_centre
 from registration.robust import RansacConfig, ransac
 from registration.templates import TemplateConfig, gradient_magnitude, template_control_points
 
@@ -139,13 +139,6 @@ def refine_by_correlation(
     return out
 
 
-def _model_scale(model, to_corrected, w: int, h: int) -> float:
-    """Base px per frame px of ``model`` at the frame's centre."""
-    c = to_corrected(np.array([[(w - 1) / 2, (h - 1) / 2], [(w - 1) / 2 + 10, (h - 1) / 2]]))
-    b = model.apply(c)
-    return float(np.hypot(*(b[1] - b[0])) / max(np.hypot(*(c[1] - c[0])), 1e-9))
-
-
 @dataclass(frozen=True)
 class GradientImages:
     """Both images' full-resolution gradient magnitude (uint8, :func:`gradient_magnitude`),
@@ -189,7 +182,7 @@ def _match_round(images: GradientImages, model, side: int, search: int, config: 
     same ground resolution under ``model`` (``s_b``)."""
     w, h = image_size(images.frame)
     s = min(1.0, side / max(w, h))
-    scale = _model_scale(model, images.to_corrected, w, h)
+    scale = scale_at_frame_centre(model, images.to_corrected, w, h)
     s_b = min(1.0, s / scale) if np.isfinite(scale) and scale > 0 else s
     small, base_small = downscale(images.frame, s), downscale(images.base, s_b)
     valid_small = None

@@ -76,6 +76,7 @@ __all__ = [
     "levenberg_marquardt",
     "model_from_dict",
     "n_polyprojective_params",
+    "scale_at_frame_centre",
     "quantize",
     "quantized",
 ]
@@ -411,6 +412,16 @@ _TYPES: dict[str, type] = {
     "Chain": Chain,
     "Inverted": Inverted,
 }
+
+
+def scale_at_frame_centre(model, to_corrected, width: int, height: int) -> float:
+    """Base px per frame px of ``model`` (``base_from_corrected``) at the centre of a
+    ``width`` x ``height`` frame, measured along its x axis; ``to_corrected`` maps the frame's
+    pixels to corrected ones (``(N, 2)``)."""
+    w, h = width, height
+    c = to_corrected(np.array([[(w - 1) / 2, (h - 1) / 2], [(w - 1) / 2 + 10, (h - 1) / 2]]))
+    b = model.apply(c)
+    return float(np.hypot(*(b[1] - b[0])) / max(np.hypot(*(c[1] - c[0])), 1e-9))
 
 
 def model_from_dict(d: dict[str, Any]) -> Any:

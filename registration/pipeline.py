@@ -46,7 +46,7 @@ from registration.global_registration import (
 )
 from registration.io import FrameSource
 from registration.local import reference_field
-from registration.models import model_from_dict
+from registration.models import model_from_dict, scale_at_frame_centre
 from registration.render import render_to_base
 from registration.result import MID_BASE, RegistrationResult, ResultWriter, make_metadata
 from registration.result import frame_arrays as _frame_arrays
@@ -282,9 +282,9 @@ def _local_at_base_resolution(config: PipelineConfig, camera: Camera, model: dic
     (:meth:`registration.local.LocalConfig.for_base_scale` at the reference frame's scale, base
     px per frame px at its centre). Derived from the recorded model, so a resumed run or a
     Dask worker uses the same settings."""
-    c = camera.corrected_from_raw([[(camera.width - 1) / 2, (camera.height - 1) / 2]])[0]
-    b = model_from_dict(model).apply(np.array([c, c + (1.0, 0.0), c + (0.0, 1.0)]))
-    scale = float(np.sqrt(abs(np.linalg.det(np.c_[b[1] - b[0], b[2] - b[0]]))))
+    scale = scale_at_frame_centre(
+        model_from_dict(model), camera.corrected_from_raw, camera.width, camera.height
+    )
     local = config.local.for_base_scale(scale)
     return config if local is config.local else dataclasses.replace(config, local=local)
 
