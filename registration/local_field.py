@@ -121,7 +121,7 @@ class LocalConfig:
             map finer than the frames) scales them by ``s`` (:meth:`for_base_scale`), so that
             a cell covers the same ground and holds as many flow samples. Measured on
             paper-hard (1280x960, 25 frames) against a map at twice the resolution (``s`` =
-            2.38): error after local 0.999 -> 0.754 px of the map at its native resolution
+            2.38): error after local 0.999 -> 0.750 px of the map at its native resolution
             (0.756 against the native map). A coarser map keeps the lengths (larger cells,
             more samples each); scaled down they were not better: paper-hard at half the
             resolution 0.830 -> 0.782 px, the 120-frame long flight 0.566 -> 0.600. None =
