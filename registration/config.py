@@ -144,12 +144,21 @@ LOCAL_FLOW = {
 # sequence (exact Harris lens) 0.39 -> 0.43 (its other frames 0.52 -> 0.49, motion 0.20 ->
 # 0.18: they align to a mid base image rendered with this field). Both leave the
 # inter-sensor matches' shadow bias (~0.4 px in y on the simulated flights: the base map's
-# sun is not the frames'), which no field fitted to those matches can remove.
+# sun is not the frames'), which no field fitted to those matches can remove. Against a map finer
+# than the frames the node spacing grows with it as the other frames' cells do
+# (LocalConfig.base_scale_above): templates every 25 frame px are ~60 base px apart at 2.4 base
+# px per frame px, ~3 per node 100 base px apart, and the field followed their noise, which every
+# other frame's smoother field then disagreed with. Paper-hard 1280x960, 25 frames, 2x map,
+# motion after local (base px, mean) 0.821 -> 0.427 (seed 6, 217°) and 1.388 -> 0.744 (seed 7,
+# 0°), long flight 640x480, 60 frames, 0.953 -> 0.851; error after local, median 0.948 ->
+# 0.884, 1.284 -> 1.152, 1.132 -> 1.059, mean 1.499 -> 1.567, 2.631 -> 2.606, 1.447 -> 1.399
+# (nodes further apart extrapolate further into the corners).
 REFERENCE_LOCAL = LocalConfig(
     fit="spline",
     spacing_px=100,
     spline_smoothness=0.1,
     min_matches=6,
+    base_scale_above=LOCAL_FLOW["base_scale_above"],
 )
 # Template spacing of the reference frame (a one-off): every 25 px instead of the paper's 50, so
 # that the field above has matches in the frame's stretched corners (~7200 templates, 3.7 s at

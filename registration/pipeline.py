@@ -185,7 +185,7 @@ def register_sequence(
         mid, valid, model = _reference_step(
             frames, base, camera, seed, reference_frame, config, writer, reference, base_valid
         )
-        config = _local_at_base_resolution(config, camera, model)
+        config = _at_base_resolution(config, camera, model_from_dict(model))
         n_done = sum(writer.done(k) for k in range(n))
         if progress:
             progress(n_done, n)
@@ -258,6 +258,7 @@ def _reference_step(
         )
     model = fine.base_from_corrected
     field_, field_stats = None, None
+    config = _at_base_resolution(config, camera, model)
     if config.run_local and config.reference_local is not None:
         field_, field_stats = reference_field(
             fine, (wb, hb), config.reference_local, footprint(camera, model)
@@ -277,16 +278,19 @@ def _reference_step(
     return mid, valid, record["model"]
 
 
-def _local_at_base_resolution(config: PipelineConfig, camera: Camera, model: dict):
-    """``config`` with the other frames' local stage set for the base map's resolution
-    (:meth:`registration.local.LocalConfig.for_base_scale` at the reference frame's scale, base
-    px per frame px at its centre). Derived from the recorded model, so a resumed run or a
-    Dask worker uses the same settings."""
-    scale = scale_at_frame_centre(
-        model_from_dict(model), camera.corrected_from_raw, camera.width, camera.height
-    )
-    local = config.local.for_base_scale(scale)
-    return config if local is config.local else dataclasses.replace(config, local=local)
+def _at_base_resolution(config: PipelineConfig, camera: Camera, model) -> PipelineConfig:
+    """``config`` with the local stage and the reference frame's and anchors' own field set for
+    the base map's resolution (:meth:`registration.local.LocalConfig.for_base_scale` at the
+    reference frame's scale, base px per frame px at its centre under ``model``, its
+    ``base_from_corrected``). Derived from the recorded model, so a resumed run or a Dask
+    worker uses the same settings."""
+    scale = scale_at_frame_centre(model, camera.corrected_from_raw, camera.width, camera.height)
+    changes = {"local": config.local.for_base_scale(scale)}
+    if config.reference_local is not None:
+        changes["reference_local"] = config.reference_local.for_base_scale(scale)
+    if all(getattr(config, k) is v for k, v in changes.items()):
+        return config
+    return dataclasses.replace(config, **changes)
 
 
 def _write_mosaic(writer: ResultWriter, ctx: ChunkContext) -> None:

@@ -722,3 +722,28 @@ def test_local_lengths_grow_with_a_map_finer_than_the_frames():
     assert (finer.flow_step_px, finer.flow_margin_px) == (cfg.flow_step_px, cfg.flow_margin_px)
     with pytest.raises(ValueError, match="base_scale_above must be None or >= 1, got 0.5"):
         replace(cfg, base_scale_above=0.5)
+
+
+def test_the_reference_field_follows_a_map_finer_than_the_frames_too():
+    """The pipeline derives every field's lengths from the reference frame's model: against a
+    map at 2.38 base px per frame px the reference frame's (and anchors') spline nodes are
+    238 base px apart, as the other frames' cells are (at 100 base px, ~3 template matches per
+    node, its field followed their noise: paper-hard 1280x960 against a 2x map, motion after
+    local 0.82 -> 0.42 base px); at 1.2 nothing changes."""
+    from registration.camera import Camera
+    from registration.config import get_preset
+    from registration.models import Similarity
+    from registration.pipeline import _at_base_resolution
+
+    config = get_preset("default")
+    camera = Camera(0.7, 640, 480)
+    centre = camera.corrected_from_raw([[319.5, 239.5]])[0]
+    for scale, spacing, cell in ((2.38, 238, 476), (1.2, 100, 200)):
+        model = Similarity.from_rotation(217.0, scale, centre, (5000.0, 4000.0))
+        derived = _at_base_resolution(config, camera, model)
+        assert derived.reference_local.spacing_px == spacing
+        assert (derived.local.cell_px, derived.local.spacing_px) == (cell, spacing)
+    assert _at_base_resolution(config, camera, model) is config
+    paper = get_preset("paper")  # the paper's lengths whatever the map
+    big = Similarity.from_rotation(0.0, 3.0, centre, (5000.0, 4000.0))
+    assert _at_base_resolution(paper, camera, big) is paper
