@@ -1,9 +1,11 @@
 """The frames' camera: Harris γ, the raw frame size and the exact Harris model made from them
-(paper section 3, ``conventions.md``), built once per run and passed to every stage.
+(paper section 3, ``conventions.md``), built once per run and passed to every stage; beyond
+the paper, a fourth-order radial term ``k2`` that the registration may estimate
+(:mod:`registration.lens_k2`) when the lens is not exactly Harris.
 
-The stages need γ only through the Harris model of the frame size: raw pixels to corrected ones
-and back, the corrected frame on the raw frame's canvas, and where a grid or the outline of the
-raw frame lies in corrected pixels. :class:`Camera` holds that model and gives exactly those
+The stages need the lens only through its model of the frame size: raw pixels to corrected
+ones and back, the corrected frame on the raw frame's canvas, and where a grid or the outline of
+the raw frame lies in corrected pixels. :class:`Camera` holds that model and gives exactly those
 conversions, so no stage rebuilds it from a bare γ.
 """
 
@@ -15,7 +17,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from registration.coords import frame_outline, image_size
-from registration.distortion import HarrisModel, undistort_image
+from registration.distortion import HarrisModel, TwoTermHarrisModel, undistort_image
 
 
 @dataclass(frozen=True)
@@ -25,23 +27,37 @@ class Camera:
     Attributes:
         gamma: Harris radial distortion γ (paper eq. 4; 0.7 for the paper's camera).
         width, height: raw frame size in pixels.
-        harris: the Harris model of that γ and size, centred on the frame (built once; the
-            run's distortion centre is the frame centre, ``conventions.md``).
+        k2: beyond the paper: the lens's fourth-order radial term
+            (:class:`registration.distortion.TwoTermHarrisModel`); 0 = exactly Harris.
+        lens: the radial model of that γ, k2 and size, centred on the frame (built once; the
+            run's distortion centre is the frame centre, ``conventions.md``): the
+            :class:`HarrisModel` itself when ``k2`` is 0.
     """
 
     gamma: float
     width: int
     height: int
-    harris: HarrisModel = field(init=False, repr=False, compare=False)
+    k2: float = 0.0
+    lens: HarrisModel | TwoTermHarrisModel = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "gamma", float(self.gamma))
-        object.__setattr__(self, "harris", HarrisModel(self.gamma, self.width, self.height))
+        object.__setattr__(self, "k2", float(self.k2))
+        lens = (
+            TwoTermHarrisModel(self.gamma, self.k2, self.width, self.height)
+            if self.k2
+            else HarrisModel(self.gamma, self.width, self.height)
+        )
+        object.__setattr__(self, "lens", lens)
 
     @classmethod
     def of(cls, frame: NDArray, gamma: float) -> Camera:
         """The camera of ``frame`` (``(H, W[, C])``, raw) with Harris ``gamma``."""
         return cls(gamma, *image_size(frame))
+
+    def with_k2(self, k2: float) -> Camera:
+        """The same camera with the fourth-order term ``k2``."""
+        return Camera(self.gamma, self.width, self.height, k2)
 
     @property
     def size(self) -> tuple[int, int]:
@@ -50,11 +66,11 @@ class Camera:
 
     def corrected_from_raw(self, xy: ArrayLike) -> NDArray[np.float64]:
         """``(N, 2)`` raw pixels -> ``(N, 2)`` corrected pixels."""
-        return self.harris.corrected_from_raw(xy)
+        return self.lens.corrected_from_raw(xy)
 
     def raw_from_corrected(self, xy: ArrayLike) -> NDArray[np.float64]:
         """``(N, 2)`` corrected pixels -> ``(N, 2)`` raw pixels (NaN where undefined)."""
-        return self.harris.raw_from_corrected(xy)
+        return self.lens.raw_from_corrected(xy)
 
     def outline(self, per_edge: int = 32) -> NDArray[np.float64]:
         """The raw frame's border (:func:`registration.coords.frame_outline`) in corrected
@@ -79,7 +95,7 @@ class Camera:
     def undistort(self, frame_raw: NDArray) -> NDArray:
         """The radially corrected frame on the raw frame's canvas (paper section 3)."""
         self.check(frame_raw)
-        return undistort_image(frame_raw, self.harris, canvas="same")[0]
+        return undistort_image(frame_raw, self.lens, canvas="same")[0]
 
     def check(self, frame: NDArray) -> None:
         """ValueError when ``frame`` is not of the camera's size."""

@@ -513,7 +513,7 @@ def _local_stage(frame, camera: Camera, glob: _Global, joint: JointBase, cfg: Lo
         return None, None, None
     t1 = time.perf_counter()
     view = glob.state.view
-    raw = view.harris is not None
+    raw = view.lens is not None
     # The global stage's grey raw frame, when it matched in the raw frame (no second conversion),
     # and its flow against the mid base image, when its control points came from one in raw px.
     image = view.grey if raw else frame

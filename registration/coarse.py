@@ -46,7 +46,7 @@ from registration.correlation import (
     gradient_images,
     refine_by_correlation,
 )
-from registration.distortion import HarrisModel
+from registration.distortion import HarrisModel, TwoTermHarrisModel
 from registration.features import Keypoints, SiftConfig
 from registration.heading import HeadingConfig, SimilarityPrior
 from registration.models import Affine, Projective, Similarity, quantized
@@ -212,18 +212,18 @@ class FrameView:
     raw frame's canvas and the link is the identity; its corners lose the content that the
     correction pushes outside the canvas (at γ = 0.7 the raw corners move 1.8x further out), so
     the global model extrapolates there. With ``match_in="raw"`` the image is the raw frame and
-    the exact Harris model links its pixels to corrected ones: every raw pixel can carry a control
+    the camera's lens model links its pixels to corrected ones: every raw pixel can carry a control
     point and the frame is not resampled before matching.
     """
 
     grey: NDArray[np.uint8]
-    harris: HarrisModel | None
+    lens: HarrisModel | TwoTermHarrisModel | None
 
     def to_corrected(self, xy: NDArray) -> NDArray:
-        return xy if self.harris is None else self.harris.corrected_from_raw(xy)
+        return xy if self.lens is None else self.lens.corrected_from_raw(xy)
 
     def from_corrected(self, xy: NDArray) -> NDArray:
-        return xy if self.harris is None else self.harris.raw_from_corrected(xy)
+        return xy if self.lens is None else self.lens.raw_from_corrected(xy)
 
 
 def corrected_grey(frame_raw: NDArray, camera: Camera | float) -> NDArray[np.uint8]:
@@ -239,7 +239,7 @@ def frame_view(frame_raw: NDArray, camera: Camera | float, match_in: str) -> Fra
     if match_in == "corrected":
         return FrameView(corrected_grey(frame_raw, camera), None)
     if match_in == "raw":
-        return FrameView(features.to_grey(frame_raw), camera.harris)
+        return FrameView(features.to_grey(frame_raw), camera.lens)
     raise ValueError(f"match_in must be 'raw' or 'corrected', got {match_in!r}")
 
 
@@ -275,7 +275,7 @@ def coarse_features(
         small_mask = features.downscale_mask(mask, s).astype(np.uint8)
         small_mask = cv2.erode(small_mask, np.ones((7, 7), np.uint8))
     kp = features.detect_sift(small, config.sift, mask=small_mask)
-    if view is not None and view.harris is not None and len(kp.xy):
+    if view is not None and view.lens is not None and len(kp.xy):
         kp = dataclasses.replace(kp, xy=rescale(view.to_corrected(rescale(kp.xy, 1.0 / s)), s))
     return CoarseFeatures(kp, s)
 
@@ -724,7 +724,7 @@ def coarse_register(
     frame = coarse_features(view.grey, cfg, view=view, scale=s_f)
     cbase = base_features if base_features is not None else CoarseBase(base, cfg, base_valid)
     base_c = cbase.features(s_f)
-    harris = camera.harris
+    harris = camera.lens
     priors, matches, attr = _priors(seeds, harris, frame, base_c, cfg, w, h)
     if cfg.match_base_scale and priors:
         # Re-detect the base at the scale that matches the frame's ground resolution.

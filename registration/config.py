@@ -31,6 +31,7 @@ from dataclasses import dataclass, field, replace
 
 from registration.coarse import CoarseConfig
 from registration.global_registration import FineConfig, IntraConfig
+from registration.lens_k2 import LensConfig
 from registration.local import FLOW_OVERRIDES, LocalConfig
 from registration.templates import TemplateConfig
 
@@ -55,6 +56,9 @@ class PipelineConfig:
             (:func:`registration.local.reference_field`); the mid base image is rendered
             with it, so every frame's local stage inherits it. None = the paper (the reference
             frame's local stage is its global model).
+        lens: beyond the paper: whether the reference frame's registration estimates a
+            lens beyond Harris (a fourth-order radial term, :mod:`registration.lens_k2`) and
+            registers every frame with it. The default (``LensConfig()``) is the paper: γ only.
         random_seed: seed of every random choice (RANSAC samples); frame ``k`` uses
             ``random_seed + k``.
         chunk_frames: beyond the paper: split the frames after the reference frame, and the
@@ -73,6 +77,7 @@ class PipelineConfig:
     match_in: str = "corrected"
     run_local: bool = True
     reference_local: LocalConfig | None = None
+    lens: LensConfig = field(default_factory=LensConfig)
     random_seed: int = 0
     chunk_frames: int = 0
 
@@ -265,6 +270,7 @@ def _default() -> PipelineConfig:
         ),
         local=replace(paper.local, **{**FLOW_OVERRIDES, **LOCAL_FLOW}),
         reference_local=REFERENCE_LOCAL,
+        lens=LensConfig(estimate_k2=True),
     )
 
 

@@ -217,6 +217,146 @@ class HarrisModel(_Radial):
 
 
 @dataclass(frozen=True)
+class TwoTermHarrisModel(_Radial):
+    """Harris (paper eq. 4) plus a fourth-order radial term that no one-parameter Harris model
+    can absorb: a lens beyond the paper's model (beyond the paper).
+
+    Raw to corrected (normalised radii as in ``conventions.md``, ``ρ'`` raw, ``ρ`` corrected)::
+
+        ρ = ρ' / sqrt(1 - γ ρ'² - k2 ρ'⁴)
+
+    With ``k2 = 0`` this is exactly the Harris model (conventions: raw to corrected is the
+    formula with ``-γ``), and the model delegates to :class:`HarrisModel` bit for bit. ``k2 > 0``
+    bends the frame's outer part further (stronger barrel towards the corners), ``k2 < 0`` less.
+    Corrected to raw is solved by Newton's method inside a bisection bracket, to ~1e-15 of
+    ``r_n``.
+
+    Attributes:
+        gamma: Harris γ.
+        k2: the fourth-order coefficient (dimensionless, radius normalised by ``r_n``).
+        width, height: raw frame size, px.
+        center: distortion centre ``(x, y)`` in raw pixels; None = the frame centre.
+    """
+
+    gamma: float
+    k2: float
+    width: int
+    height: int
+    center: tuple[float, float] | None = None
+
+    def __post_init__(self) -> None:
+        self._check_frame()
+        if not (np.isfinite(self.gamma) and np.isfinite(self.k2)):
+            raise ValueError(f"gamma and k2 must be finite, got {self.gamma}, {self.k2}")
+
+    @functools.cached_property
+    def harris(self) -> HarrisModel:
+        """The Harris model of γ alone."""
+        return HarrisModel(self.gamma, self.width, self.height, self.center)
+
+    @functools.cached_property
+    def raw_rho_limit(self) -> float:
+        """Largest normalised raw radius (exclusive) where the lens is defined and monotone:
+        the first root of ``1 - γ u - k2 u²`` (``u = ρ'²``) or, for ``k2 < 0``, where
+        ``dρ/dρ' ∝ 1 + k2 ρ'⁴`` vanishes; inf when neither exists."""
+        g, k = float(self.gamma), float(self.k2)
+        roots = np.roots([-k, -g, 1.0]) if k != 0 else (np.array([1.0 / g]) if g > 0 else [])
+        u = [r.real for r in np.atleast_1d(roots) if abs(r.imag) < 1e-12 and r.real > 0]
+        lim = float(np.sqrt(min(u))) if u else float("inf")
+        if k < 0:
+            lim = min(lim, float((-1.0 / k) ** 0.25))
+        return lim
+
+    def _g(self, rho_raw: NDArray) -> NDArray:
+        u = rho_raw * rho_raw
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return rho_raw / np.sqrt(1.0 - self.gamma * u - self.k2 * u * u)
+
+    def _dg(self, rho_raw: NDArray) -> NDArray:
+        u = rho_raw * rho_raw
+        d = 1.0 - self.gamma * u - self.k2 * u * u
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return (1.0 + self.k2 * u * u) / (d * np.sqrt(d))
+
+    def corrected_from_raw(self, xy: ArrayLike) -> NDArray[np.float64]:
+        """``(N, 2)`` raw pixels -> ``(N, 2)`` corrected pixels (closed form; NaN where
+        undefined)."""
+        if self.k2 == 0:
+            return self.harris.corrected_from_raw(xy)
+        xy = as_points(xy)
+        c, r_n = self.c, self.r_n
+        d = (xy - c) / r_n
+        u = np.sum(d * d, axis=1)
+        den = 1.0 - self.gamma * u - self.k2 * u * u
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out = c + r_n * d / np.sqrt(den)[:, None]
+        out[~((den > 0) & (np.sqrt(u) < self.raw_rho_limit))] = np.nan
+        return out
+
+    def raw_from_corrected(self, xy: ArrayLike) -> NDArray[np.float64]:
+        """``(N, 2)`` corrected pixels -> ``(N, 2)`` raw pixels (Newton; NaN where no raw radius
+        inside the lens's monotone range maps there)."""
+        if self.k2 == 0:
+            return self.harris.raw_from_corrected(xy)
+        xy = as_points(xy)
+        c, r_n = self.c, self.r_n
+        target = np.linalg.norm(xy - c, axis=1) / r_n
+        rho = self._solve(target)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            factor = np.where(target > 0, rho / np.where(target > 0, target, 1.0), 1.0)
+        return c + (xy - c) * factor[:, None]
+
+    def _solve(self, target: NDArray) -> NDArray:
+        """Raw radius ``ρ'`` with ``g(ρ') = target`` (g increasing on [0, raw_rho_limit))."""
+        lim = self.raw_rho_limit
+        finite = np.isfinite(target)
+        t = np.where(finite, target, 0.0)
+        if np.isfinite(lim):
+            hi_val = lim * (1.0 - 1e-12)
+            reach = float(self._g(np.array(hi_val)))
+        else:
+            hi_val = max(1.0, float(t.max(initial=0.0)))
+            while float(self._g(np.array(hi_val))) < t.max(initial=0.0):
+                hi_val *= 2.0
+            reach = float("inf")
+        lo = np.zeros_like(t)
+        hi = np.full_like(t, hi_val)
+        # Start from the Harris inverse (exact for k2 = 0), clipped into the bracket.
+        with np.errstate(invalid="ignore", divide="ignore"):
+            start = t / np.sqrt(1.0 + self.gamma * t * t)
+        rho = np.where(np.isfinite(start) & (start > 0) & (start < hi), start, 0.5 * hi)
+        for _ in range(200):
+            f = self._g(rho) - t
+            lo = np.where(f < 0, rho, lo)
+            hi = np.where(f > 0, rho, hi)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                new = rho - f / self._dg(rho)
+            bad = ~(np.isfinite(new) & (new >= lo) & (new <= hi))
+            new = np.where(bad, 0.5 * (lo + hi), new)
+            done = np.all(np.abs(new - rho) <= 1e-15 + 1e-14 * np.abs(rho))
+            rho = new
+            if done:
+                break
+        rho[~finite | (t >= reach)] = np.nan
+        return rho
+
+    def validity_problem(self) -> str | None:
+        """None when every raw pixel centre has a corrected position, else a one-line reason."""
+        rho_m = self.max_raw_rho()
+        if rho_m < self.raw_rho_limit:
+            return None
+        return (
+            f"lens gamma {self.gamma:g}, k2 {self.k2:g} is not valid on a {self.width}x"
+            f"{self.height} frame: raw radius {self.raw_rho_limit:.4f} < the farthest raw "
+            f"pixel's {rho_m:.4f} (1 - gamma u - k2 u^2 must stay positive and 1 + k2 u^2 > 0 "
+            "for u = rho'^2 up to the corners)"
+        )
+
+    def params(self) -> dict:
+        return {"model": "harris+k2", "gamma": float(self.gamma), "k2": float(self.k2)}
+
+
+@dataclass(frozen=True)
 class PolynomialModel(_Radial):
     """Polynomial radial distortion (paper eq. 3): ``f(ρ) = ρ (1 + k1 ρ² + k2 ρ⁴ + k3 ρ⁶)``.
 
@@ -390,7 +530,7 @@ class DivisionModel(_Radial):
         return {"model": "division", "lambda": float(self.lam)}
 
 
-RadialModel = HarrisModel | PolynomialModel | DivisionModel
+RadialModel = HarrisModel | TwoTermHarrisModel | PolynomialModel | DivisionModel
 
 
 def _floor(v: float, digits: int = 4) -> str:

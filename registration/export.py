@@ -300,7 +300,7 @@ def transforms_document(result, georef: GeoReference | None, stage: str = "local
             hm, _ = _homography(grid, georef.map_from_base(base))
             entry["map_from_raw_homography"] = None if hm is None else hm.tolist()
         frames.append(entry)
-    harris = result.harris
+    lens = result.lens
     return {
         "format": "aerialreg-transforms",
         "version": 1,
@@ -310,9 +310,13 @@ def transforms_document(result, georef: GeoReference | None, stage: str = "local
         "base_size": list(result.base_size),
         "harris": {
             "gamma": float(result.gamma),
-            "centre": [float(v) for v in harris.c],
-            "r_n": float(harris.r_n),
-            "corrected_from_raw": "Harris model of conventions.md with -gamma",
+            "k2": float(result.camera.k2),
+            "centre": [float(v) for v in lens.c],
+            "r_n": float(lens.r_n),
+            "corrected_from_raw": "Harris model of conventions.md with -gamma"
+            if not result.camera.k2
+            else "rho = rho' / sqrt(1 - gamma rho'^2 - k2 rho'^4), radii normalised by r_n about "
+            "the centre (the Harris model of conventions.md plus a fourth-order term)",
         },
         "base_georef": None if georef is None else georef.to_dict(),
         "frames": frames,

@@ -306,7 +306,7 @@ def control_point_layer(result, georef: GeoReference, vector_crs=None) -> Layer:
             continue
         src, dst, kept, residuals = cps
         source = result._npz(k).get("source")  # where each point matched (no public accessor)
-        raw = result.harris.raw_from_corrected(src)
+        raw = result.lens.raw_from_corrected(src)
         xy = _to_vector_crs(georef, georef.map_from_base(dst), vector_crs)
         for i in np.flatnonzero(np.isfinite(xy).all(axis=1) & np.isfinite(raw).all(axis=1)):
             geoms.append(xy[i])
@@ -412,7 +412,7 @@ def write_points_files(result, folder: Path, georef: GeoReference) -> list[Path]
         if cps is None:
             continue
         src, dst, kept, _ = cps
-        raw = result.harris.raw_from_corrected(src)
+        raw = result.lens.raw_from_corrected(src)
         model = result.model(k)
         fit_map = georef.map_from_base(model.apply(src))
         dst_map = georef.map_from_base(dst)

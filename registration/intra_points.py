@@ -48,7 +48,7 @@ def template_points(
 
 def points_to_corrected(cps: ControlPoints, view) -> ControlPoints:
     """``cps`` with ``src`` moved from the view's pixels to corrected-frame pixels."""
-    if view.harris is None or not len(cps.src):
+    if view.lens is None or not len(cps.src):
         return cps
     return ControlPoints(view.to_corrected(cps.src), cps.dst, cps.score, cps.source)
 

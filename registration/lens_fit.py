@@ -36,7 +36,7 @@ from registration.distortion import (
     DivisionModel,
     HarrisModel,
     PolynomialModel,
-    _Radial,
+    TwoTermHarrisModel,
     harris_gamma_limit,
 )
 
@@ -199,34 +199,6 @@ def _cluster_covariance(J: NDArray, r: NDArray, cluster: NDArray, K: int) -> NDA
 
 
 @dataclass(frozen=True)
-class _TwoTermHarris(_Radial):
-    """Harris with a second radial term, for :func:`check_one_parameter` only: raw to
-    corrected scales by ``F = 1 / sqrt(1 - γ ρ'² - δ ρ'⁴)`` (``δ = 0``: the Harris model)."""
-
-    gamma: float
-    delta: float
-    width: int
-    height: int
-    center: tuple[float, float] | None = None
-
-    def corrected_from_raw(self, xy) -> NDArray[np.float64]:
-        g, d = self.gamma, self.delta
-
-        def factor(u):
-            den = 1.0 - g * u - d * u * u
-            return np.where(den > 0, 1.0 / np.sqrt(np.where(den > 0, den, 1.0)), np.nan)
-
-        return self._scale_radially(np.asarray(xy, np.float64), factor)
-
-    def validity_problem(self) -> str | None:
-        u = np.linspace(0.0, self.max_raw_rho() ** 2, 256)
-        den = 1.0 - self.gamma * u - self.delta * u * u
-        # Corrected radius ρ' F must exist and grow with ρ' up to the farthest raw pixel.
-        r = np.sqrt(u) / np.sqrt(np.where(den > 0, den, np.nan))
-        return None if np.all(den > 0) and np.all(np.diff(r) > 0) else "invalid"
-
-
-@dataclass(frozen=True)
 class ModelCheck:
     """Is the one-parameter Harris model enough for these lines (:func:`check_one_parameter`)?
 
@@ -265,7 +237,7 @@ def check_one_parameter(est: GammaEstimate) -> ModelCheck:
     big = 1e3
 
     def residuals(p):
-        model = _TwoTermHarris(float(p[0]), float(p[1]), w, h, c)
+        model = TwoTermHarrisModel(float(p[0]), float(p[1]), w, h, c)
         if model.validity_problem():
             return np.full(len(packed.points), big)
         r = packed.residuals_for(model, weighted=True)

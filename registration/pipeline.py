@@ -45,6 +45,7 @@ from registration.global_registration import (
     fine_register_reference,
 )
 from registration.io import FrameSource
+from registration.lens_k2 import register_with_lens
 from registration.local import reference_field
 from registration.models import model_from_dict, scale_at_frame_centre
 from registration.render import render_to_base
@@ -182,7 +183,7 @@ def register_sequence(
             progress(n_done, n)
         mid_missing = not (out_dir / MID_BASE).is_file()
         camera = Camera(gamma, *frames.size)
-        mid, valid, model = _reference_step(
+        mid, valid, model, camera = _reference_step(
             frames, base, camera, seed, reference_frame, config, writer, reference, base_valid
         )
         config = _at_base_resolution(config, camera, model_from_dict(model))
@@ -216,9 +217,11 @@ def register_sequence(
 def _reference_step(
     frames, base, camera: Camera, seed, ref, config: PipelineConfig, writer, reference,
     base_valid=None,
-) -> tuple[NDArray, NDArray, dict]:  # fmt: skip
-    """Register the reference frame (or load it when resuming): ``(mid, valid, model)``, the mid
-    base image, its mask and the reference frame's model as recorded."""
+) -> tuple[NDArray, NDArray, dict, Camera]:  # fmt: skip
+    """Register the reference frame (or load it when resuming): ``(mid, valid, model,
+    camera)``, the mid base image, its mask, the reference frame's model as recorded and the
+    camera every frame is registered with (``camera`` with the lens beyond Harris that the
+    reference frame's registration found, :func:`registration.lens_k2.register_with_lens`)."""
     out_dir = writer.out_dir
     frame, problem = read_frame(frames, ref)
     if frame is None:
@@ -232,10 +235,11 @@ def _reference_step(
             )
         # Resuming: the mid base image is rendered again from the record, exactly as the
         # uninterrupted run rendered it (each chunk adds its own anchors, run_chunk).
+        camera = camera.with_k2(rec.camera.k2)
         mid, valid = render_to_base(frame, camera, rec.model(ref), (0, 0, wb, hb), rec.field(ref))
         if writer.read_mid_base() is None:
             writer.write_mid_base(mid, valid)
-        return mid, valid, rec.records[ref]["model"]
+        return mid, valid, rec.records[ref]["model"], camera
 
     t0 = time.perf_counter()
     if reference is not None:
@@ -250,7 +254,16 @@ def _reference_step(
             )  # fmt: skip
         else:
             fine = FineResult.failed(coarse.reason)
-    times = {"coarse": coarse.time_s, "fine": fine.time_s, "total": time.perf_counter() - t0}
+    times = {"coarse": coarse.time_s, "fine": fine.time_s}
+    lens = None
+    if fine and config.lens.estimate_k2:
+        t1 = time.perf_counter()
+        camera, fine, lens = register_with_lens(
+            frame, base, camera, coarse, fine, config.fine, config.lens,
+            match_in=config.match_in, base_valid=base_valid,
+        )  # fmt: skip
+        times["lens"] = time.perf_counter() - t1
+    times["total"] = time.perf_counter() - t0
     if not fine:
         writer.write_frame(ref, failed_record(fine.reason))
         raise RegistrationFailed(
@@ -273,9 +286,12 @@ def _reference_step(
         "stage": "inter-sensor",
         "stats": _stats(coarse, fine, times, field_stats),
         "model": model.to_dict(),
+        "lens_k2": camera.k2,
     }
+    if lens is not None:
+        record["stats"]["lens"] = lens.to_dict()
     writer.write_frame(ref, record, _frame_arrays(fine, field_, field_stats))
-    return mid, valid, record["model"]
+    return mid, valid, record["model"], camera
 
 
 def _at_base_resolution(config: PipelineConfig, camera: Camera, model) -> PipelineConfig:

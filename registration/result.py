@@ -116,7 +116,10 @@ class RegistrationResult:
       ``reason``, ``stats``, the global ``model`` (``base_from_corrected``, a polyprojective),
       ``npz_bytes`` and ``npz_sha256`` (of the frame's ``.npz``; None without one) and
       ``input_sha256`` (of the frame's image file). Written last for a frame, atomically: its
-      presence means the frame is done.
+      presence means the frame is done. The reference frame's record also holds ``lens_k2``,
+      the lens's fourth-order term beyond Harris every frame was registered with (0 = Harris,
+      :mod:`registration.lens_k2`; :attr:`camera` carries it), and ``stats["lens"]``, its
+      estimate.
     * ``frames/KKKKKK.npz``: the frame's control points (``src`` corrected px, ``dst`` base px,
       ``kept``, ``residuals``) and its local displacement field (``field_*`` arrays).
     * ``mid_base.png``, ``mid_base_valid.png``: the reference frame in base pixels and its mask.
@@ -140,9 +143,8 @@ class RegistrationResult:
             self.base_size = tuple(int(v) for v in meta["base_size"])
             self.reference_frame = int(meta["reference_frame"])
             n = int(meta["n_frames"])
-            # The frames' camera, and its Harris model (the name the result always had).
+            # The frames' camera (its k2 comes with the reference frame's record, reload()).
             self.camera = Camera(self.gamma, *self.frame_size)
-            self.harris = self.camera.harris
         except (KeyError, TypeError, ValueError) as exc:
             raise ValueError(
                 f"corrupt result.json in {self.out_dir}: bad or missing {exc}"
@@ -167,6 +169,21 @@ class RegistrationResult:
         self.records: list[dict] = [read_record(self.out_dir, k) for k in range(self.n_frames)]
         self._models.clear()
         self._arrays.clear()
+        # The lens beyond Harris that the reference frame's registration found (0 = Harris).
+        ref = self.reference_frame
+        k2 = self.records[ref].get("lens_k2", 0.0) if 0 <= ref < self.n_frames else 0.0
+        try:
+            self.camera = self.camera.with_k2(float(k2))
+        except (TypeError, ValueError):
+            raise ValueError(
+                f"corrupt record {self.reference_frame:06d}.json in {self.out_dir}: bad "
+                f"lens_k2 {k2!r}"
+            ) from None
+
+    @property
+    def lens(self):
+        """The frames' radial lens model (:attr:`Camera.lens`): raw <-> corrected pixels."""
+        return self.camera.lens
 
     # -- per-frame data -------------------------------------------------------------------
     def _check_k(self, k: int) -> int:
@@ -279,12 +296,12 @@ class RegistrationResult:
             )
 
     def _global_frame_to_base(self, k: int, xy: NDArray) -> NDArray:
-        out = self.model(k).apply(self.harris.corrected_from_raw(xy))
+        out = self.model(k).apply(self.lens.corrected_from_raw(xy))
         out[~self._inside_frame(xy)] = np.nan
         return out
 
     def _global_base_to_frame(self, k: int, xy: NDArray) -> NDArray:
-        raw = self.harris.raw_from_corrected(self.model(k).inverse(xy))
+        raw = self.lens.raw_from_corrected(self.model(k).inverse(xy))
         raw[~self._inside_frame(raw)] = np.nan
         return raw
 

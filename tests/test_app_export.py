@@ -184,7 +184,7 @@ def test_georeferenced_base_exports_geotiff_points_geojson_and_cancels(open_regi
     pts = read_points_file(out / "points" / "000001.points")
     assert pts["crs"] and ("32643" in pts["crs"] or "UTM zone 43N" in pts["crs"])
     src, dst, kept, _ = r.control_points(1)
-    ok = np.isfinite(r.harris.raw_from_corrected(src)).all(axis=1)
+    ok = np.isfinite(r.lens.raw_from_corrected(src)).all(axis=1)
     assert np.allclose(pts["map"], georef.map_from_base(dst[ok]), atol=1e-6)
     # The frame's control-point table exports the same way (map side in map coordinates).
     seq.set_frame(1)

@@ -17,7 +17,7 @@ W, H = 64, 48
 
 def test_camera_holds_the_harris_model_of_its_gamma_and_size():
     cam = Camera(0.7, W, H)
-    assert cam.harris == HarrisModel(0.7, W, H)
+    assert cam.lens == HarrisModel(0.7, W, H)
     assert cam.size == (W, H)
     xy = np.array([[0.0, 0.0], [10.5, 3.25], [W - 1.0, H - 1.0]])
     assert np.array_equal(cam.corrected_from_raw(xy), HarrisModel(0.7, W, H).corrected_from_raw(xy))
@@ -74,5 +74,5 @@ def test_as_camera_takes_a_gamma_or_a_camera_of_the_frame_size():
 
 def test_camera_pickles_with_its_model():
     cam = pickle.loads(pickle.dumps(Camera(0.7, W, H)))  # sent to Dask workers
-    assert cam == Camera(0.7, W, H) and cam.harris == HarrisModel(0.7, W, H)
+    assert cam == Camera(0.7, W, H) and cam.lens == HarrisModel(0.7, W, H)
     assert isinstance(cam.gamma, float)

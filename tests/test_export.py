@@ -239,7 +239,7 @@ def test_points_file_as_qgis_writes_it(result, exported):
     np.testing.assert_allclose(rows[:, 7], np.hypot(rows[:, 5], rows[:, 6]))
     parsed = read_points_file(path)
     src, dst, kept, _ = result.control_points(0)
-    raw = result.harris.raw_from_corrected(src)
+    raw = result.lens.raw_from_corrected(src)
     np.testing.assert_allclose(parsed["source"], raw, atol=1e-9)
     np.testing.assert_allclose(parsed["map"], result.georef.map_from_base(dst), atol=1e-6)
     np.testing.assert_array_equal(parsed["enable"], kept)

@@ -236,6 +236,8 @@ def run(args: argparse.Namespace) -> int:
         "failed": failed,
         "preset": args.preset,
         "gamma": result.gamma,
+        "lens_k2": result.camera.k2,
+        "lens": result.records[result.reference_frame].get("stats", {}).get("lens"),
         "time_s": round(elapsed, 3),
         "written": written,
         "base_georeferenced": base_map.georef is not None,
@@ -251,6 +253,8 @@ def run(args: argparse.Namespace) -> int:
             f"registered {summary['n_ok']}/{summary['n_frames']} frames into {summary['out']} "
             f"in {elapsed:.1f} s\n"
         )
+        if summary["lens"]:
+            sys.stdout.write(f"  lens: {summary['lens']['reason']}\n")
         for f in failed:
             sys.stdout.write(f"  frame {f['frame']} failed: {f['reason']}\n")
     return 0

@@ -444,7 +444,7 @@ class SequenceView(View):
             if k == r.reference_frame
             else str(r.config.get("intra", {}).get("control_points", "template"))
         )
-        return controlpoints.table_from_points(src, dst, kept, source, kind, r.harris, r.model(k))
+        return controlpoints.table_from_points(src, dst, kept, source, kind, r.lens, r.model(k))
 
     def show_table(self) -> None:
         note = "Read-only: edit the reference frame's points in the Seed view; a frame can be registered again."
