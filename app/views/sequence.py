@@ -732,6 +732,10 @@ class SequenceView(View):
             v = stats.get(name)
             if v is not None:
                 parts.append(f"{label} {v:.3g}" if isinstance(v, float) else f"{label} {v}")
+        lens = stats.get("lens")
+        if isinstance(lens, dict) and lens.get("reason"):
+            # The reference frame's estimate of the lens beyond Harris, and whether it was used.
+            parts.append("lens: " + escape_md(lens["reason"]))
         times = stats.get("time_s")
         if isinstance(times, dict):
             # Stage times; "total" is the wall time of this run's call, which is near zero for a
