@@ -608,10 +608,10 @@ def fit_coarse(
 # Inter-sensor coarse step
 
 
-def _seed_priors(seeds, harris, frame, base, matches, attr, config) -> list[SimilarityPrior]:
+def _seed_priors(seeds, lens, frame, base, matches, attr, config) -> list[SimilarityPrior]:
     """The prior(s) of the seed(s), in coarse pixels (empty when no match votes)."""
     sf, sb = frame.scale, base.scale
-    fr = _seed_frame_points(seeds, harris)
+    fr = _seed_frame_points(seeds, lens)
     bs = np.array([s[2:] for s in seeds], float)
     if len(seeds) == 2:
         prior = heading.prior_from_seeds(fr, bs)
@@ -628,10 +628,10 @@ def _seed_priors(seeds, harris, frame, base, matches, attr, config) -> list[Simi
     return [_with_click_error(prior, config).rescaled(sf, sb)]
 
 
-def _seed_frame_points(seeds, harris) -> NDArray:
+def _seed_frame_points(seeds, lens) -> NDArray:
     """The seeds' frame points in corrected pixels, ``(n, 2)``."""
     fr = np.array([s[:2] for s in seeds], float)
-    return fr if harris is None else harris.corrected_from_raw(fr)
+    return fr if lens is None else lens.corrected_from_raw(fr)
 
 
 def _with_click_error(prior: SimilarityPrior, config) -> SimilarityPrior:
@@ -640,12 +640,12 @@ def _with_click_error(prior: SimilarityPrior, config) -> SimilarityPrior:
     return dataclasses.replace(prior, anchor_error_px=err)
 
 
-def _patch_prior(seed, harris, view, cbase, s_f, s_b, priors, config) -> list[SimilarityPrior]:
+def _patch_prior(seed, lens, view, cbase, s_f, s_b, priors, config) -> list[SimilarityPrior]:
     """The seed's heading and scale from image correlation (:func:`heading.prior_from_patch`),
     in coarse pixels, as a list of at most one prior: empty when it finds nothing or agrees
     with the first of ``priors`` within the gate's tolerances."""
     hcfg = config.heading
-    fr = _seed_frame_points([seed], harris)
+    fr = _seed_frame_points([seed], lens)
     valid = None
     if cbase.valid is not None:
         valid = features.downscale_mask(cbase.valid, s_b)
@@ -668,11 +668,11 @@ def _patch_prior(seed, harris, view, cbase, s_f, s_b, priors, config) -> list[Si
     return [found]
 
 
-def _gate_outline(prior: SimilarityPrior, w: int, h: int, harris, config) -> NDArray:
+def _gate_outline(prior: SimilarityPrior, w: int, h: int, lens, config) -> NDArray:
     """The base region where gated matches can lie (full-scale): the frame's outline under the
     prior, pushed outwards by the gate's radius at each outline point."""
     outline = frame_outline(w, h, per_edge=16)
-    corr = outline if harris is None else harris.corrected_from_raw(outline)
+    corr = outline if lens is None else lens.corrected_from_raw(outline)
     centre = prior.apply(corr)
     radius = heading.gate_radius_px(prior, corr, config.heading)
     mid = centre.mean(axis=0)
@@ -724,18 +724,18 @@ def coarse_register(
     frame = coarse_features(view.grey, cfg, view=view, scale=s_f)
     cbase = base_features if base_features is not None else CoarseBase(base, cfg, base_valid)
     base_c = cbase.features(s_f)
-    harris = camera.lens
-    priors, matches, attr = _priors(seeds, harris, frame, base_c, cfg, w, h)
+    lens = camera.lens
+    priors, matches, attr = _priors(seeds, lens, frame, base_c, cfg, w, h)
     if cfg.match_base_scale and priors:
         # Re-detect the base at the scale that matches the frame's ground resolution.
         full_scale = priors[0].scale * s_f / base_c.scale
         s_b = min(1.0, s_f / full_scale)
         if abs(math.log(s_b / base_c.scale)) > math.log(1.5):
             base_c = cbase.features(s_b)
-            priors, matches, attr = _priors(seeds, harris, frame, base_c, cfg, w, h)
+            priors, matches, attr = _priors(seeds, lens, frame, base_c, cfg, w, h)
     if len(seeds) == 1 and (not priors or priors[0].votes < cfg.heading.patch_below_votes):
         priors = priors + _patch_prior(
-            seeds[0], harris, view, cbase, s_f, base_c.scale, priors, cfg
+            seeds[0], lens, view, cbase, s_f, base_c.scale, priors, cfg
         )
     domain = rescale(camera.cell_centres(10), s_f)
     attempts = []
@@ -751,7 +751,7 @@ def coarse_register(
             >= max(2 * cfg.min_inliers_unseeded, 2 * cfg.decisive_ratio * priors[i + 1].votes)
         ):
             break
-    result = _decide(attempts, priors, seeds, frame, base_c, cfg, w, h, harris)
+    result = _decide(attempts, priors, seeds, frame, base_c, cfg, w, h, lens)
     result.n_keypoints_frame = len(frame.keypoints)
     result.n_keypoints_base = len(base_c.keypoints)
     if cfg.correlation.rounds and (result.success or (seeds and priors)):
@@ -759,7 +759,7 @@ def coarse_register(
         won = max(range(len(attempts)), key=lambda i: attempts[i].score) if attempts else 0
         _correlate(result, view, cbase, priors[won], seeds, s_f, cfg, rng, domain, base_c.scale)
     if seeds and result.success:
-        _check_seed(result, seeds, harris, cfg)
+        _check_seed(result, seeds, lens, cfg)
     result.base_from_corrected = quantized(result.base_from_corrected)
     result.time_s = time.perf_counter() - t0
     return result
@@ -820,13 +820,13 @@ def _correlate(result, view, cbase, prior, seeds, s_f, cfg, rng, probes, s_b) ->
 _EXACT_MAX_PAIRS = 400_000_000
 
 
-def _priors(seeds, harris, frame, base_c, cfg, w, h):
+def _priors(seeds, lens, frame, base_c, cfg, w, h):
     n_pairs = len(frame.keypoints) * len(base_c.keypoints)
     method = "bf" if n_pairs <= _EXACT_MAX_PAIRS else "flann"
     matches = features.match_ratio(frame.keypoints, base_c.keypoints, cfg.ratio, method=method)
     attr = heading.attribute_differences(frame.keypoints, base_c.keypoints, matches)
     if seeds:
-        priors = _seed_priors(seeds, harris, frame, base_c, matches, attr, cfg)
+        priors = _seed_priors(seeds, lens, frame, base_c, matches, attr, cfg)
     else:
         priors = heading.priors_without_seed(
             frame.keypoints.xy[matches.idx_a],
@@ -838,7 +838,7 @@ def _priors(seeds, harris, frame, base_c, cfg, w, h):
     return priors, matches, attr
 
 
-def _decide(attempts, priors, seeds, frame, base_c, cfg, w, h, harris) -> CoarseResult:
+def _decide(attempts, priors, seeds, frame, base_c, cfg, w, h, lens) -> CoarseResult:
     """Build the result from the best attempt (or say why there is none)."""
     sf, sb = frame.scale, base_c.scale
     empty = np.zeros((0, 2))
@@ -863,7 +863,7 @@ def _decide(attempts, priors, seeds, frame, base_c, cfg, w, h, harris) -> Coarse
     result.ambiguity = prior.ambiguity
     result.gate_center_base = full.anchor_base
     if seeds:
-        outline = _gate_outline(full, w, h, harris, cfg)
+        outline = _gate_outline(full, w, h, lens, cfg)
         result.gate_outline_base = outline
         result.gate_radius_base = float(np.max(np.hypot(*(outline - full.anchor_base).T)))
     if best.model is None:
@@ -899,11 +899,11 @@ def _decide(attempts, priors, seeds, frame, base_c, cfg, w, h, harris) -> Coarse
     return result
 
 
-def _check_seed(result: CoarseResult, seeds, harris, cfg: CoarseConfig) -> None:
+def _check_seed(result: CoarseResult, seeds, lens, cfg: CoarseConfig) -> None:
     """Refuse a registration that puts a seed's frame point far from its clicked base point."""
     model = result.base_from_corrected
     for fx, fy, bx, by in seeds:
-        at = model.apply(harris.corrected_from_raw(np.array([[fx, fy]])))[0]
+        at = model.apply(lens.corrected_from_raw(np.array([[fx, fy]])))[0]
         gap = float(np.hypot(at[0] - bx, at[1] - by))
         scale = result.scale or 1.0
         limit = cfg.seed_check_px + cfg.heading.seed_error_px * (1.0 + scale)
