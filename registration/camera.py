@@ -72,6 +72,17 @@ class Camera:
         """``(N, 2)`` corrected pixels -> ``(N, 2)`` raw pixels (NaN where undefined)."""
         return self.lens.raw_from_corrected(xy)
 
+    def stretch(self, xy: ArrayLike) -> NDArray[np.float64]:
+        """``(N,)``: how much the radial correction enlarges the raw image at each of ``(N, 2)``
+        corrected pixels, ``sqrt |det J|`` of corrected-from-raw there (1 at the centre; 1
+        where the point has no raw pixel)."""
+        raw = self.raw_from_corrected(xy)
+        h = 0.5
+        dx = self.corrected_from_raw(raw + [h, 0.0]) - self.corrected_from_raw(raw - [h, 0.0])
+        dy = self.corrected_from_raw(raw + [0.0, h]) - self.corrected_from_raw(raw - [0.0, h])
+        out = np.sqrt(np.abs(dx[:, 0] * dy[:, 1] - dx[:, 1] * dy[:, 0])) / (2 * h)
+        return np.where(np.isfinite(out) & (out > 0), out, 1.0)
+
     def outline(self, per_edge: int = 32) -> NDArray[np.float64]:
         """The raw frame's border (:func:`registration.coords.frame_outline`) in corrected
         pixels: under a ``base_from_corrected`` model, the frame's footprint."""

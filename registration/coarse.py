@@ -734,9 +734,7 @@ def coarse_register(
             base_c = cbase.features(s_b)
             priors, matches, attr = _priors(seeds, lens, frame, base_c, cfg, w, h)
     if len(seeds) == 1 and (not priors or priors[0].votes < cfg.heading.patch_below_votes):
-        priors = priors + _patch_prior(
-            seeds[0], lens, view, cbase, s_f, base_c.scale, priors, cfg
-        )
+        priors = priors + _patch_prior(seeds[0], lens, view, cbase, s_f, base_c.scale, priors, cfg)
     domain = rescale(camera.cell_centres(10), s_f)
     attempts = []
     for i, prior in enumerate(priors):

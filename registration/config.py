@@ -211,6 +211,13 @@ INTRA_TEMPLATE = {"spacing_px": 150, "dither_iterations": 0, "min_templates": 20
 INTRA_FLOW_POINT_SPACING_PX = 96
 
 
+# The default preset's test for pixels that changed between a frame and the base map
+# (templates.TemplateConfig.change_log_ratio): a natural-log brightness ratio 0.2 (22 %) off the
+# template's median. It applies to windows of the base map only (the reference frame, re-anchored
+# frames, an intra-sensor frame's templates that only the map can take), not to the mid base
+# image or the previous frame: the moved shadows of another date are the map's.
+CHANGE_LOG_RATIO = 0.2
+
 # The default preset's coarse step (registration.coarse): never smaller than 640 px (1/4 of the
 # paper's 2560 px), guided matching and two refinement rounds around the heading estimate, the
 # base detected at the frame's ground resolution, and similarity/affine/projective chosen by BIC.
@@ -242,6 +249,7 @@ def _default() -> PipelineConfig:
         warp_reference=True,
         edge_template_px=EDGE_TEMPLATE_PX,
         spacing_px=REFERENCE_TEMPLATE_SPACING_PX,
+        change_log_ratio=CHANGE_LOG_RATIO,
     )
     return replace(
         paper,
@@ -261,6 +269,7 @@ def _default() -> PipelineConfig:
                 paper.intra.template,
                 warp_reference=True,
                 edge_template_px=EDGE_TEMPLATE_PX,
+                change_log_ratio=CHANGE_LOG_RATIO,
                 **INTRA_TEMPLATE,
             ),
             reqcon=lm_reqcon,

@@ -524,6 +524,9 @@ class GriddedReference:
             once per sequence); None = detect them inside the needed windows only.
         valid: ``(H, W)`` bool, where ``image`` has content (None = everywhere); used by the
             template matcher's fallbacks.
+        other_sensor: the image was taken by another sensor or at another time than the
+            frames (the base map; not the mid base image or the previous frame): the template
+            matcher's change test (``TemplateConfig.change_log_ratio``) applies to it.
     """
 
     image: NDArray
@@ -531,6 +534,7 @@ class GriddedReference:
     frame_from_ref: PointFunction | None = None
     keypoints: Keypoints | None = None
     valid: NDArray | None = None
+    other_sensor: bool = False
 
 
 Reference = GriddedReference  # short alias used by the pipeline

@@ -26,12 +26,13 @@ from registration.templates import edge_ring, grid_spacing, template_control_poi
 
 def template_points(
     view, reference, base_from_corrected, template_cfg, *, ref_valid=None, fallback=None,
-    centres=None,
+    centres=None, ref_other_sensor=True,
 ) -> ControlPoints:  # fmt: skip
     """Template control points of the view (:class:`registration.coarse.FrameView`) against a
     base-pixel reference (and fallback references, see
     :func:`registration.templates.template_control_points`; ``centres`` replace the grid and
-    its edge ring)."""
+    its edge ring; ``ref_other_sensor``: the reference is the base map, not an image made
+    from the video)."""
     model = base_from_corrected
     cps = template_control_points(
         view.grey,
@@ -42,6 +43,7 @@ def template_points(
         ref_valid=ref_valid,
         fallback=fallback,
         centres=centres,
+        ref_other_sensor=ref_other_sensor,
     )
     return points_to_corrected(cps, view)
 
@@ -102,11 +104,11 @@ def intra_template_points(
     if cfg.base_fallback and joint.base_grey is not None:
         fallbacks.append(features.Reference(
             joint.base_grey, lambda xy: model.apply(view.to_corrected(xy)),
-            valid=joint.base_valid,
+            valid=joint.base_valid, other_sensor=True,
         ))  # fmt: skip
     return template_points(
         view, joint.mid_grey, model, template_cfg or cfg.template, ref_valid=joint.mid_valid,
-        fallback=fallbacks, centres=centres,
+        fallback=fallbacks, centres=centres, ref_other_sensor=False,
     )  # fmt: skip
 
 

@@ -448,6 +448,7 @@ def reqcon(
     config: ReqconConfig = ReqconConfig(),
     *,
     domain: ArrayLike | None = None,
+    noise_scale: ArrayLike | None = None,
 ) -> FitResult:
     """REQCON (paper 4.3.2): fit, drop the worst points, refit, until the kept points fit well.
 
@@ -464,6 +465,11 @@ def reqcon(
         config: see :class:`ReqconConfig`.
         domain: optional ``(M, 2)`` source pixels where the model must stay defined, passed to
             the model's ``estimate`` (polyprojective: the whole frame).
+        noise_scale: optional ``(N,)`` positive: how much noisier each point's measurement is
+            expected to be than a typical one (beyond the paper). The ``"outliers"`` rule then
+            judges and ranks ``residual / noise_scale``, so that points that are merely less
+            precise (templates where a radial correction stretched the frame) are not dropped
+            as outliers of the precise ones; scaled to median 1 here.
 
     Returns:
         :class:`FitResult` with ``inliers`` = the kept points, ``history`` = the mean residual of
@@ -486,6 +492,10 @@ def reqcon(
             f"needs at least {guard} finite point pairs (min_points guard), got {int(kept.sum())}",
             0,
         )
+    scale = np.ones(n) if noise_scale is None else np.asarray(noise_scale, np.float64).ravel()
+    if scale.shape != (n,) or not (scale[kept] > 0).all():
+        raise ValueError(f"reqcon: noise_scale must be ({n},) and positive, got {scale.shape}")
+    scale = scale / float(np.median(scale[kept]))
     model = initial_model
     history: list[float] = []
     n_valid = int(kept.sum())
@@ -507,15 +517,16 @@ def reqcon(
             )
         model = fit
         r = _safe_residuals(model, s, d)
+        rs = r / scale
         mean_kept = float(np.mean(r[kept]))
-        sigma = float(np.median(r[kept])) / _RAYLEIGH_MEDIAN
+        sigma = float(np.median(rs[kept])) / _RAYLEIGH_MEDIAN
         history.append(mean_kept)
         n_kept = int(kept.sum())
         n_drop = max(1, math.ceil(config.drop_fraction * n_kept))
         if mean_kept < config.target_mean_error_px:
             return FitResult(model, kept.copy(), r, it, True, "", tuple(history), sigma)
         if config.stop == "outliers":
-            n_out = int(np.count_nonzero(r[kept] > k_sigma * sigma))
+            n_out = int(np.count_nonzero(rs[kept] > k_sigma * sigma))
             if n_out == 0:
                 return FitResult(model, kept.copy(), r, it, True, "", tuple(history), sigma)
             n_drop = min(n_drop, n_out)
@@ -536,11 +547,11 @@ def reqcon(
             )
         kept_idx = np.flatnonzero(kept)
         # Stable sort so that ties drop deterministically (lowest index kept).
-        worst = kept_idx[np.argsort(-r[kept_idx], kind="stable")[:n_drop]]
+        worst = kept_idx[np.argsort(-rs[kept_idx], kind="stable")[:n_drop]]
         kept[worst] = False
     if config.stop == "outliers":
         r = _safe_residuals(model, s, d)
-        sigma = float(np.median(r[kept])) / _RAYLEIGH_MEDIAN
+        sigma = float(np.median((r / scale)[kept])) / _RAYLEIGH_MEDIAN
         return FitResult(
             model, kept.copy(), r, config.max_iterations, True, "", tuple(history), sigma
         )

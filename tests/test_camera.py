@@ -76,3 +76,14 @@ def test_camera_pickles_with_its_model():
     cam = pickle.loads(pickle.dumps(Camera(0.7, W, H)))  # sent to Dask workers
     assert cam == Camera(0.7, W, H) and cam.lens == HarrisModel(0.7, W, H)
     assert isinstance(cam.gamma, float)
+
+
+def test_stretch_is_the_harris_area_scale():
+    # Harris maps a corrected radius rho (in half diagonals) to the raw radius
+    # rho / sqrt(1 + gamma rho^2); the corrected image is enlarged in area by (1 + gamma rho^2)^2,
+    # so sqrt |det J| = 1 + gamma rho^2.
+    cam = Camera(0.7, 640, 480)
+    xy = cam.grid(9, 7)
+    rho2 = (((xy - [319.5, 239.5]) / 400.0) ** 2).sum(axis=1)
+    np.testing.assert_allclose(cam.stretch(xy), 1 + 0.7 * rho2, rtol=2e-3)
+    np.testing.assert_allclose(Camera(0.0, 640, 480).stretch(xy), 1.0, rtol=1e-9)

@@ -272,3 +272,32 @@ def test_reqcon_outlier_stop_keeps_good_points_under_model_mismatch(rng):
     # The paper's absolute stop on the same points drops good points until the guard fails it.
     paper = reqcon(src, dst, start, ReqconConfig(optimizer="lm", target_mean_error_px=0.5))
     assert not paper or paper.inliers[good].mean() < 0.9
+
+
+def test_reqcon_noise_scale_keeps_the_less_precise_points(rng):
+    # The outer ring's points (a frame's corners after a strong radial correction) are measured
+    # with 4x the error of the centre's; gross outliers sit at named indices in both. Judged
+    # against the centre's spread, the "outliers" rule drops much of the ring; told each point's
+    # relative noise, it keeps the ring and still removes every outlier.
+    n = 800
+    src = rng.uniform([0, 0], [W - 1, H - 1], (n, 2))
+    rho = np.hypot(*((src - [W / 2, H / 2]) / (np.hypot(W, H) / 2)).T)
+    noise = np.where(rho > 0.75, 4.0, 1.0)
+    dst = true_poly().apply(src) + rng.normal(0, 0.15, (n, 2)) * noise[:, None]
+    outliers = np.r_[np.flatnonzero(rho > 0.75)[:8], np.flatnonzero(rho < 0.5)[:12]]
+    dst[outliers] += rng.uniform(6, 20, (len(outliers), 2)) * rng.choice(
+        [-1, 1], (len(outliers), 2)
+    )
+    ring = np.setdiff1d(np.flatnonzero(rho > 0.75), outliers)
+    start = PolyProjective.from_projective(true_projective(), 2)
+    cfg = ReqconConfig(optimizer="lm", target_mean_error_px=0.05, stop="outliers")
+    plain = reqcon(src, dst, start, cfg)
+    scaled = reqcon(src, dst, start, cfg, noise_scale=noise)
+    assert plain and scaled
+    assert not scaled.inliers[outliers].any()
+    assert scaled.inliers[ring].mean() >= 0.95, scaled.inliers[ring].mean()
+    assert plain.inliers[ring].mean() < 0.8, plain.inliers[ring].mean()
+    # The robust scale is that of a typical (median-noise) point.
+    assert 0.1 < scaled.sigma_px < 0.25, scaled.sigma_px
+    with pytest.raises(ValueError, match="noise_scale"):
+        reqcon(src, dst, start, cfg, noise_scale=np.zeros(n))

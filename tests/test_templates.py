@@ -306,3 +306,75 @@ def test_sparse_grid_warps_only_its_windows_to_the_same_points(monkeypatch):
     calls.clear()
     template_control_points(frame, ref, coarse, coarse_inv, TemplateConfig(spacing_px=25))
     assert not calls
+
+
+def _shadows(shape, shift, seed: int) -> np.ndarray:
+    """Brightness factors (H, W) float32: 0.45 inside 40 random rectangles (the shadows of
+    buildings), 1 elsewhere; the rectangles' far edges moved by ``shift`` (x, y) px, as a sun
+    at another azimuth casts them."""
+    rng = np.random.default_rng(seed)
+    h, w = shape
+    factor = np.ones((h, w), np.float32)
+    for _ in range(40):
+        x, y = rng.integers(0, w - 40), rng.integers(0, h - 40)
+        bw, bh = rng.integers(12, 40, size=2)
+        x1, y1 = x + bw + int(shift[0]), y + bh + int(shift[1])
+        factor[y : max(y1, y + 1), x : max(x1, x + 1)] = 0.45
+    return cv2.GaussianBlur(factor, (0, 0), 0.7)
+
+
+def test_change_mask_removes_the_pull_of_moved_shadows():
+    # The frame shows the reference shifted by a known fractional offset; both carry shadows,
+    # the reference's 4 px longer in y (another sun). Unmasked, the moved shadow edges pull the
+    # peaks towards +y; the change mask leaves the pixels whose brightness ratio differs out.
+    ref = real_grey("songdo-vision-drone", "images", "00972.jpg", scale=0.25).astype(np.float32)
+    shift = np.array([3.3, -2.6])
+    frame = warp_into(ref, lambda xy: xy + shift + 100, 560, 340).astype(np.float32)
+    frame_sun = _shadows(frame.shape, (0, 0), seed=5)
+    # The same shadows in reference pixels, each 4 px longer in y there.
+    ref_sun = np.ones_like(ref)
+    ref_sun[100 : 100 + 340, 100 : 100 + 560] = warp_into(
+        _shadows(frame.shape, (0, 4), seed=5), lambda xy: xy - shift, 560, 340
+    )
+    frame_u8 = np.clip(frame * frame_sun, 0, 255).astype(np.uint8)
+    ref_u8 = np.clip(ref * ref_sun, 0, 255).astype(np.uint8)
+    model = lambda xy: xy + 100.0  # noqa: E731
+    bias, median = {}, {}
+    for ratio in (0.0, 0.2):
+        cfg = TemplateConfig(change_log_ratio=ratio)
+        cp = template_control_points(frame_u8, ref_u8, model, None, cfg)
+        err = cp.dst - (cp.src + shift + 100)
+        bias[ratio], median[ratio] = np.mean(err[:, 1]), np.median(np.hypot(*err.T))
+        assert len(cp) > 0.8 * len(template_grid(560, 340, cfg)), (ratio, len(cp))
+    assert bias[0.0] > 0.1, bias  # the moved shadows do pull the unmasked peaks
+    assert abs(bias[0.2]) < 0.2 * bias[0.0], bias
+    assert median[0.2] < 0.6 * median[0.0], median
+
+
+def test_change_mask_leaves_unchanged_scenes_alone():
+    ref = real_grey("songdo-vision-drone", "images", "00972.jpg", scale=0.25)
+    shift = np.array([3.3, -2.6])
+    frame = warp_into(ref, lambda xy: xy + shift + 100, 560, 340)
+    model = lambda xy: xy + 100.0  # noqa: E731
+    med = []
+    for ratio in (0.0, 0.2):
+        cp = template_control_points(
+            frame, ref, model, None, TemplateConfig(change_log_ratio=ratio)
+        )
+        med.append(np.median(np.linalg.norm(cp.dst - (cp.src + shift + 100), axis=1)))
+    assert med[1] < 0.03 and med[1] < med[0] + 0.005, med
+
+
+def test_masked_ncc_equals_opencvs_masked_correlation():
+    from registration.templates import _masked_ncc
+
+    rng = np.random.default_rng(3)
+    window = (texture(81, 81, seed=4)).astype(np.uint8)
+    tpl = window[3:78, 4:79].copy()
+    keep = rng.random(tpl.shape) > 0.3
+    ours = _masked_ncc(tpl, keep)(window)
+    theirs = cv2.matchTemplate(window, tpl, cv2.TM_CCOEFF_NORMED, mask=keep.astype(np.uint8))
+    np.testing.assert_allclose(ours, theirs, atol=2e-4)
+    assert np.unravel_index(np.argmax(ours), ours.shape) == (3, 4)
+    # Flat over the kept pixels: no peak there.
+    assert (_masked_ncc(tpl, keep)(np.full((81, 81), 7, np.uint8)) == -1).all()
