@@ -466,10 +466,12 @@ def reqcon(
         domain: optional ``(M, 2)`` source pixels where the model must stay defined, passed to
             the model's ``estimate`` (polyprojective: the whole frame).
         noise_scale: optional ``(N,)`` positive: how much noisier each point's measurement is
-            expected to be than a typical one (beyond the paper). The ``"outliers"`` rule then
-            judges and ranks ``residual / noise_scale``, so that points that are merely less
-            precise (templates where a radial correction stretched the frame) are not dropped
-            as outliers of the precise ones; scaled to median 1 here.
+            expected to be than a typical one (beyond the paper). The worst points are then
+            those of largest ``residual / noise_scale``, and the ``"outliers"`` rule judges
+            that against its robust scale, so that points that are merely less precise
+            (templates where a radial correction stretched the frame) are not dropped as
+            outliers of the precise ones; scaled to median 1 here (``sigma_px`` is then that
+            of a median point).
 
     Returns:
         :class:`FitResult` with ``inliers`` = the kept points, ``history`` = the mean residual of
