@@ -788,10 +788,11 @@ def _peak(tpl, window, config, keep) -> tuple[float, tuple[float, float]] | None
     side = 2 * rad + 1
     if keep is None:
         res = cv2.matchTemplate(window, tpl, cv2.TM_CCOEFF_NORMED)
-        tpl_unit = tpl.astype(np.float32).ravel()
-        tpl_unit -= tpl_unit.mean()
-        tpl_unit /= max(float(np.linalg.norm(tpl_unit)), 1e-12)
-        near = partial(_ncc3x3, tpl_unit=tpl_unit)
+        if config.dither_iterations:  # not for the intra-sensor grid (no dither): a hot path
+            tpl_unit = tpl.astype(np.float32).ravel()
+            tpl_unit -= tpl_unit.mean()
+            tpl_unit /= max(float(np.linalg.norm(tpl_unit)), 1e-12)
+            near = partial(_ncc3x3, tpl_unit=tpl_unit)
     else:
         near = _masked_ncc(tpl, keep)
         res = near(window)
