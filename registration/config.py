@@ -212,11 +212,11 @@ INTRA_FLOW_POINT_SPACING_PX = 96
 
 
 # The default preset's test for pixels that changed between a frame and the base map
-# (templates.TemplateConfig.change_log_ratio): a natural-log brightness ratio 0.2 (22 %) off the
-# template's median. It applies to windows of the base map only (the reference frame, re-anchored
-# frames, an intra-sensor frame's templates that only the map can take), not to the mid base
-# image or the previous frame: the moved shadows of another date are the map's.
-CHANGE_LOG_RATIO = 0.2
+# (templates.TemplateConfig.change_log_ratio): a natural-log brightness ratio 0.1 (10 %) off the
+# template's photometric line. It applies to windows of the base map only (the reference frame,
+# re-anchored frames, an intra-sensor frame's templates that only the map can take), not to the mid
+# base image or the previous frame: the moved shadows of another date are the map's.
+CHANGE_LOG_RATIO = 0.1
 
 # The default preset's coarse step (registration.coarse): never smaller than 640 px (1/4 of the
 # paper's 2560 px), guided matching and two refinement rounds around the heading estimate, the
