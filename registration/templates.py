@@ -812,7 +812,8 @@ def _unchanged(tpl, window, offset: tuple[float, float], config) -> NDArray[np.b
             break
         ua, ub = a[use], b[use]
         ma, mb = float(ua.mean()), float(ub.mean())
-        gain = float(np.dot(ua - ma, ub - mb)) / max(float(np.dot(ua - ma, ua - ma)), 1e-6)
+        da = ua - ma
+        gain = float(np.dot(da, ub - mb)) / max(float(np.dot(da, da)), 1e-6)
         pred = np.maximum(gain * (a - ma) + mb, 0.0)
         changed = np.abs(log_b - np.log(pred + CHANGE_DARK)) > config.change_log_ratio
         use = ~changed

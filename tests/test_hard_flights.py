@@ -50,8 +50,9 @@ def test_long_flight_does_not_drift(flight, tmp_path):
     """Default preset (re-anchoring and the base map behind the joint base): the last 10 frames
     are no worse than 1.2x the first 10 (the issue's bar; measured 0.725 -> 0.766 px mean after
     the local stage, 0.905 -> 0.812 before the change test's photometric line) and stay within
-    1.3x the measured figures (last 10 0.766 px, worst frame 1.63 px); without either, the chain of intra-sensor frames drifts off (measured 7.7 px over
-    the first 10, 719 px over the last)."""
+    1.3x the measured figures (last 10 0.766 px, worst frame 1.63 px); without either, the chain
+    of intra-sensor frames drifts off (measured 7.7 px over the first 10, 719 px over the
+    last)."""
     result, err = _run(flight, tmp_path / "default", get_preset("default"))
     assert all(r["status"] == "ok" for r in result.records)
     assert any(r.get("stage") == ANCHOR_STAGE for r in result.records)

@@ -165,6 +165,20 @@ def _corner_error(model, gt, w, h) -> float:
     return float(err.mean()) if np.isfinite(err).all() else math.inf
 
 
+def _srif_corner_error(im1, im2, valid, gt, seed, cfg, *, rng) -> float:
+    """Coarse + fine registration of a SRIF pair: mean error at image 1's corners, px."""
+    coarse = coarse_register(
+        im1, im2, 0.0, seed, cfg.coarse, match_in=cfg.match_in, base_valid=valid, rng=rng
+    )
+    if not coarse:
+        return math.inf
+    fine = fine_register_reference(
+        im1, im2, 0.0, coarse, cfg.fine, match_in=cfg.match_in, base_valid=valid
+    )
+    h, w = im1.shape[:2]
+    return _corner_error(fine.base_from_corrected, gt, w, h) if fine else math.inf
+
+
 def _srif_within_10px(im1, im2, valid, gt, seed, cfg, *, rng) -> bool:
     """Coarse + fine registration of a SRIF pair, within 10 px at image 1's corners."""
     return _srif_corner_error(im1, im2, valid, gt, seed, cfg, rng=rng) < 10
@@ -185,20 +199,6 @@ def test_srif_one_click_beats_no_click_on_real_pairs():
     assert ok["click"] >= 17, ok  # measured 19 of 20
     assert ok["none"] >= 13, ok  # measured 16 of 20
     assert ok["click"] > ok["none"], ok
-
-
-def _srif_corner_error(im1, im2, valid, gt, seed, cfg, *, rng) -> float:
-    """Coarse + fine registration of a SRIF pair: mean error at image 1's corners, px."""
-    coarse = coarse_register(
-        im1, im2, 0.0, seed, cfg.coarse, match_in=cfg.match_in, base_valid=valid, rng=rng
-    )
-    if not coarse:
-        return math.inf
-    fine = fine_register_reference(
-        im1, im2, 0.0, coarse, cfg.fine, match_in=cfg.match_in, base_valid=valid
-    )
-    h, w = im1.shape[:2]
-    return _corner_error(fine.base_from_corrected, gt, w, h) if fine else math.inf
 
 
 def test_srif_click_where_sift_votes_mislead_is_rescued_by_image_correlation():

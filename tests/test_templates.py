@@ -350,7 +350,6 @@ def test_change_mask_removes_the_pull_of_moved_shadows(gain, offset):
         err = cp.dst - (cp.src + shift + 100)
         bias[ratio], median[ratio] = np.mean(err[:, 1]), np.median(np.hypot(*err.T))
         assert len(cp) > 0.8 * len(template_grid(560, 340, cfg)), (ratio, len(cp))
-    print(gain, offset, bias, median)
     assert bias[0.0] > 0.1, bias  # the moved shadows do pull the unmasked peaks
     assert abs(bias[CHANGE_LOG_RATIO]) < 0.2 * bias[0.0], bias
     assert median[CHANGE_LOG_RATIO] < 0.6 * median[0.0], median
