@@ -56,13 +56,19 @@ def footprint(camera: Camera, model) -> NDArray:
     return model.apply(camera.outline())
 
 
-def render_anchor(joint: JointBase, frame, camera: Camera, model, field_) -> None:
-    """Add a re-anchored frame to the mid base image (where it is empty)."""
+def render_anchor(
+    joint: JointBase, frame, camera: Camera, model, field_, fill_radius: float | None = None
+) -> None:
+    """Add a re-anchored frame to the mid base image where it is empty, only its raw pixels
+    within ``fill_radius`` of the centre (``IntraConfig.anchor_fill_radius``; None: all)."""
     hb, wb = joint.mid_valid.shape
     box = anchor_box(camera, model, (wb, hb))
     if box is None:
         return
     image, valid = render_to_base(frame, camera, model, box, field_)
+    if fill_radius is not None and fill_radius < 1:
+        radius, _ = render_to_base(camera.raw_radius(), camera, model, box, field_)
+        valid &= radius < fill_radius
     add_to_mid_base(joint, image, valid, box)
 
 
@@ -130,7 +136,9 @@ class Anchoring:
                 footprint(self.camera, model),
             )  # fmt: skip
         if self.config.intra.reanchor_coverage > 0:
-            render_anchor(self.joint, frame, self.camera, model, field_)
+            render_anchor(
+                self.joint, frame, self.camera, model, field_, self.config.intra.anchor_fill_radius
+            )
         times["anchor"] = round(time.perf_counter() - t0, 4)
         record = {"status": "ok", "reason": "", "stage": ANCHOR_STAGE,
                   "stats": _stats(coarse, fine, times, field_stats), "model": model.to_dict()}  # fmt: skip

@@ -83,6 +83,13 @@ class Camera:
         out = np.sqrt(np.abs(dx[:, 0] * dy[:, 1] - dx[:, 1] * dy[:, 0])) / (2 * h)
         return np.where(np.isfinite(out) & (out > 0), out, 1.0)
 
+    def raw_radius(self) -> NDArray[np.float32]:
+        """``(H, W)``: each raw pixel's distance from the frame's centre as a share of the
+        half-diagonal (0 at the centre, 1 in the corners)."""
+        w, h = self.size
+        ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
+        return np.hypot(xs - (w - 1) / 2, ys - (h - 1) / 2) / np.float32(np.hypot(w, h) / 2)
+
     def outline(self, per_edge: int = 32) -> NDArray[np.float64]:
         """The raw frame's border (:func:`registration.coords.frame_outline`) in corrected
         pixels: under a ``base_from_corrected`` model, the frame's footprint."""

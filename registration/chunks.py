@@ -274,7 +274,10 @@ def run_chunk(context: ChunkContext, job: ChunkJob) -> Iterator[FrameOutput]:
                 if done.ok and done.anchor and cfg.intra.reanchor_coverage > 0:
                     yield from finish_pending()
                     frame = ctx.frames.get(k)
-                    render_anchor(joint, frame, ctx.camera, models[k], done.field)
+                    render_anchor(
+                        joint, frame, ctx.camera, models[k], done.field,
+                        cfg.intra.anchor_fill_radius,
+                    )  # fmt: skip
                 continue
             t_read = time.perf_counter()
             frame, problem = read_frame(frames, k)

@@ -140,6 +140,15 @@ class IntraConfig:
             has no content. Once a frame has left the reference frame's footprint, the paper's
             joint base leaves it only the previous frame, and errors accumulate frame after
             frame; anchors bound them by the inter-sensor accuracy.
+        anchor_fill_radius: beyond the paper. An anchor fills the mid base image only with its
+            pixels within this share of the half-diagonal from the raw frame's centre (None: its
+            whole frame). The mid base image's holes lie ahead of the flight, where the anchor
+            shows them in its outer ring: there the lens compresses the ground most and the
+            anchor's registration is least accurate (a 640x480 reference frame of the long
+            flight, after its field: 0.11 px within 0.6 of the half-diagonal, 0.27 px at
+            0.7-0.85, 0.77 px at 0.85-0.92, 3.0 px beyond), and every later frame aligned to
+            that content inherited it. Left empty, those pixels come from the base map
+            (``base_fallback``) until an anchor whose centre is there fills them.
         reanchor_max_shift_px: an anchor whose model differs from the frame's intra-sensor
             model by more than this (base px, median over the frame) is not trusted: the
             frame keeps its intra-sensor registration.
@@ -170,6 +179,7 @@ class IntraConfig:
     reqcon: ReqconConfig = field(default_factory=ReqconConfig)
     use_previous_frame: bool = True
     reanchor_coverage: float = 0.0
+    anchor_fill_radius: float | None = None
     reanchor_max_shift_px: float = 20.0
     base_fallback: bool = False
     fast_coarse: bool = False
@@ -185,6 +195,11 @@ class IntraConfig:
         if not 0 <= self.reanchor_coverage <= 1:
             raise ValueError(
                 f"IntraConfig.reanchor_coverage must be in [0, 1], got {self.reanchor_coverage}"
+            )
+        if self.anchor_fill_radius is not None and not 0 < self.anchor_fill_radius <= 1:
+            raise ValueError(
+                "IntraConfig.anchor_fill_radius must be in (0, 1] or None, got "
+                f"{self.anchor_fill_radius}"
             )
         if self.control_points not in ("gridded_sift", "template", "flow"):
             raise ValueError(
