@@ -28,7 +28,8 @@ def _joint(filled_box=None) -> JointBase:
 
 def _scene():
     camera = Camera(gamma=0.5, width=W, height=H)
-    # base = 1.5 * rotate(20°) * corrected + t: the frame lies inside the base, its centre at (300, 225).
+    # base = 1.5 * rotate(20°) * corrected + t: the frame lies inside the base, its centre at
+    # (300, 225).
     a = np.deg2rad(20.0)
     c, s = 1.5 * np.cos(a), 1.5 * np.sin(a)
     centre = camera.corrected_from_raw(np.array([[(W - 1) / 2, (H - 1) / 2]]))[0]
