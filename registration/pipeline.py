@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from registration.anchoring import ANCHOR_STAGE, anchor_box, footprint
+from registration.anchoring import ANCHOR_STAGE, anchor_box, footprint, render_anchor
 from registration.camera import Camera
 from registration.chunks import (
     ChunkContext,
@@ -43,6 +43,7 @@ from registration.global_registration import (
     FineResult,
     coarse_register,
     fine_register_reference,
+    make_joint_base,
 )
 from registration.io import FrameSource
 from registration.lens_k2 import register_with_lens
@@ -323,20 +324,17 @@ def _write_mosaic(writer: ResultWriter, ctx: ChunkContext) -> None:
     ]
     if not anchors:
         return
-    mid, valid = ctx.mid.copy(), ctx.mid_valid.copy()
-    hb, wb = valid.shape
+    joint = make_joint_base(ctx.mid.copy(), ctx.mid_valid.copy())
+    hb, wb = joint.mid_valid.shape
     for k in anchors:
-        box = anchor_box(ctx.camera, result.model(k), (wb, hb))
-        if box is None:
+        if anchor_box(ctx.camera, result.model(k), (wb, hb)) is None:
             continue  # the frame is not read: its box needs only the camera and model
-        x0, y0, x1, y1 = box
-        image, image_valid = render_to_base(
-            ctx.frames.get(k), ctx.camera, result.model(k), box, result.field(k)
-        )
-        hole = np.asarray(image_valid, bool) & ~valid[y0:y1, x0:x1]
-        mid[y0:y1, x0:x1][hole] = image[hole]
-        valid[y0:y1, x0:x1] |= hole
-    writer.write_mid_base(mid, valid)
+        # As the run filled it: only the anchor's pixels within its fill radius.
+        render_anchor(
+            joint, ctx.frames.get(k), ctx.camera, result.model(k), result.field(k),
+            ctx.config.intra.anchor_fill_radius,
+        )  # fmt: skip
+    writer.write_mid_base(joint.mid_image, joint.mid_valid)
 
 
 def load_config(out_dir: str | Path) -> PipelineConfig:

@@ -79,7 +79,9 @@ def render_registered(
     w, h = (int(v) for v in out_size)
     if w <= 0 or h <= 0:
         raise ValueError(f"output size must be positive, got {w}x{h}")
-    source = warp.source_map_from_function(base_to_frame_fn, w, h, step=step, origin=origin)
+    source = warp.source_map_from_function(
+        base_to_frame_fn, w, h, step=step, origin=origin, source_size=image_size(frame_raw)
+    )
     if step > 1:
         # The coarse map is NaN wherever one of the surrounding nodes falls outside the frame,
         # which would eat up to ``step`` px of every frame border: evaluate that band exactly.

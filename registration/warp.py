@@ -193,6 +193,7 @@ def source_map_from_function(
     *,
     step: int = 1,
     origin: tuple[float, float] = (0.0, 0.0),
+    source_size: tuple[int, int] | None = None,
 ) -> NDArray[np.float32]:
     """Build a source map by evaluating ``source_from_output`` on the output pixel grid.
 
@@ -208,6 +209,10 @@ def source_map_from_function(
         step: evaluation spacing in output pixels.
         origin: output pixel ``(0, 0)`` corresponds to this ``(x, y)`` in the function's
             coordinates (used to render a crop of a larger canvas).
+        source_size: ``(W, H)`` of the source image, when known (``step > 1``): pixels that
+            interpolation puts inside it from a lattice cell whose four nodes all lie outside
+            it, not all beyond one of its edges, are evaluated exactly
+            (:func:`_straddling_cells`).
 
     Returns:
         ``(height, width, 2)`` float32 source map.
@@ -219,7 +224,43 @@ def source_map_from_function(
     nodes = _lattice(width, height, step, origin)
     gy, gx = nodes.shape[:2]
     coarse = np.asarray(source_from_output(nodes.reshape(-1, 2)), np.float32).reshape(gy, gx, 2)
-    return _densify(coarse, step)[step : step + height, step : step + width]
+    source = _densify(coarse, step)[step : step + height, step : step + width]
+    if source_size is not None:
+        # Pixel x lies in the cell between nodes floor((x + step + 0.5) / step - 0.5) and the
+        # next (the extra ring of nodes puts every pixel between two).
+        cx = np.minimum((np.arange(width) + step + 0.5) / step - 0.5, gx - 2).astype(int)
+        cy = np.minimum((np.arange(height) + step + 0.5) / step - 0.5, gy - 2).astype(int)
+        suspect = _straddling_cells(coarse, source_size)[cy[:, None], cx[None, :]]
+        # Only what interpolation put inside can be a ghost: where the mapping is smooth the
+        # interpolated and the exact source agree (to 0.002 px), inside or out.
+        w, h = source_size
+        sx, sy = source[..., 0], source[..., 1]
+        with np.errstate(invalid="ignore"):
+            suspect &= (sx >= -0.5) & (sx <= w - 0.5) & (sy >= -0.5) & (sy <= h - 0.5)
+        ys, xs = np.nonzero(suspect)
+        if len(xs):
+            pts = np.c_[xs + float(ox), ys + float(oy)]
+            source[ys, xs] = np.asarray(source_from_output(pts), np.float32)
+    return source
+
+
+def _straddling_cells(coarse: NDArray, source_size: tuple[int, int]) -> NDArray[np.bool_]:
+    """``(gy - 1, gx - 1)``: the lattice cells whose four nodes are all defined and outside the
+    ``source_size`` image, but not all beyond the same edge. Bilinear interpolation between
+    such nodes can pass through the image: where a mapping jumps between nodes (across a
+    model inverse's second branch far from the frame, or a projective's horizon), the
+    interpolated map would render a ghost copy of the image's content there."""
+    w, h = source_size
+    sx, sy = coarse[..., 0], coarse[..., 1]
+    with np.errstate(invalid="ignore"):
+        sides = np.stack([sx < -0.5, sx > w - 0.5, sy < -0.5, sy > h - 0.5])
+    finite = np.isfinite(coarse).all(axis=2)
+
+    def all4(a: NDArray) -> NDArray:
+        return a[..., :-1, :-1] & a[..., 1:, :-1] & a[..., :-1, 1:] & a[..., 1:, 1:]
+
+    outside = all4(sides.any(axis=0) & finite)
+    return outside & ~all4(sides).any(axis=0)
 
 
 def source_maps_in_boxes(
@@ -314,10 +355,10 @@ def warp_image(
         ``(warped, valid)``: the warped image and a ``(height, width)`` bool mask of output
         pixels whose source lies inside ``image``.
     """
-    source_map = source_map_from_function(
-        source_from_output, width, height, step=step, origin=origin
-    )
     h, w = image.shape[:2]
+    source_map = source_map_from_function(
+        source_from_output, width, height, step=step, origin=origin, source_size=(w, h)
+    )
     sx, sy = source_map[..., 0], source_map[..., 1]
     with np.errstate(invalid="ignore"):
         valid = (sx >= -0.5) & (sx <= w - 0.5) & (sy >= -0.5) & (sy <= h - 0.5)

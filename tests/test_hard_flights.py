@@ -10,6 +10,7 @@ import dataclasses
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from registration.anchoring import ANCHOR_STAGE
 from registration.config import get_preset
@@ -45,6 +46,30 @@ def _run(flight, out, config):
     return result, err
 
 
+def _assert_mid_base_is_what_the_run_filled(result, out, intra) -> None:
+    """The mid base image written with a re-anchored result holds only the reference frame and
+    its anchors' raw pixels within ``intra.anchor_fill_radius`` (what the run filled it with),
+    and no ghost of a frame outside its footprint. Checked every 7th pixel, 3 px inside the
+    mask's edge (the rendering's lattice and the result's inverse differ by a fraction of a px
+    there)."""
+    valid = read_image(out / "mid_base_valid.png", grey=True) > 127
+    inner = ndimage.binary_erosion(valid, iterations=3)
+    ys, xs = np.nonzero(inner)
+    b = np.c_[xs, ys][::7].astype(float)
+    explained = np.zeros(len(b), bool)
+    anchors = [k for k, r in enumerate(result.records) if r.get("stage") == ANCHOR_STAGE]
+    centre = np.array([W - 1, H - 1]) / 2
+    for k in [result.reference_frame, *anchors]:
+        q = result.base_to_frame(k, b, stage="local")
+        ok = np.isfinite(q).all(axis=1)
+        ok[ok] = (q[ok] >= -0.5).all(axis=1) & (q[ok] <= [W - 0.5, H - 0.5]).all(axis=1)
+        if k != result.reference_frame:
+            radius = np.hypot(*(q - centre).T) / (np.hypot(W, H) / 2)
+            ok &= radius < intra.anchor_fill_radius + 0.01
+        explained |= ok
+    assert len(b) > 1000 and explained.all(), (len(b), int((~explained).sum()))
+
+
 @pytest.mark.slow
 def test_long_flight_does_not_drift(flight, tmp_path):
     """Default preset (re-anchoring, anchors filling the mid base image from their centre, and
@@ -53,14 +78,15 @@ def test_long_flight_does_not_drift(flight, tmp_path):
     when anchors filled from their whole frame) and stay within 1.3x the measured figures (last
     10 0.608 px, worst frame 1.376 px); without re-anchoring and the base map, the chain of
     intra-sensor frames drifts off (measured 7.7 px over the first 10, 719 px over the last)."""
-    result, err = _run(flight, tmp_path / "default", get_preset("default"))
+    cfg = get_preset("default")
+    result, err = _run(flight, tmp_path / "default", cfg)
     assert all(r["status"] == "ok" for r in result.records)
     assert any(r.get("stage") == ANCHOR_STAGE for r in result.records)
     first, last = err[:10].mean(), err[-10:].mean()
     assert last <= 1.2 * first, f"first 10 {first:.2f} px, last 10 {last:.2f} px"
     assert last < 0.79 and err.max() < 1.79, err.round(2)  # measured 0.608, 1.376
+    _assert_mid_base_is_what_the_run_filled(result, tmp_path / "default", cfg.intra)
 
-    cfg = get_preset("default")
     paper_joint = dataclasses.replace(
         cfg, intra=dataclasses.replace(cfg.intra, reanchor_coverage=0.0, base_fallback=False)
     )

@@ -197,3 +197,44 @@ def test_prepared_map_gives_the_same_image(interpolation):
     tol = max_gradient(img) * POSITION_QUANTUM + 1
     assert np.abs(a.astype(int) - b.astype(int))[inside].max() <= tol
     assert (b[0, :5] == 9).all()
+
+
+def test_a_mapping_that_jumps_between_nodes_renders_no_ghost():
+    """Far from a frame, a model's inverse can jump between two lattice nodes from beyond the
+    image's left edge to beyond its right edge (a second branch of a polyprojective's inverse,
+    a projective's horizon). Interpolating the lattice there passes through the image and would
+    render a ghost of it; no output pixel truly maps inside, so none may be valid."""
+    from registration.render import render_registered
+
+    img = np.full((60, 80), 200, np.uint8)
+
+    def jump(xy):
+        x = np.where(xy[:, 0] < 101.3, -100.0, 180.0)
+        return np.c_[x, xy[:, 1] * 0.5]
+
+    # The case is real: the interpolated lattice alone puts pixels inside the image.
+    lattice = warp.source_map_from_function(jump, 200, 100, step=8)
+    assert ((lattice[..., 0] >= -0.5) & (lattice[..., 0] <= 79.5)).sum() >= 100
+    for step in (4, 8):
+        out, valid = warp.warp_image(img, jump, 200, 100, step=step)
+        assert not valid.any() and not out.any(), step
+    out, mask = render_registered(img, jump, (200, 100), step=8, return_mask=True)
+    assert not mask.any() and not out.any()
+
+
+def test_ghost_check_keeps_a_smooth_mapping_to_the_bit():
+    """Cells straddling the image only through a smooth mapping (a frame's corner poking into a
+    cell whose four nodes are outside) keep what interpolation gave, to 0.002 px."""
+    img = smooth_image()
+    a = np.radians(33.0)
+    rot = 1.7 * np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+
+    def src_from_out(xy):
+        return xy @ rot.T + [-40.0, -70.0]
+
+    plain = warp.source_map_from_function(src_from_out, 150, 130, step=8)
+    checked = warp.source_map_from_function(src_from_out, 150, 130, step=8, source_size=(80, 60))
+    np.testing.assert_array_equal(np.isfinite(plain), np.isfinite(checked))
+    assert np.nanmax(np.abs(plain - checked)) < 2e-3
+    out, valid = warp.warp_image(img, src_from_out, 150, 130, step=8)
+    assert valid.sum() > 500
