@@ -168,7 +168,8 @@ def frame_flow(
 
     The mid base image is warped into the frame (at :func:`flow_scale`) through
     ``base_from_frame``, and DIS optical flow runs from it to the frame: where the warped
-    reference shows base point ``B = g(p)`` at frame point ``p``, the frame shows that content at
+    reference shows base point ``B`` at frame point ``p`` (``B = g(p)`` as the warp's map
+    interpolates it, :func:`registration.warp.lattice_source`), the frame shows that content at
     ``p + f(p)``. So ``(p + f(p), B)`` is a correspondence whatever ``g`` is, as long as ``g`` is
     within the flow's reach (a few px): the coarse model serves for the global model's control
     points and any later model for the local field (:func:`flow_samples`). The frame is never
@@ -202,7 +203,10 @@ def frame_flow(
         ok = inner[ys, xs] > 0
         ys, xs = ys[ok], xs[ok]
         p = np.c_[xs, ys].astype(np.float64)
-        base = base_from_small(p)
+        # The base point whose content the warped reference shows at p: the map as rendered
+        # (between its lattice nodes), not the model at p, which parts from it by tenths of
+        # a px in a strongly corrected frame's corners.
+        base = rescale(smap[ys, xs].astype(np.float64), 1.0 / rs)
         frame_xy = rescale(p + flow_img[ys, xs], 1.0 / s)
         keep = np.isfinite(base).all(axis=1) & np.isfinite(frame_xy).all(axis=1)
         return frame_xy[keep], base[keep]

@@ -106,7 +106,8 @@ class TemplateConfig:
         reject_border_peaks: drop templates whose integer peak lies on the border of the search
             range (the true peak may lie outside it, and no sub-pixel fit is possible there).
         map_step_px: evaluation step of ``ref_from_frame`` when the reference is warped into
-            frame geometry (8 px, see :func:`registration.warp.source_map_from_function`).
+            frame geometry (8 px, see :func:`registration.warp.source_map_from_function`); a
+            match's ``dst`` is read through the same lattice.
         max_roundtrip_px: with ``frame_from_ref`` given, templates whose centre does not come
             back within this distance through ``frame_from_ref(ref_from_frame(c))`` are skipped
             (the model is not invertible there). Frame px.
@@ -454,7 +455,9 @@ def template_control_points(
 
     With ``config.warp_reference`` the reference is first resampled into frame geometry once
     (:func:`prepare_search`); a peak at frame offset ``d`` means frame point ``s`` shows the
-    reference content at ``ref_from_frame(s + d)``, which is ``dst``. Without it (the paper) the
+    reference content that the warp put at ``s + d``: ``ref_from_frame`` there as interpolated
+    between the warp's lattice nodes (:func:`registration.warp.lattice_source`), which is
+    ``dst``. Without it (the paper) the
     search runs directly in reference pixels around ``round(ref_from_frame(c))`` and ``dst`` is
     that position plus the peak offset.
 
@@ -691,11 +694,17 @@ def _match_set(frame, centres, config, ref, ref_from_frame, frame_from_ref, ref_
     src = centres[idx].astype(np.float64) + anchor
     source = which[idx]
     if config.warp_reference:
+        # Where the warped reference showed the match: its map between lattice nodes, not the
+        # model itself (they part by tenths of a px in a strongly corrected frame's corners).
         dst = np.full_like(src, np.nan)
+        lattice = {"step": config.map_step_px, "origin": (-config.search_radius,) * 2}
         for k, fn in enumerate([ref_from_frame] + [fb.ref_from_frame for fb in fallbacks]):
             sel = source == k
             if sel.any():
-                dst[sel] = _call_points(fn, src[sel] + offset[sel], "ref_from_frame")
+                dst[sel] = warp.lattice_source(
+                    lambda q, fn=fn: _call_points(fn, q, "ref_from_frame"),
+                    src[sel] + offset[sel], **lattice,
+                )  # fmt: skip
     else:
         dst = win_centres[idx] + offset
     fin = np.isfinite(dst).all(axis=1)
