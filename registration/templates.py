@@ -457,9 +457,8 @@ def template_control_points(
     (:func:`prepare_search`); a peak at frame offset ``d`` means frame point ``s`` shows the
     reference content that the warp put at ``s + d``: ``ref_from_frame`` there as interpolated
     between the warp's lattice nodes (:func:`registration.warp.lattice_source`), which is
-    ``dst``. Without it (the paper) the
-    search runs directly in reference pixels around ``round(ref_from_frame(c))`` and ``dst`` is
-    that position plus the peak offset.
+    ``dst``. Without it (the paper) the search runs directly in reference pixels around
+    ``round(ref_from_frame(c))`` and ``dst`` is that position plus the peak offset.
 
     Templates are skipped when they or their search window are too flat
     (``min_template_std``), when the search window leaves the reference, when the model is

@@ -74,9 +74,10 @@ def _assert_mid_base_is_what_the_run_filled(result, out, intra) -> None:
 def test_long_flight_does_not_drift(flight, tmp_path):
     """Default preset (re-anchoring, anchors filling the mid base image from their centre, and
     the base map behind the joint base): the last 10 frames are no worse than 1.2x the first 10
-    (the issue's bar; measured 0.642 -> 0.608 px mean after the local stage, 0.725 -> 0.766
-    when anchors filled from their whole frame) and stay within 1.3x the measured figures (last
-    10 0.608 px, worst frame 1.376 px); without re-anchoring and the base map, the chain of
+    (the issue's bar; measured 0.601 -> 0.553 px mean after the local stage, 0.642 -> 0.608
+    before matches were read through the warp's lattice, 0.725 -> 0.766 when anchors filled
+    from their whole frame) and stay within 1.3x the measured figures (last 10 0.553 px, worst
+    frame 1.321 px); without re-anchoring and the base map, the chain of
     intra-sensor frames drifts off (measured 7.7 px over the first 10, 719 px over the last)."""
     cfg = get_preset("default")
     result, err = _run(flight, tmp_path / "default", cfg)
@@ -84,7 +85,7 @@ def test_long_flight_does_not_drift(flight, tmp_path):
     assert any(r.get("stage") == ANCHOR_STAGE for r in result.records)
     first, last = err[:10].mean(), err[-10:].mean()
     assert last <= 1.2 * first, f"first 10 {first:.2f} px, last 10 {last:.2f} px"
-    assert last < 0.79 and err.max() < 1.79, err.round(2)  # measured 0.608, 1.376
+    assert last < 0.72 and err.max() < 1.72, err.round(2)  # measured 0.553, 1.321
     _assert_mid_base_is_what_the_run_filled(result, tmp_path / "default", cfg.intra)
 
     paper_joint = dataclasses.replace(
