@@ -110,6 +110,10 @@ def heading_from_coarse(coarse) -> HeadingScale | None:
     source = GATE_SOURCES.get(coarse.gate, coarse.gate or "coarse step")
     if coarse.gate == "seed" and coarse.ambiguity:
         source += f"; ambiguity {coarse.ambiguity:.2f}"
+    confirm = coarse.image_agreement
+    if confirm is not None:
+        # How strongly the images confirm it (CoarseConfig.max_chance_p refuses on this).
+        source += f"; {confirm.agreeing} of {confirm.matched} map templates agree"
     return HeadingScale(_heading(heading), float(scale), source)
 
 

@@ -41,6 +41,7 @@ from registration import features, heading
 from registration.camera import Camera, as_camera
 from registration.coords import frame_outline, image_size, rescale
 from registration.correlation import (
+    Agreement,
     CorrelationConfig,
     agreement,
     gradient_images,
@@ -111,6 +112,15 @@ class CoarseConfig:
             that it cannot decide.
         seed_check_px: a result that puts the seed's frame point farther than this (full-scale
             base pixels, plus the click errors) from the clicked base point is refused (40).
+        max_chance_p: with ``correlation`` rounds and fewer than two seeds, a result is refused
+            when chance alone would make at least as many templates of the last round agree
+            with it with a probability above this (:func:`registration.correlation.agreement`):
+            the images do not show it (2e-3; 1 = never). On the 200 real SRIF pairs it refuses
+            8 one-click results, 7 of them wrong by 12-1107 px and one right (3.9 px; p 0.13),
+            and 10 results without a click, all wrong by 44-768 px; the least confirmed right
+            result kept has p 3e-4, the best confirmed wrong one refused 0.013. Two seeds fix
+            heading and scale themselves, so their result is kept and ``image_agreement`` says
+            how weakly it is confirmed.
     """
 
     scale: float = 0.25
@@ -129,6 +139,7 @@ class CoarseConfig:
     min_inliers_unseeded: int = 12
     decisive_ratio: float = 1.5
     seed_check_px: float = 40.0
+    max_chance_p: float = 2e-3
 
     def __post_init__(self) -> None:
         if not 0 < self.scale <= 1:
@@ -137,6 +148,10 @@ class CoarseConfig:
             raise ValueError(
                 f"CoarseConfig.min_side_px and refine_rounds must be >= 0, got "
                 f"{self.min_side_px}, {self.refine_rounds}"
+            )
+        if not 0 < self.max_chance_p <= 1:
+            raise ValueError(
+                f"CoarseConfig.max_chance_p must be in (0, 1], got {self.max_chance_p}"
             )
         unknown = [m for m in self.models if m not in _MODELS]
         if not self.models or unknown:
@@ -156,7 +171,8 @@ class CoarseResult:
     estimate the gate used (rotation frame -> base in degrees, clockwise on screen; base px per
     frame px), ``gate`` says what it was built from, ``gate_outline_base`` is the region of the
     base where gated matches can lie (a polygon, ``(M, 2)`` base px), and ``model_kind`` which
-    model was kept. For intra-sensor frames, ``path`` is the step that produced the model
+    model was kept, ``image_agreement`` how the last correlation round's templates confirm it
+    (None without correlation rounds). For intra-sensor frames, ``path`` is the step that produced the model
     (``"fast"``: :mod:`registration.fast_coarse`, ``"sift"``: the SIFT step) and
     ``fast_reason`` why the fast path was not used (``"off"`` when it is disabled or there is no
     previous frame; empty when it was used).
@@ -181,6 +197,7 @@ class CoarseResult:
     model_kind: str = "projective"
     ambiguity: float | None = None
     correlation_inliers: int = 0
+    image_agreement: Agreement | None = None
     path: str = ""
     fast_reason: str = ""
 
@@ -758,6 +775,9 @@ def coarse_register(
         _correlate(result, view, cbase, priors[won], seeds, s_f, cfg, rng, domain, base_c.scale)
     if seeds and result.success:
         _check_seed(result, seeds, lens, cfg)
+    confirm = result.image_agreement
+    if result.success and len(seeds) < 2 and confirm and confirm.chance_p > cfg.max_chance_p:
+        _refuse_unconfirmed(result, len(seeds))
     result.base_from_corrected = quantized(result.base_from_corrected)
     result.time_s = time.perf_counter() - t0
     return result
@@ -795,15 +815,19 @@ def _correlate(result, view, cbase, prior, seeds, s_f, cfg, rng, probes, s_b) ->
         if out.rounds and (best is None or out.inliers > best.inliers):
             best = out
     if best is None:
+        if result.success:
+            result.image_agreement = agreement(images, result.base_from_corrected, cfg.correlation)
         return
+    after = agreement(images, best.model, cfg.correlation)
     if result.success:
         # The SIFT model stays unless the images agree clearly better with the refined one
         # (another date or sensor can pull correlation by a few pixels where SIFT was right).
         before = agreement(images, result.base_from_corrected, cfg.correlation)
-        after = agreement(images, best.model, cfg.correlation)
-        result.correlation_inliers = after
-        if not after > _CORRELATION_GAIN * before:
+        result.correlation_inliers = after.agreeing
+        if not after.agreeing > _CORRELATION_GAIN * before.agreeing:
+            result.image_agreement = before
             return
+    result.image_agreement = after
     result.base_from_corrected = best.model
     result.model_kind = best.kind
     result.correlation_inliers = best.inliers
@@ -895,6 +919,25 @@ def _decide(attempts, priors, seeds, frame, base_c, cfg, w, h, lens) -> CoarseRe
     result.model_kind = best.kind
     result.success = True
     return result
+
+
+def _refuse_unconfirmed(result: CoarseResult, n_seeds: int) -> None:
+    """Refuse a registration the images do not confirm (``CoarseConfig.max_chance_p``): the
+    keypoints that made it agree by chance, as on a map of another date whose keypoints barely
+    repeat; saying so lets the analyst add the click that fixes heading and scale."""
+    a = result.image_agreement
+    help_ = (
+        "check the click, or click a second corresponding point to fix heading and scale"
+        if n_seeds
+        else "click one corresponding point in the frame and the map (--seed FX,FY,BX,BY) to help"
+    )
+    result.success = False
+    result.reason = (
+        f"coarse step: the images do not confirm the registration found: {a.agreeing} of "
+        f"{a.matched} map templates agree with it, as chance alone would (p = "
+        f"{a.chance_p:.2g}); {help_}"
+    )
+    result.base_from_corrected = None
 
 
 def _check_seed(result: CoarseResult, seeds, lens, cfg: CoarseConfig) -> None:

@@ -18,11 +18,13 @@ All models are ``base_from_corrected`` (corrected-frame pixels to base pixels).
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.special import bdtrc
 
 from registration.coords import image_size, rescale
 from registration.features import downscale, downscale_mask
@@ -31,6 +33,7 @@ from registration.robust import RansacConfig, ransac
 from registration.templates import TemplateConfig, gradient_magnitude, template_control_points
 
 __all__ = [
+    "Agreement",
     "CorrelationConfig",
     "CorrelationResult",
     "GradientImages",
@@ -221,14 +224,37 @@ def _one_round(images: GradientImages, model, side, search, config, rng):
     return (src, dst, refit) if refit else None
 
 
-def agreement(images: GradientImages, model: Projective, config: CorrelationConfig) -> int:
-    """How many templates of the last round's grid find their gradient-magnitude match within
-    ``config.ransac.threshold_px`` (pixels at that round's scale) of where ``model`` puts them:
-    an image-based check of a model, independent of the SIFT matches it may come from."""
+@dataclass(frozen=True)
+class Agreement:
+    """How well the images confirm a model (:func:`agreement`).
+
+    Attributes:
+        agreeing: templates of the last round's grid whose gradient-magnitude match lies within
+            ``ransac.threshold_px`` of where the model puts them.
+        matched: templates that found a match anywhere in their search range.
+        chance_p: probability that ``agreeing`` or more of ``matched`` agree by chance, each
+            match falling anywhere in its search square (binomial tail; 1 when none agree).
+    """
+
+    agreeing: int
+    matched: int
+    chance_p: float
+
+
+def agreement(images: GradientImages, model: Projective, config: CorrelationConfig) -> Agreement:
+    """How the last round's templates confirm ``model``: an image-based check of a model,
+    independent of the SIFT matches it may come from. A wrong model still gets a few agreeing
+    templates by chance (a match falls within the threshold's disc of its ``search_px`` square
+    with probability ``pi r² / search_px²``, 7 % for the default rounds), hence ``chance_p``."""
     if not config.rounds:
-        return 0
+        return Agreement(0, 0, 1.0)
+    _, search = config.rounds[-1]
     cps, _, _, base_from_small = _match_round(images, model, *config.rounds[-1], config)
     if not len(cps):
-        return 0
+        return Agreement(0, 0, 1.0)
     pred = base_from_small(cps.src)
-    return int(np.count_nonzero(np.hypot(*(pred - cps.dst).T) <= config.ransac.threshold_px))
+    r = config.ransac.threshold_px
+    k = int(np.count_nonzero(np.hypot(*(pred - cps.dst).T) <= r))
+    p_one = min(1.0, math.pi * r * r / float(search) ** 2)
+    # P(X >= k) = P(X > k - 1)
+    return Agreement(k, len(cps), float(bdtrc(k - 1, len(cps), p_one)) if k else 1.0)

@@ -381,6 +381,9 @@ def test_seed_heading_typed_correction_and_failure_reason(tmp_path, small_seq, m
     want, scale = true_heading(truth, 0, fxy)
     text = seed.panel.heading_md.content
     assert c and "estimated from the click" in text, text
+    confirm = c.image_agreement
+    assert f"{confirm.agreeing} of {confirm.matched} map templates agree" in text, text
+    assert confirm.agreeing > 0.5 * confirm.matched, confirm
     assert angle_gap(heading_shown(text), want) < 5.0
     assert seed.panel.heading_in.value == pytest.approx(c.heading_deg % 360, abs=0.06)
     assert seed.panel.scale_in.value == pytest.approx(c.scale, abs=1e-4)

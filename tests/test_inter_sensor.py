@@ -13,11 +13,14 @@ import cv2
 import numpy as np
 import pytest
 
-from registration.coarse import CoarseBase
+from registration.coarse import CoarseBase, frame_view
 from registration.config import get_preset
+from registration.correlation import agreement, gradient_images
 from registration.distortion import HarrisModel
+from registration.features import to_grey
 from registration.global_registration import coarse_register, fine_register_reference
 from registration.io import open_frames, read_image
+from registration.models import Projective
 from registration.synth import SimConfig, load_truth, rebase, simulate
 from tests.conftest import shared_data
 
@@ -132,6 +135,35 @@ def test_a_click_on_another_street_is_refused_with_a_reason(one_frame, tmp_path)
         assert "click" in coarse.reason and "\n" not in coarse.reason
 
 
+def test_the_images_confirm_the_true_registration_and_not_a_wrong_one(one_frame, tmp_path):
+    """``correlation.agreement``, what ``CoarseConfig.max_chance_p`` refuses on: the reference
+    frame against a map turned 143° at 0.5x, with the true projective (fitted to the exact
+    truth) and with that model moved 40 map px and turned 20° about the frame's centre."""
+    sim = rebase(one_frame, tmp_path / "h143", 143.0, 0.5)
+    truth = load_truth(sim)
+    frame = open_frames(sim / "frames").get(0)
+    base = read_image(sim / "base.png")
+    cfg = get_preset("default")
+    lens = HarrisModel(truth.gamma, W, H)
+    grid = _grid()
+    true_model = Projective.estimate(lens.corrected_from_raw(grid), truth.frame_to_base(0, grid))
+    c = true_model.apply(np.array([[W / 2, H / 2]]))[0]
+    a = math.radians(20.0)
+    turn = np.array([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]])
+    move = np.array([[1, 0, 40 - c[0]], [0, 1, -c[1]], [0, 0, 1]])
+    back = np.array([[1, 0, c[0]], [0, 1, c[1]], [0, 0, 1]])
+    wrong = Projective.from_matrix(back @ turn @ move @ true_model.matrix)
+    view = frame_view(frame, truth.gamma, cfg.match_in)
+    images = gradient_images(
+        view.grey, view.to_corrected, view.from_corrected, to_grey(base), base.max(axis=2) > 0
+    )  # fmt: skip
+    right = agreement(images, true_model, cfg.coarse.correlation)
+    wrong = agreement(images, wrong, cfg.coarse.correlation)
+    # measured: 1173 agreeing (p ~ 0), and 5 of 46 with p = 0.22
+    assert right.agreeing > 0.5 * right.matched and right.chance_p < 1e-100, right
+    assert wrong.chance_p > 100 * cfg.coarse.max_chance_p, wrong
+
+
 # ------------------------------------------------------------------------------------------
 # Real imagery
 
@@ -208,16 +240,45 @@ def test_srif_click_where_sift_votes_mislead_is_rescued_by_image_correlation():
     (HeadingConfig.patch_below_votes) bring it to 16.3 px at the corners. The pair is marginal
     (16-18 of 361 templates match in the first correlation round, 12 needed): one grey level of
     the gradient image's scaling in a few pixels (NumPy 2.4's float32 percentile) moved it
-    between 2.0 and 16.3 px, so the bound is loose."""
+    between 2.0 and 16.3 px, so the bound is loose. At 16.3 px it is still a miss, and the
+    images say so: 6 of 52 templates agree with it, as chance alone would (p 0.2), so by
+    default it is refused (``CoarseConfig.max_chance_p``) and the analyst asked for a second
+    click; the comparison runs with that check off."""
     folder = shared_data("srif-optical-optical")
     im1, im2, valid, gt = _srif_pair(folder, 36)
     seed = _srif_click(36, im1, valid, gt)
     cfg = get_preset("default")
-    rescued = _srif_corner_error(im1, im2, valid, gt, seed, cfg, rng=36)
+    refused = coarse_register(
+        im1, im2, 0.0, seed, cfg.coarse, match_in=cfg.match_in, base_valid=valid, rng=36
+    )
+    assert not refused and "do not confirm" in refused.reason, refused.reason
+    unchecked = dataclasses.replace(cfg, coarse=dataclasses.replace(cfg.coarse, max_chance_p=1.0))
+    rescued = _srif_corner_error(im1, im2, valid, gt, seed, unchecked, rng=36)
     heading = dataclasses.replace(cfg.coarse.heading, patch_below_votes=0)
-    without = dataclasses.replace(cfg, coarse=dataclasses.replace(cfg.coarse, heading=heading))
+    without = dataclasses.replace(
+        unchecked, coarse=dataclasses.replace(unchecked.coarse, heading=heading)
+    )
     misled = _srif_corner_error(im1, im2, valid, gt, seed, without, rng=36)
     assert rescued < 25 and misled > 100, (rescued, misled)  # measured 16.3 and 291
+
+
+def test_srif_registration_the_images_do_not_confirm_is_refused_and_two_clicks_find_it():
+    """SRIF pair 76 (image 2 four years later, 0.62x, turned 315°): around the click a single
+    SIFT match votes, for a heading 154° and a scale 3.2x off, the images around the click
+    suggest nothing better, and the registration built on the vote put image 1's corners
+    1107 px off, silently. No template of the map agrees with it (``max_chance_p``): it is
+    refused, the message asks for a second click, and with a second click it is 5.3 px off."""
+    folder = shared_data("srif-optical-optical")
+    im1, im2, valid, gt = _srif_pair(folder, 76)
+    cfg = get_preset("default")
+    one = _srif_click(76, im1, valid, gt)
+    coarse = coarse_register(
+        im1, im2, 0.0, one, cfg.coarse, match_in=cfg.match_in, base_valid=valid, rng=76
+    )
+    assert not coarse and "do not confirm" in coarse.reason and "second" in coarse.reason
+    assert coarse.image_agreement.agreeing == 0
+    two = [one, _srif_click(1076, im1, valid, gt)]
+    assert _srif_corner_error(im1, im2, valid, gt, two, cfg, rng=76) < 8  # measured 5.3
 
 
 @pytest.mark.slow
