@@ -172,10 +172,10 @@ class CoarseResult:
     frame px), ``gate`` says what it was built from, ``gate_outline_base`` is the region of the
     base where gated matches can lie (a polygon, ``(M, 2)`` base px), and ``model_kind`` which
     model was kept, ``image_agreement`` how the last correlation round's templates confirm it
-    (None without correlation rounds). For intra-sensor frames, ``path`` is the step that produced the model
-    (``"fast"``: :mod:`registration.fast_coarse`, ``"sift"``: the SIFT step) and
-    ``fast_reason`` why the fast path was not used (``"off"`` when it is disabled or there is no
-    previous frame; empty when it was used).
+    (None without correlation rounds). For intra-sensor frames, ``path`` is the step that
+    produced the model (``"fast"``: :mod:`registration.fast_coarse`, ``"sift"``: the SIFT step)
+    and ``fast_reason`` why the fast path was not used (``"off"`` when it is disabled or there
+    is no previous frame; empty when it was used).
     """
 
     success: bool
