@@ -51,7 +51,7 @@ from registration.distortion import HarrisModel, TwoTermHarrisModel
 from registration.features import Keypoints, SiftConfig
 from registration.heading import HeadingConfig, SimilarityPrior
 from registration.models import Affine, Projective, Similarity, quantized
-from registration.robust import RansacConfig, ransac, simplest_supported
+from registration.robust import RansacConfig, hull_coverage, ransac, simplest_supported
 
 Seed = tuple[float, float, float, float]
 
@@ -393,6 +393,22 @@ def _select_model(src, dst, kinds: Sequence[str], current: Projective, probes) -
     return (model if kind == "projective" else model.as_projective()), kind
 
 
+def projective_or_simpler(
+    src: NDArray, dst: NDArray, fitted: Projective, config: CoarseConfig, probes, scale: float
+) -> tuple[Projective, str]:
+    """``(model, kind)``: the projective ``fitted`` to the inlier pairs ``src -> dst`` (px at
+    ``scale``) when they span at least :data:`COARSE_MIN_COVERAGE`'s share for it of ``probes``
+    (full-scale corrected px over the frame; None = no check), else the model
+    :func:`_select_model` chooses among ``config.models`` (a projective on matches in one part
+    of the frame can put its far side hundreds of pixels off)."""
+    if probes is None or len(config.models) < 2:
+        return fitted, "projective"
+    probes = rescale(probes, scale)
+    if hull_coverage(src, probes) >= COARSE_MIN_COVERAGE["projective"]:
+        return fitted, "projective"
+    return _select_model(src, dst, config.models, fitted, probes)
+
+
 @dataclass
 class _Attempt:
     """One prior's outcome, in coarse pixels: every ratio match plus the guided ones (``gated``
@@ -563,6 +579,7 @@ def fit_coarse(
     rng: np.random.Generator,
     n_keypoints_base: int,
     known: list[features.Matches | None] | None = None,
+    probes: NDArray | None = None,
 ) -> CoarseResult:
     """Match the frame against each reference separately, gate, RANSAC at the coarse scale
     (the intra-sensor coarse step, paper 4.4).
@@ -571,7 +588,11 @@ def fit_coarse(
     to base pixels (None = already base pixels). Matching each reference on its own keeps the
     ratio test from rejecting a point because it appears in two references. ``known`` gives
     matches already computed, per reference (None = match here). ``gate`` is called with
-    full-scale ``(frame_xy, base_xy)`` and returns a bool mask (None = no gate).
+    full-scale ``(frame_xy, base_xy)`` and returns a bool mask (None = no gate). With
+    ``probes`` (``(N, 2)`` full-scale corrected px spread over the frame, e.g. cell centres),
+    inliers spanning less than half of the frame get a simpler model
+    (:func:`projective_or_simpler`): on a real roundabout at 320x240, a projective on 8 matches
+    in one part of the frame put its far side up to 760 px off.
     """
     s = frame_feats.scale
     frame_xy, base_xy = [], []
@@ -616,7 +637,9 @@ def fit_coarse(
         result.reason = f"coarse step: RANSAC failed: {fit.reason}"
         return result
     inliers[idx[fit.inliers]] = True
-    result.base_from_corrected = quantized(fit.model.rescaled(1.0 / s, 1.0 / s))
+    src, dst = rescale(frame_xy[inliers], s), rescale(base_xy[inliers], s)
+    model, result.model_kind = projective_or_simpler(src, dst, fit.model, config, probes, s)
+    result.base_from_corrected = quantized(model.rescaled(1.0 / s, 1.0 / s))
     result.success = True
     return result
 

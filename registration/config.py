@@ -286,6 +286,7 @@ def _default() -> PipelineConfig:
             anchor_fill_radius=ANCHOR_FILL_RADIUS,
             base_fallback=True,
             fast_coarse=True,
+            sparse_support=True,
         ),
         local=replace(paper.local, **{**FLOW_OVERRIDES, **LOCAL_FLOW}),
         reference_local=REFERENCE_LOCAL,

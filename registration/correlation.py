@@ -248,8 +248,8 @@ def agreement(images: GradientImages, model: Projective, config: CorrelationConf
     with probability ``pi r² / search_px²``, 7 % for the default rounds), hence ``chance_p``."""
     if not config.rounds:
         return Agreement(0, 0, 1.0)
-    _, search = config.rounds[-1]
-    cps, _, _, base_from_small = _match_round(images, model, *config.rounds[-1], config)
+    side, search = config.rounds[-1]
+    cps, _, _, base_from_small = _match_round(images, model, side, search, config)
     if not len(cps):
         return Agreement(0, 0, 1.0)
     pred = base_from_small(cps.src)

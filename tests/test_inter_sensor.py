@@ -152,13 +152,13 @@ def test_the_images_confirm_the_true_registration_and_not_a_wrong_one(one_frame,
     turn = np.array([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]])
     move = np.array([[1, 0, 40 - c[0]], [0, 1, -c[1]], [0, 0, 1]])
     back = np.array([[1, 0, c[0]], [0, 1, c[1]], [0, 0, 1]])
-    wrong = Projective.from_matrix(back @ turn @ move @ true_model.matrix)
+    wrong_model = Projective.from_matrix(back @ turn @ move @ true_model.matrix)
     view = frame_view(frame, truth.gamma, cfg.match_in)
     images = gradient_images(
         view.grey, view.to_corrected, view.from_corrected, to_grey(base), base.max(axis=2) > 0
     )  # fmt: skip
     right = agreement(images, true_model, cfg.coarse.correlation)
-    wrong = agreement(images, wrong, cfg.coarse.correlation)
+    wrong = agreement(images, wrong_model, cfg.coarse.correlation)
     # measured: 1173 agreeing (p ~ 0), and 5 of 46 with p = 0.22
     assert right.agreeing > 0.5 * right.matched and right.chance_p < 1e-100, right
     assert wrong.chance_p > 100 * cfg.coarse.max_chance_p, wrong

@@ -77,6 +77,8 @@ def test_simulate_cli_errors(tmp_path, capsys, argv, needle):
         (["--rebase", "/nonexistent", "--base-heading", "30"], "--rebase source folder not found"),
         (["--rebase", "x", "--frames", "3"], "--rebase reuses SRC's frames"),
         (["--rebase", "x"], "--rebase needs --base-heading and/or --base-scale"),
+        (["--scene", "s.png", "--base-from-scene", "1,0,0,0,1"], "needs 9 finite numbers"),
+        (["--scene", "s.png", "--base-from-scene", "1", "0", "x"], "needs 9 numbers, got '1 0 x'"),
     ],
 )
 def test_simulate_cli_limits_one_line(tmp_path, capsys, argv, needle):
@@ -142,3 +144,28 @@ def test_simulate_cli_demo_uses_cache(tmp_path, capsys, monkeypatch):
     assert main(["simulate", "--demo", "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
     assert info["out"] == str((tmp_path / "demo-v1").resolve())
+
+
+def test_simulate_cli_base_from_scene_in_exponent_notation(tmp_path, capsys):
+    """A homography estimated from images has tiny perspective terms such as -8.5e-07, which
+    argparse takes for an option when given as separate arguments: one comma-separated value
+    after ``=`` passes it, and the truth carries it exactly."""
+    import cv2
+    import numpy as np
+
+    from registration.synth import load_truth
+
+    rng = np.random.default_rng(0)
+    scene = cv2.GaussianBlur(rng.integers(0, 256, (300, 400, 3), dtype=np.uint8), (5, 5), 1.5)
+    cv2.imwrite(str(tmp_path / "scene.png"), scene)
+    h = [1.01, 0.02, -5.5, -0.03, 0.99, 4.25, -8.5e-07, 3.25e-06, 1.0]
+    rc = main(
+        [
+            "simulate", str(tmp_path / "sim"), "--scene", str(tmp_path / "scene.png"),
+            "--base-from-scene=" + ",".join(repr(v) for v in h), "--frames", "2",
+            "--size", "160x120", "--no-video",
+        ]
+    )  # fmt: skip
+    assert rc == 0, capsys.readouterr().err
+    truth = load_truth(tmp_path / "sim")
+    np.testing.assert_allclose(truth.geometry.base_from_scene, np.reshape(h, (3, 3)), rtol=1e-12)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from pathlib import Path
@@ -93,10 +94,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--base-from-scene",
-        nargs=9,
-        type=float,
+        nargs="+",
         metavar="H",
-        help="3x3 homography, row-major, from scene pixels to base pixels (default identity)",
+        help="3x3 homography, row-major, from scene pixels to base pixels (default identity): "
+        "9 numbers, space- or comma-separated; write --base-from-scene=h11,h12,... when one "
+        "is negative in exponent notation (-8.5e-07), which the shell's argument parser would "
+        "take for an option",
     )
     p.add_argument(
         "--rebase",
@@ -260,6 +263,23 @@ def _rebase(args: argparse.Namespace) -> Path:
     )
 
 
+def _homography_arg(tokens: list[str] | None) -> list[float] | None:
+    """``--base-from-scene``'s 9 numbers from space- and/or comma-separated tokens."""
+    if not tokens:
+        return None
+    parts = [t for token in tokens for t in token.replace(",", " ").split()]
+    try:
+        values = [float(t) for t in parts]
+    except ValueError:
+        raise UsageError(f"--base-from-scene needs 9 numbers, got {' '.join(tokens)!r}") from None
+    if len(values) != 9 or not all(math.isfinite(v) for v in values):
+        raise UsageError(
+            f"--base-from-scene needs 9 finite numbers (a 3x3 homography, row-major), got "
+            f"{len(values)}: {' '.join(tokens)!r}"
+        )
+    return values
+
+
 def _simulate(args: argparse.Namespace) -> Path:
     from registration.synth import simulate
 
@@ -267,6 +287,7 @@ def _simulate(args: argparse.Namespace) -> Path:
         raise UsageError("--base needs --scene")
     if args.base_from_scene and not args.scene:
         raise UsageError("--base-from-scene needs --scene")
+    base_from_scene = _homography_arg(args.base_from_scene)
     for flag, path in (("--scene", args.scene), ("--base", args.base)):
         if path and not Path(path).is_file():
             raise FileNotFoundError(f"{flag} image not found: {path}")
@@ -276,7 +297,7 @@ def _simulate(args: argparse.Namespace) -> Path:
         cfg,
         scene=args.scene,
         base=args.base,
-        base_from_scene=args.base_from_scene,
+        base_from_scene=base_from_scene,
         progress=_LazyBar("simulate"),
         force=args.force,
     )
