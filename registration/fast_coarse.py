@@ -21,9 +21,10 @@ prediction cannot be confirmed. :func:`fast_coarse`:
    projective is fitted by RANSAC at the coarse scale, exactly as the SIFT step fits its
    matches with the previous frame (:func:`registration.coarse.fit_coarse`);
 4. **check**: at least ``IntraConfig.fast_min_inliers`` inliers, at least
-   :data:`MIN_INLIER_SHARE` of the matches, spanning at least :data:`MIN_COVERAGE` of the frame
-   (below half of it, a similarity or an affine replaces the projective:
-   :func:`registration.coarse.projective_or_simpler`).
+   :data:`MIN_INLIER_SHARE` of the matches, spanning at least :data:`FIRST_COVERAGE` of the
+   frame; spanning :data:`MIN_COVERAGE` to it, a similarity or an affine replaces the
+   projective (:func:`registration.coarse.projective_or_simpler`) and is returned, falsy, for
+   the caller to keep where the SIFT step fails.
 
 A failed step returns a falsy :class:`registration.coarse.CoarseResult` whose ``reason`` says
 why; the caller then runs the SIFT step. Everything is deterministic (seeded RANSAC, no
@@ -52,7 +53,14 @@ from registration.models import Projective, quantized
 from registration.robust import hull_coverage, ransac
 from registration.templates import TemplateConfig, template_control_points
 
-__all__ = ["MIN_COVERAGE", "MIN_INLIER_SHARE", "MIN_RESPONSE", "fast_coarse", "phase_shift"]
+__all__ = [
+    "FIRST_COVERAGE",
+    "MIN_COVERAGE",
+    "MIN_INLIER_SHARE",
+    "MIN_RESPONSE",
+    "fast_coarse",
+    "phase_shift",
+]
 
 # Template side and spacing at the coarse scale (px): 31 px at 1/4 scale is 124 frame px,
 # large enough that a car cannot dominate one, and ~100 templates over a 640x480 coarse frame.
@@ -74,10 +82,15 @@ MIN_RESPONSE = 0.2
 # Inliers must be at least this share of the template matches (consecutive frames of one
 # sensor: ~90 % on the simulated flights; a wrong shift leaves a scatter of coincidences).
 MIN_INLIER_SHARE = 0.5
-# ...and span at least this share of a 10 x 10 grid of cell centres over the frame; below
-# registration.coarse.COARSE_MIN_COVERAGE's half a simpler model is chosen (a projective
-# fitted to one part of the frame extrapolates badly elsewhere). Frames that are half uniform
-# asphalt span 40-50 % (a real roundabout at 320x240), which the projective's 50 % refused.
+# ...and span at least FIRST_COVERAGE of a 10 x 10 grid of cell centres over the frame: a
+# projective fitted to one corner of the frame extrapolates badly elsewhere. Between
+# MIN_COVERAGE and it, a simpler model (registration.coarse.projective_or_simpler) is kept
+# where the SIFT step fails: frames that are half uniform asphalt (a real roundabout at
+# 320x240) span 40-50 %, and the SIFT step finds 5-14 keypoints there. Taken before the SIFT
+# step instead, it moved a 640x480 flight over the same roundabout by 0.03-0.05 px (better
+# against a map at half the resolution, worse against the native one), so the SIFT step stays
+# first.
+FIRST_COVERAGE = 0.5
 MIN_COVERAGE = 0.3
 
 _TEMPLATES = TemplateConfig(
@@ -201,6 +214,13 @@ def fast_coarse(
         corrected_probes, scale,
     )  # fmt: skip
     result.base_from_corrected = quantized(model.rescaled(1.0 / scale, 1.0 / scale))
+    if coverage < FIRST_COVERAGE:
+        # The SIFT step, which sees the whole joint base, goes first; this simpler model is
+        # kept only when it fails (registration.global_registration.register_intra).
+        return done(
+            f"the agreeing matches span {coverage:.0%} of the frame (need {FIRST_COVERAGE:.0%} "
+            f"to go before the SIFT step)"
+        )
     result.success = True
     return done()
 

@@ -660,16 +660,20 @@ def register_intra(
         ccfg = intra_coarse_config(coarse_cfg, cfg)
         s = coarse_scale(*image_size(view.grey), ccfg)
         state.small = features.downscale(view.grey, s)
-        coarse = fast_coarse(
+        fast = fast_coarse(
             view, state.small, prev.view, previous_small(prev, s), prev.base_from_corrected.apply,
             s, ccfg, max_shift=cfg.fast_max_shift, min_inliers=cfg.fast_min_inliers, rng=rng,
         )  # fmt: skip
-        fast_reason = coarse.reason
-        coarse = coarse if coarse else None
+        fast_reason = fast.reason
+        coarse = fast if fast else None
     if coarse is None:
         coarse, state.coarse = intra_sift_coarse(
             view, frame_raw.shape, joint, cfg, coarse_cfg, rng, probes=camera.cell_centres(10)
         )
+        if not coarse and fast_reason != "off" and fast.base_from_corrected is not None:
+            # The fast path's simpler model from matches on part of the frame is all there is.
+            fast_reason = f"{fast_reason}; kept, as the SIFT step failed: {coarse.reason}"
+            fast.success, fast.reason, coarse = True, "", fast
     coarse.path = "fast" if coarse.gate == "fast" else "sift"
     coarse.fast_reason = fast_reason
     coarse.time_s = time.perf_counter() - t0

@@ -84,8 +84,12 @@ def test_small_low_texture_frames_over_a_real_map_register_every_frame(roundabou
     result = register(roundabout, tmp_path / "out")
     failed = [k for k in range(N_FRAMES) if result.status(k) != "ok"]
     assert not failed, [result.records[k].get("reason") for k in failed]
-    paths = [result.records[k]["stats"]["coarse_path"] for k in range(1, N_FRAMES)]
-    assert paths.count("fast") >= N_FRAMES - 3, paths
+    stats = [result.records[k]["stats"] for k in range(1, N_FRAMES)]
+    assert [st["coarse_path"] for st in stats] == ["fast"] * (N_FRAMES - 1), stats
+    # Frame 10's agreeing templates span 47 % of it, and the SIFT step finds 7 matches: the fast
+    # path's model is kept, and the record says so.
+    kept = [st["fast_path_reason"] for st in stats if st.get("fast_path_reason")]
+    assert len(kept) <= 3 and all("kept, as the SIFT step failed" in r for r in kept), kept
     absolute, motion = _errors(result, truth)
     # measured: after global 0.92-1.37 px against the photos' homography; motion 0.26-0.62 px
     assert absolute.max() < 3.0, absolute
