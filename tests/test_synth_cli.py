@@ -169,3 +169,21 @@ def test_simulate_cli_base_from_scene_in_exponent_notation(tmp_path, capsys):
     assert rc == 0, capsys.readouterr().err
     truth = load_truth(tmp_path / "sim")
     np.testing.assert_allclose(truth.geometry.base_from_scene, np.reshape(h, (3, 3)), rtol=1e-12)
+
+
+def test_simulate_cli_refuses_a_scene_too_small_for_the_flight(tmp_path, capsys):
+    """A flight whose frames would sample the scene finer than its pixels (a long flight over a
+    small photo) is refused in one line instead of rendering upsampled, textureless frames;
+    ``--scale`` forces it."""
+    import cv2
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    scene = cv2.GaussianBlur(rng.integers(0, 256, (300, 400, 3), dtype=np.uint8), (5, 5), 1.5)
+    cv2.imwrite(str(tmp_path / "scene.png"), scene)
+    argv = ["simulate", str(tmp_path / "o"), "--scene", str(tmp_path / "scene.png"),
+            "--size", "320x240", "--frames", "3", "--no-video"]  # fmt: skip
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "upsampled" in err[0] and "scene px" in err[0], err
+    assert main([*argv, "--scale", "0.5", "--force"]) == 0

@@ -23,6 +23,11 @@ from registration.synth.config import MAX_CITY_PIXELS, SimConfig
 # Pixels of the base/scene kept clear around every frame's footprint (interpolation support and
 # the optical blur).
 FOOTPRINT_MARGIN_PX = 4.0
+# A scene's fitted frame scale (scene px per frame px) is refused below this: a 120-frame
+# flight at 320x240 over a 1630x1948 px drone photo fitted at 0.6, frames the photo upsampled
+# 1.7x in which nothing could be registered (119 of 120 frames failed), a flaw of the
+# simulation rather than of the pipeline.
+MIN_FITTED_FRAME_SCALE = 0.7
 # The paper's table 2 locations as fractions of the frame (NW, NE, centre, SW, SE): near the
 # corners, on the ground, inside the frame.
 TABLE2_POINTS = np.array([[0.1, 0.1], [0.9, 0.1], [0.5, 0.5], [0.1, 0.9], [0.9, 0.9]])
@@ -395,7 +400,8 @@ def plan_procedural(cfg: SimConfig) -> SequenceGeometry:
 
 def plan_scene(cfg: SimConfig, scene_size, base_size, base_from_scene) -> SequenceGeometry:
     """Camera over a user scene, centred on it; with ``frame_scale=None`` the largest scale
-    <= 1.1 whose footprint fits the scene and the base (with margin)."""
+    <= 1.1 whose footprint fits the scene and the base (with margin), refused below
+    :data:`MIN_FITTED_FRAME_SCALE`."""
     sw, sh = scene_size
     centre = ((sw - 1) / 2.0 * cfg.gsd_m, (sh - 1) / 2.0 * cfg.gsd_m)
     if cfg.frame_scale is not None:
@@ -421,9 +427,17 @@ def plan_scene(cfg: SimConfig, scene_size, base_size, base_from_scene) -> Sequen
             geom = _geometry(cfg, scale, centre, scene_size, base_size, base_from_scene)
             try:
                 check_footprint(geom)
-                return geom
             except ValueError:
                 scale *= 0.95
+                continue
+            if scale < MIN_FITTED_FRAME_SCALE:
+                raise ValueError(
+                    f"this flight fits the {sw}x{sh} px scene only with frame pixels of "
+                    f"{scale:.2f} scene px: its frames would be the scene upsampled "
+                    f"{1 / scale:.1f}x, blurrier than any camera; use smaller frames, fewer "
+                    "frames or a larger scene, or set the frame scale to force it"
+                )
+            return geom
     geom = _geometry(cfg, scale, centre, scene_size, base_size, base_from_scene)
     check_footprint(geom)
     return geom
