@@ -655,7 +655,7 @@ def register_intra(
     view = frame_view(frame_raw, camera, match_in)
     prev = joint.previous if cfg.use_previous_frame else None
     state = PreviousFrame(view, None)
-    coarse, fast_reason = None, "off"
+    coarse, fast, fast_reason = None, None, "off"
     if cfg.fast_coarse and prev is not None:
         ccfg = intra_coarse_config(coarse_cfg, cfg)
         s = coarse_scale(*image_size(view.grey), ccfg)
@@ -670,7 +670,7 @@ def register_intra(
         coarse, state.coarse = intra_sift_coarse(
             view, frame_raw.shape, joint, cfg, coarse_cfg, rng, probes=camera.cell_centres(10)
         )
-        if not coarse and fast_reason != "off" and fast.base_from_corrected is not None:
+        if not coarse and fast is not None and fast.base_from_corrected is not None:
             # The fast path's simpler model from matches on part of the frame is all there is.
             fast_reason = f"{fast_reason}; kept, as the SIFT step failed: {coarse.reason}"
             fast.success, fast.reason, coarse = True, "", fast
