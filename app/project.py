@@ -215,6 +215,7 @@ def reference_to_bytes(key: dict, coarse, fine) -> bytes:
                     "gate": coarse.gate,
                     "model_kind": coarse.model_kind,
                     "ambiguity": _float_or_none(coarse.ambiguity),
+                    "seeds": [list(map(float, s)) for s in coarse.seeds],
                 }
             )
         ),
@@ -234,6 +235,8 @@ def reference_to_bytes(key: dict, coarse, fine) -> bytes:
                     "iterations": int(fine.iterations),
                     "time_s": float(fine.time_s),
                     "model": model_json(fine.base_from_corrected),
+                    "model_kind": fine.model_kind,
+                    "model_reason": fine.model_reason,
                 }
             )
         )
@@ -286,6 +289,7 @@ def reference_from_file(path: Path):
             gate_outline_base=a.get("c_gate_outline"),
             model_kind=cm.get("model_kind", "projective"),
             ambiguity=cm.get("ambiguity"),
+            seeds=tuple(tuple(map(float, s)) for s in cm.get("seeds", [])),
         )
         fine = None
         if "f_meta" in a:
@@ -301,6 +305,8 @@ def reference_from_file(path: Path):
                 iterations=fm["iterations"],
                 time_s=fm["time_s"],
                 source=a.get("f_source"),
+                model_kind=fm.get("model_kind", "polyprojective"),
+                model_reason=fm.get("model_reason", ""),
             )
     except (OSError, ValueError, KeyError, TypeError, json.JSONDecodeError):
         return None

@@ -172,10 +172,11 @@ class CoarseResult:
     frame px), ``gate`` says what it was built from, ``gate_outline_base`` is the region of the
     base where gated matches can lie (a polygon, ``(M, 2)`` base px), and ``model_kind`` which
     model was kept, ``image_agreement`` how the last correlation round's templates confirm it
-    (None without correlation rounds). For intra-sensor frames, ``path`` is the step that
-    produced the model (``"fast"``: :mod:`registration.fast_coarse`, ``"sift"``: the SIFT step)
-    and ``fast_reason`` why the fast path was not used (``"off"`` when it is disabled or there
-    is no previous frame; empty when it was used).
+    (None without correlation rounds), ``seeds`` the clicks it was given (``(fx, fy, bx, by)``,
+    raw frame px and base px; the fine step may refit through them). For intra-sensor frames,
+    ``path`` is the step that produced the model (``"fast"``: :mod:`registration.fast_coarse`,
+    ``"sift"``: the SIFT step) and ``fast_reason`` why the fast path was not used (``"off"``
+    when it is disabled or there is no previous frame; empty when it was used).
     """
 
     success: bool
@@ -200,6 +201,7 @@ class CoarseResult:
     image_agreement: Agreement | None = None
     path: str = ""
     fast_reason: str = ""
+    seeds: tuple[Seed, ...] = ()
 
     @property
     def n_matches(self) -> int:
@@ -792,6 +794,7 @@ def coarse_register(
     result = _decide(attempts, priors, seeds, frame, base_c, cfg, w, h, lens)
     result.n_keypoints_frame = len(frame.keypoints)
     result.n_keypoints_base = len(base_c.keypoints)
+    result.seeds = tuple(seeds)
     if cfg.correlation.rounds and (result.success or (seeds and priors)):
         # The seed's own similarity start is the prior that won (the first when none did).
         won = max(range(len(attempts)), key=lambda i: attempts[i].score) if attempts else 0

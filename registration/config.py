@@ -171,6 +171,12 @@ REFERENCE_LOCAL = LocalConfig(
 # ground points: global 1.78 px; with the field from templates every 50 px 1.15 px (p95 4.7),
 # every 25 px 0.54 px (p95 1.2).
 REFERENCE_TEMPLATE_SPACING_PX = 25
+# The fine step refits through the click where its model misses it by more than 6 px
+# (global_registration.FineConfig.click_refit_px): 3 times the 2 px a careful click is off.
+# Measured on the 200 SRIF pairs with one click 2 px off: 5 pairs whose first fit followed the
+# roofs (14-19 px off the ground at image 1's corners) land at 2-8 px, none gets worse than
+# 10 px; at 5 px one pair fewer (pair 26's refit passes 5.1 px from the click).
+CLICK_REFIT_PX = 6.0
 # Re-anchoring (global_registration.IntraConfig.reanchor_coverage): a frame less than 75 % on the
 # mid base image is registered to the base map again and fills the mid base image's holes.
 REANCHOR_COVERAGE = 0.75
@@ -269,7 +275,13 @@ def _default() -> PipelineConfig:
             correlation=replace(paper.coarse.correlation, rounds=CORRELATION_ROUNDS),
             **COARSE_BEYOND_PAPER,
         ),
-        fine=replace(paper.fine, template=warped, reqcon=lm_reqcon, check_support=True),
+        fine=replace(
+            paper.fine,
+            template=warped,
+            reqcon=lm_reqcon,
+            check_support=True,
+            click_refit_px=CLICK_REFIT_PX,
+        ),
         intra=replace(
             paper.intra,
             coarse_nfeatures=INTRA_COARSE_NFEATURES,

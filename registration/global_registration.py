@@ -18,6 +18,7 @@ All models here are ``base_from_corrected``: corrected-frame pixels to base pixe
 from __future__ import annotations
 
 import dataclasses
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -53,7 +54,14 @@ from registration.intra_points import (
 )
 from registration.local_field import LocalConfig
 from registration.local_flow import FrameFlow
-from registration.models import Affine, PolyProjective, Projective, Similarity, quantized
+from registration.models import (
+    Affine,
+    PolyProjective,
+    Projective,
+    Similarity,
+    Translation,
+    quantized,
+)
 from registration.robust import FitResult, ReqconConfig, hull_coverage, reqcon, simplest_supported
 from registration.templates import TemplateConfig
 
@@ -95,12 +103,28 @@ class FineConfig:
             points do not support the degree-``degree`` terms over the frame
             (:func:`registration.robust.supported_by_points`); the paper always keeps the
             polyprojective.
+        click_refit_px: beyond the paper (0 = off, the paper): where the fitted model puts a
+            clicked frame point farther than this from its clicked map point (base px), the
+            step is run again from the coarse model moved through the click, and that fit is
+            kept when it passes within this distance of the click. Where the images hold two
+            planes (roofs displaced by parallax between two dates, and the ground), the first
+            fit follows the one with more texture; the analyst's click says which one the
+            traffic is on. A fit the images do not support near the click is never kept, so a
+            careless click cannot drag a right registration.
     """
 
     degree: int = 2
     template: TemplateConfig = field(default_factory=TemplateConfig)
     reqcon: ReqconConfig = field(default_factory=ReqconConfig)
     check_support: bool = False
+    click_refit_px: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not (self.click_refit_px >= 0 and math.isfinite(self.click_refit_px)):
+            raise ValueError(
+                f"FineConfig.click_refit_px must be a finite distance >= 0, got "
+                f"{self.click_refit_px!r}"
+            )
 
 
 @dataclass(frozen=True)
@@ -425,15 +449,58 @@ def fine_register_reference(
     projective puts it (never where ``base_valid``, ``(Hb, Wb)`` bool, marks no data); REQCON
     fits the polyprojective starting from the coarse model. With ``cfg.check_support`` the
     projective is kept where the points do not support the polyprojective
-    (``FineResult.model_kind`` and ``model_reason`` say which and why). ``camera``: the frame's
-    :class:`registration.camera.Camera` (or its Harris γ); ``match_in``: where control points
-    are found (``PipelineConfig.match_in``).
+    (``FineResult.model_kind`` and ``model_reason`` say which and why). With
+    ``cfg.click_refit_px``, a fit that misses the coarse step's clicks is run again through them
+    (:class:`FineConfig`). ``camera``: the frame's :class:`registration.camera.Camera` (or its
+    Harris γ); ``match_in``: where control points are found (``PipelineConfig.match_in``).
     """
     if not coarse:
         raise ValueError("fine_register_reference needs a successful coarse result")
-    return _fine_against_base(
-        frame_raw, base, camera, coarse.base_from_corrected, cfg, match_in, base_valid
-    )
+    camera = as_camera(camera, frame_raw)
+
+    def fit(start):
+        return _fine_against_base(frame_raw, base, camera, start, cfg, match_in, base_valid)
+
+    fine = fit(coarse.base_from_corrected)
+    if cfg.click_refit_px and coarse.seeds:
+        fine = _refit_through_clicks(fine, coarse, fit, camera, cfg.click_refit_px)
+    return fine
+
+
+def _refit_through_clicks(fine, coarse, fit, camera: Camera, limit_px: float) -> FineResult:
+    """``fine``, or the fit started from the coarse model moved through the clicks when
+    ``fine`` misses them by more than ``limit_px`` and that fit passes within it
+    (``FineConfig.click_refit_px``). ``fit``: start model -> FineResult."""
+    first = fine.base_from_corrected if fine else coarse.base_from_corrected
+    was = float(np.hypot(*_click_gaps(first, camera, coarse.seeds).T).max())
+    if not was > limit_px:
+        return fine
+    # The coarse model moved by its own mean miss at the clicks: the template search (+-10 px)
+    # then reaches the plane through the click and no longer the one the first fit followed.
+    moved = Translation(_click_gaps(coarse.base_from_corrected, camera, coarse.seeds).mean(0))
+    again = fit(moved.compose(coarse.base_from_corrected))
+    why = "too few control points match there"
+    if again and again.model_kind != "coarse":
+        now = float(np.hypot(*_click_gaps(again.base_from_corrected, camera, coarse.seeds).T).max())
+        if now <= limit_px and now < was:
+            again.model_reason = (
+                f"refitted through the click: the first fit passed {was:.1f} px from it, this "
+                f"one {now:.1f} px ({int(again.kept.sum())} control points); {again.model_reason}"
+            )
+            return again
+        why = f"the fit started there settled {now:.1f} px from it"
+    if fine:
+        fine.model_reason = (
+            f"passes {was:.1f} px from the click, not refitted through it ({why}); "
+            f"{fine.model_reason}"
+        )
+    return fine
+
+
+def _click_gaps(model, camera: Camera, seeds) -> NDArray[np.float64]:
+    """``(K, 2)`` clicked base points minus where ``model`` puts their frame points (base px)."""
+    s = np.asarray(seeds, float).reshape(-1, 4)
+    return s[:, 2:] - model.apply(camera.corrected_from_raw(s[:, :2]))
 
 
 def register_anchor(

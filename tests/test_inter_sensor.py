@@ -219,8 +219,9 @@ def _srif_within_10px(im1, im2, valid, gt, seed, cfg, *, rng) -> bool:
 @pytest.mark.slow
 def test_srif_one_click_beats_no_click_on_real_pairs():
     """SRIF pairs 1-20 (two dates four years apart, rotations up to 360°, scales 0.25-2): the
-    corner error of coarse + fine under 10 px for 19 of 20 with one click (measured 95 %),
-    16 of 20 without (measured 80 %; plain OpenCV: 20 % over all 200)."""
+    corner error of coarse + fine under 10 px for 20 of 20 with one click (measured; 19 before
+    the refit through the click took pair 19 off the roofs), 16 of 20 without (measured 80 %;
+    plain OpenCV: 20 % over all 200)."""
     folder = shared_data("srif-optical-optical")
     cfg = get_preset("default")
     ok = {"click": 0, "none": 0}
@@ -228,7 +229,7 @@ def test_srif_one_click_beats_no_click_on_real_pairs():
         im1, im2, valid, gt = _srif_pair(folder, i)
         for mode, seed in (("click", _srif_click(i, im1, valid, gt)), ("none", None)):
             ok[mode] += _srif_within_10px(im1, im2, valid, gt, seed, cfg, rng=i)
-    assert ok["click"] >= 17, ok  # measured 19 of 20
+    assert ok["click"] >= 18, ok  # measured 20 of 20
     assert ok["none"] >= 13, ok  # measured 16 of 20
     assert ok["click"] > ok["none"], ok
 
@@ -260,6 +261,30 @@ def test_srif_click_where_sift_votes_mislead_is_rescued_by_image_correlation():
     )
     misled = _srif_corner_error(im1, im2, valid, gt, seed, without, rng=36)
     assert rescued < 25 and misled > 100, (rescued, misled)  # measured 16.3 and 291
+
+
+@pytest.mark.slow
+def test_srif_click_on_the_ground_wins_over_the_roofs():
+    """SRIF pairs 19 and 145, whose texture mostly follows roofs displaced by parallax between
+    the two dates (README, "Half of the misses followed the roofs"): the first fine fit follows
+    the roofs, 14.1 and 14.8 px off at image 1's corners and 15.2 and 16.2 px from the click.
+    Refitted from the click (``FineConfig.click_refit_px``) it takes the ground: 5.8 and 2.0 px."""
+    folder = shared_data("srif-optical-optical")
+    cfg = get_preset("default")
+    for i in (19, 145):
+        im1, im2, valid, gt = _srif_pair(folder, i)
+        coarse = coarse_register(
+            im1, im2, 0.0, _srif_click(i, im1, valid, gt), cfg.coarse, match_in=cfg.match_in,
+            base_valid=valid, rng=i,
+        )  # fmt: skip
+        errors = {}
+        for refit_px in (0.0, cfg.fine.click_refit_px):
+            fine = fine_register_reference(
+                im1, im2, 0.0, coarse, dataclasses.replace(cfg.fine, click_refit_px=refit_px),
+                match_in=cfg.match_in, base_valid=valid,
+            )  # fmt: skip
+            errors[refit_px] = _corner_error(fine.base_from_corrected, gt, *im1.shape[1::-1])
+        assert errors[0.0] > 12 and errors[cfg.fine.click_refit_px] < 8, (i, errors)
 
 
 def test_srif_registration_the_images_do_not_confirm_is_refused_and_two_clicks_find_it():

@@ -137,9 +137,10 @@ class SeedPanel:
             if edited
             else f"REQCON kept {kept}, {fine.iterations} iterations"
         )
+        model = f"; {fine.model_kind} kept: {fine.model_reason}" if fine.model_reason else ""
         self.fine_md.content = (
             f"{n} control points; {how}; residual RMS {fine.residual_rms_px:.2f} px; "
-            f"{fine.time_s:.2f} s" + ("" if fine else "; **failed**")
+            f"{fine.time_s:.2f} s" + ("" if fine else "; **failed**") + model
         )
 
 
