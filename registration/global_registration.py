@@ -479,16 +479,21 @@ def _refit_through_clicks(fine, coarse, fit, camera: Camera, limit_px: float) ->
     # then reaches the plane through the click and no longer the one the first fit followed.
     moved = Translation(_click_gaps(coarse.base_from_corrected, camera, coarse.seeds).mean(0))
     again = fit(moved.compose(coarse.base_from_corrected))
-    why = "too few control points match there"
-    if again and again.model_kind != "coarse":
+    if not again:
+        why = f"the fit started there failed: {again.reason}"
+    elif again.model_kind == "coarse":
+        why = "too few control points match there"
+    else:
         now = float(np.hypot(*_click_gaps(again.base_from_corrected, camera, coarse.seeds).T).max())
         if now <= limit_px and now < was:
             again.model_reason = (
                 f"refitted through the click: the first fit passed {was:.1f} px from it, this "
                 f"one {now:.1f} px ({int(again.kept.sum())} control points); {again.model_reason}"
             )
+            again.time_s += fine.time_s
             return again
         why = f"the fit started there settled {now:.1f} px from it"
+    fine.time_s += again.time_s
     if fine:
         fine.model_reason = (
             f"passes {was:.1f} px from the click, not refitted through it ({why}); "
