@@ -676,6 +676,13 @@ def _seed_frame_points(seeds, lens) -> NDArray:
     return fr if lens is None else lens.corrected_from_raw(fr)
 
 
+def seed_gaps(model, seeds, lens) -> NDArray[np.float64]:
+    """``(n, 2)`` base px: each seed's clicked base point minus where ``model``
+    (``base_from_corrected``) puts its frame point (raw px through ``lens``; None = none)."""
+    clicked = np.array([s[2:] for s in seeds], float).reshape(-1, 2)
+    return clicked - model.apply(_seed_frame_points(seeds, lens))
+
+
 def _with_click_error(prior: SimilarityPrior, config) -> SimilarityPrior:
     """A full-scale seed prior whose anchor may be off by the clicks' error in both images."""
     err = config.heading.seed_error_px * (1.0 + prior.scale)
@@ -968,12 +975,12 @@ def _refuse_unconfirmed(result: CoarseResult, n_seeds: int) -> None:
 
 def _check_seed(result: CoarseResult, seeds, lens, cfg: CoarseConfig) -> None:
     """Refuse a registration that puts a seed's frame point far from its clicked base point."""
-    model = result.base_from_corrected
-    for fx, fy, bx, by in seeds:
-        at = model.apply(lens.corrected_from_raw(np.array([[fx, fy]])))[0]
-        gap = float(np.hypot(at[0] - bx, at[1] - by))
-        scale = result.scale or 1.0
-        limit = cfg.seed_check_px + cfg.heading.seed_error_px * (1.0 + scale)
+    scale = result.scale or 1.0
+    limit = cfg.seed_check_px + cfg.heading.seed_error_px * (1.0 + scale)
+    gaps = seed_gaps(result.base_from_corrected, seeds, lens)
+    for (fx, fy, bx, by), d in zip(seeds, gaps, strict=True):
+        at = (bx - d[0], by - d[1])
+        gap = float(np.hypot(*d))
         if not gap <= limit:
             result.success = False
             result.reason = (

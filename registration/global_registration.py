@@ -42,6 +42,7 @@ from registration.coarse import (
     coarse_scale,
     fit_coarse,
     frame_view,
+    seed_gaps,
 )
 from registration.coords import bbox_of, frame_outline, image_size, rescale
 from registration.fast_coarse import fast_coarse
@@ -471,20 +472,23 @@ def _refit_through_clicks(fine, coarse, fit, camera: Camera, limit_px: float) ->
     """``fine``, or the fit started from the coarse model moved through the clicks when
     ``fine`` misses them by more than ``limit_px`` and that fit passes within it
     (``FineConfig.click_refit_px``). ``fit``: start model -> FineResult."""
-    first = fine.base_from_corrected if fine else coarse.base_from_corrected
-    was = float(np.hypot(*_click_gaps(first, camera, coarse.seeds).T).max())
+
+    def miss(model) -> float:
+        return float(np.hypot(*seed_gaps(model, coarse.seeds, camera.lens).T).max())
+
+    was = miss(fine.base_from_corrected if fine else coarse.base_from_corrected)
     if not was > limit_px:
         return fine
     # The coarse model moved by its own mean miss at the clicks: the template search (+-10 px)
     # then reaches the plane through the click and no longer the one the first fit followed.
-    moved = Translation(_click_gaps(coarse.base_from_corrected, camera, coarse.seeds).mean(0))
+    moved = Translation(seed_gaps(coarse.base_from_corrected, coarse.seeds, camera.lens).mean(0))
     again = fit(moved.compose(coarse.base_from_corrected))
     if not again:
         why = f"the fit started there failed: {again.reason}"
     elif again.model_kind == "coarse":
         why = "too few control points match there"
     else:
-        now = float(np.hypot(*_click_gaps(again.base_from_corrected, camera, coarse.seeds).T).max())
+        now = miss(again.base_from_corrected)
         if now <= limit_px and now < was:
             again.model_reason = (
                 f"refitted through the click: the first fit passed {was:.1f} px from it, this "
@@ -500,12 +504,6 @@ def _refit_through_clicks(fine, coarse, fit, camera: Camera, limit_px: float) ->
             f"{fine.model_reason}"
         )
     return fine
-
-
-def _click_gaps(model, camera: Camera, seeds) -> NDArray[np.float64]:
-    """``(K, 2)`` clicked base points minus where ``model`` puts their frame points (base px)."""
-    s = np.asarray(seeds, float).reshape(-1, 4)
-    return s[:, 2:] - model.apply(camera.corrected_from_raw(s[:, :2]))
 
 
 def register_anchor(
