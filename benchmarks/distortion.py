@@ -41,6 +41,8 @@ from registration.distortion import (
     undistort_image,
 )
 from registration.lens_fit import check_one_parameter, fit_center, fit_division_from_lines
+from registration.motion_gamma import estimate_gamma_from_motion
+from registration.synth.lens_views import lens_pair
 from registration.warp import remap
 
 TITLE = "Radial distortion (paper section 3): correction speed and γ estimation"
@@ -170,21 +172,26 @@ def _accuracy_row(name: str, runs: list[dict]) -> dict:
     }
 
 
-def _estimate_run(estimate, raw, mask, gamma, seed) -> dict:
+def _failed_run(exc: ValueError, t0: float) -> dict:
+    """A run with no estimate (too few edges or matches): counted as an infinite error."""
+    return {
+        "estimate": None,
+        "error": float("inf"),
+        "uncertainty": float("inf"),
+        "time_s": time.perf_counter() - t0,
+        "n_lines": 0,
+        "n_rejected": 0,
+        "confident": False,
+        "failure": str(exc),
+    }
+
+
+def _estimate_run(estimate, raw, mask, gamma) -> dict:
     t0 = time.perf_counter()
     try:
         est = estimate(raw, mask=mask)
-    except ValueError as exc:  # too few edges: a failure, counted, never dropped
-        return {
-            "estimate": None,
-            "error": float("inf"),
-            "uncertainty": float("inf"),
-            "time_s": time.perf_counter() - t0,
-            "n_lines": 0,
-            "n_rejected": 0,
-            "confident": False,
-            "failure": str(exc),
-        }
+    except ValueError as exc:
+        return _failed_run(exc, t0)
     dt = time.perf_counter() - t0
     return {
         "estimate": est.gamma,
@@ -197,22 +204,14 @@ def _estimate_run(estimate, raw, mask, gamma, seed) -> dict:
     }
 
 
-def bench_real(seed: int = 0, estimate=None, progress=None) -> dict:
-    """Automatic γ on every real nadir image (and the generated chart as a control), each seen
-    through a synthetic Harris lens with γ in ``GAMMAS`` (:func:`simulate_raw_frame`); raw pixels
-    that see beyond the scene are masked, so the scene's border (a perfectly straight line that
-    obeys the lens exactly) never counts as evidence."""
-    estimate = estimate or estimate_gamma_auto
-    scenes: dict[str, list[tuple[str, Path | None]]] = {
-        "generated chart (control)": [("chart", None)]
-    }
-    for name, files in real_scenes().items():
-        scenes[name] = [(_label(f), f) for f in files]
+def _over_scenes(scenes: dict[str, list[tuple[str, Path | None]]], run_one, seed, progress):
+    """``run_one(scene, model, index)`` for every scene (``None`` = the generated chart) and γ
+    in ``GAMMAS``, with per-dataset accuracy rows."""
     rows, runs_all = [], []
     total, done = sum(len(v) for v in scenes.values()), 0
     for name, items in scenes.items():
         runs = []
-        for label, path in items:
+        for i, (label, path) in enumerate(items):
             scene = (
                 straight_edge_chart(1600, 1200, seed=seed)
                 if path is None
@@ -220,8 +219,7 @@ def bench_real(seed: int = 0, estimate=None, progress=None) -> dict:
             )
             w, h = raw_frame_size(scene)
             for gamma in GAMMAS:
-                raw, _, mask = simulate_raw_frame(scene, HarrisModel(gamma, w, h), return_mask=True)
-                run = _estimate_run(estimate, raw, None if mask.all() else mask, gamma, seed)
+                run = run_one(scene, HarrisModel(gamma, w, h), i)
                 runs.append({"scene": label, "gamma": gamma, "frame": [w, h], **run})
             done += 1
             if progress:
@@ -234,6 +232,61 @@ def bench_real(seed: int = 0, estimate=None, progress=None) -> dict:
         "rows": rows,
         "runs": runs_all,
     }
+
+
+def _labelled(files: list[Path]) -> list[tuple[str, Path | None]]:
+    return [(_label(f), f) for f in files]
+
+
+def bench_real(seed: int = 0, estimate=None, progress=None) -> dict:
+    """Automatic γ on every real nadir image (and the generated chart as a control), each seen
+    through a synthetic Harris lens with γ in ``GAMMAS`` (:func:`simulate_raw_frame`); raw pixels
+    that see beyond the scene are masked, so the scene's border (a perfectly straight line that
+    obeys the lens exactly) never counts as evidence."""
+    estimate = estimate or estimate_gamma_auto
+    scenes = {"generated chart (control)": [("chart", None)]}
+    scenes.update({name: _labelled(files) for name, files in real_scenes().items()})
+
+    def run_one(scene, model, _i):
+        raw, _, mask = simulate_raw_frame(scene, model, return_mask=True)
+        return _estimate_run(estimate, raw, None if mask.all() else mask, model.gamma)
+
+    return _over_scenes(scenes, run_one, seed, progress)
+
+
+def _motion_run(raw_pair, masks, gamma) -> dict:
+    t0 = time.perf_counter()
+    try:
+        est = estimate_gamma_from_motion([tuple(raw_pair)], masks=[tuple(masks)])
+    except ValueError as exc:
+        return _failed_run(exc, t0)
+    return {
+        "estimate": est.gamma,
+        "error": est.gamma - gamma,
+        "uncertainty": est.uncertainty,
+        "formal_sigma": est.formal_sigma,
+        "jackknife_sigma": est.jackknife_sigma,
+        "time_s": time.perf_counter() - t0,
+        "n_lines": est.n_inliers,  # the accuracy rows' "lines" column: matches kept
+        "matches": est.pair_matches[0],
+        "residual_px": est.residual,
+        "confident": est.confident,
+    }
+
+
+def bench_real_motion(seed: int = 0, progress=None) -> dict:
+    """γ from motion on every real nadir image: each seen twice through a synthetic Harris lens
+    with γ in ``GAMMAS`` (:func:`registration.synth.lens_views.lens_pair`: the second view moved
+    by 0.3 of the frame's half width in a seeded direction and turned 8°), the two raw frames
+    given to :func:`registration.motion_gamma.estimate_gamma_from_motion`. Frames as in
+    :func:`bench_real`: 960x720, or the scene's own size when it is smaller."""
+    scenes = {name: _labelled(files) for name, files in real_scenes().items()}
+
+    def run_one(scene, model, i):
+        frames, masks = lens_pair(scene, model, seed=seed + i)
+        return _motion_run(frames, masks, model.gamma)
+
+    return _over_scenes(scenes, run_one, seed, progress)
 
 
 def _gopro_images() -> list[tuple[str, np.ndarray]]:
@@ -332,14 +385,18 @@ def _f(v: float, fmt: str = ".4f") -> str:
     return "–" if v is None or not np.isfinite(v) else format(v, fmt)
 
 
-def accuracy_markdown(real: dict, per_image: bool = True) -> list[str]:
-    """Per-dataset table (and per-image rows) of :func:`bench_real`'s result."""
-    out = [
+def accuracy_markdown(real: dict, per_image: bool = True, title: str | None = None) -> list[str]:
+    """Per-dataset table (and per-image rows) of :func:`bench_real`'s (or
+    :func:`bench_real_motion`'s, with its ``title``) result."""
+    title = title or (
         f"**Automatic γ on real nadir images through a synthetic Harris lens** (raw frame "
         f"{real['frame']}, LEVIR tiles at their own 256x256; γ ∈ {{0.3, 0.7, 1.0}}; raw pixels "
         "seeing beyond the scene masked; every run counts, no estimate = infinite error; "
         f"confident = σ̂ ≤ {CONFIDENT_SIGMA} with ≥ {MIN_EFFECTIVE_LINES:g} effective line "
-        "groups and no rival γ):",
+        "groups and no rival γ):"
+    )
+    out = [
+        title,
         "",
         "| set | images | runs | no estimate | worst |err| | median |err| | ≤ 0.02 | "
         "|err| ≤ 2σ̂ | confident | worst confident | time/image (median, max) |",
@@ -421,8 +478,27 @@ def run(args) -> dict:
     real = bench_real(
         seed, progress=lambda d, t, label: sys.stderr.write(f"  gamma: {d}/{t} {label}\n")
     )
+    motion = bench_real_motion(
+        seed,
+        progress=lambda d, t, label: sys.stderr.write(f"  gamma from motion: {d}/{t} {label}\n"),
+    )
     gopro = bench_gopro()
     md = _speed_markdown(speed) + [""] + accuracy_markdown(real)
+    md += [""] + accuracy_markdown(motion, per_image=False, title=MOTION_TITLE.format(**motion))
     if gopro:
         md += [""] + gopro_markdown(gopro)
-    return {"speed": speed, "real": real, "gopro": gopro, "markdown": "\n".join(md)}
+    return {
+        "speed": speed,
+        "real": real,
+        "motion": motion,
+        "gopro": gopro,
+        "markdown": "\n".join(md),
+    }
+
+
+MOTION_TITLE = (
+    "**γ from motion on the same images** (`calibrate --frames`: each image seen twice through "
+    "the lens, the second view moved 0.3 of the frame's half width and turned 8°; one pair, so "
+    "never *confident*: one pair cannot show a rolling shutter; frames {frame}, LEVIR tiles at "
+    "256x256):"
+)

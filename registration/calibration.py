@@ -410,9 +410,11 @@ class GammaEstimate:
         return d
 
 
-def _gamma_bounds(
+def gamma_bounds(
     width: int, height: int, center, gamma_range: tuple[float, float] | None
 ) -> tuple[float, float]:
+    """The γ range to search: ``gamma_range`` checked and clipped to just inside the frame's
+    validity limit, or the Harris minimum up to that limit (ValueError when out of range)."""
     limit = harris_gamma_limit(width, height, center)
     if not np.isfinite(limit):
         raise ValueError(f"a {width}x{height} frame is too small to estimate gamma")
@@ -811,7 +813,7 @@ def estimate_gamma_from_lines(
         if problem:
             raise ValueError(f"line {i} {problem}")
     HarrisModel(0.0, width, height, center)  # validates the frame and centre
-    lo, hi = _gamma_bounds(width, height, center, gamma_range)
+    lo, hi = gamma_bounds(width, height, center, gamma_range)
     packed = _PackedLines(lines)
     grid, curves = _fit_curves(packed, width, height, center, lo, hi, grid_size)
     grid_min = _grid_minima(grid, curves)

@@ -740,6 +740,32 @@ def test_estimate_gamma_from_clicked_lines_and_automatically(tmp_path, small_seq
     assert cal.scene.planes["frame"].has("detected")
 
 
+def test_estimate_gamma_from_the_frames_motion(tmp_path, small_seq, make_app):
+    """4 frames with a 0.04 s rolling shutter: the pairs are chosen from the frames' motion,
+    the uncertainty covers the error, the chart marks the estimate, and the detected-lines
+    overlay is not drawn for it."""
+    import re
+
+    from registration.synth import load_truth
+
+    truth = load_truth(small_seq)
+    app = make_app(tmp_path / "proj", small_seq)
+    cal = app.views["Calibrate"]
+    cal.set_gamma(0.0)
+    cal.estimate_from_motion()
+    app.jobs.join(180)
+    app.worker.wait_idle()
+    text = cal.panel.estimate_md.content
+    m = re.search(r"from (\d) frame pairs (\d) apart.*matches in (\d) frame pairs", text)
+    assert m and int(m[1]) >= 2 and int(m[3]) == int(m[1]), (app.errors, text)
+    sigma = float(text.split("±")[1].split()[0])
+    assert abs(app.state.gamma - truth.gamma) <= max(2 * sigma, 0.005), text
+    assert abs(app.state.gamma - truth.gamma) <= 0.02, text
+    grid, curve, marker = cal.panel.plot.data
+    assert np.isfinite(marker).sum() == 1 and np.isfinite(curve).all()
+    assert not cal.scene.planes["frame"].has("detected")
+
+
 def test_sequence_cancel_resume_play_and_flicker(tmp_path, small_seq, make_app):
     from registration.synth import load_truth
 

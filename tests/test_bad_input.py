@@ -546,7 +546,7 @@ def test_missing_mid_base_image_redoes_the_reference_frame(sims, registered, tmp
     "extra, needle",
     [
         (["--gamma", "nan"], "--gamma must be a finite number"),
-        (["--gamma", "abc"], "argument --gamma: invalid float value: 'abc'"),
+        (["--gamma", "abc"], "--gamma must be a number or 'auto', got 'abc'"),
         (["--seed", "1,2,3"], "--seed must be four numbers"),
         (["--seed", "nan,10,10,10"], "--seed must be four finite numbers, got 'nan,10,10,10'"),
         (["--seed", "10,10,-5,10"], "seed base point (-5.0, 10.0) lies outside"),
@@ -793,6 +793,14 @@ def test_undistort_onto_its_own_input(frame_png, tmp_path, capsys):
         ("gamma-range-one-number", "--gamma-range must look like"),
         ("one-pixel-image", "1x1 pixels is too small"),
         ("missing-image", "image not found"),
+        ("no-image", "give a raw IMAGE, or the flight's frames with --frames"),
+        ("image-and-frames", "give IMAGE or --frames, not both"),
+        ("frames-and-lines", "--lines is for one IMAGE"),
+        ("frames-and-centre", "--center 'auto' is for straight lines"),
+        ("frames-zero-pairs", "--pairs must be >= 1, got 0"),
+        ("frames-step-zero", "--step must be >= 1, got 0"),
+        ("frames-one-frame", "has 1 frame; γ from motion needs 2 or more"),
+        ("frames-missing", "frames not found"),
     ],
 )
 def test_calibrate_bad_input(frame_png, tmp_path, capsys, kind, needle):
@@ -808,6 +816,14 @@ def test_calibrate_bad_input(frame_png, tmp_path, capsys, kind, needle):
         "gamma-range-one-number": [frame_png, "--gamma-range", "1"],
         "one-pixel-image": [make_bad_image("one-pixel", inputs, frame_png)],
         "missing-image": [inputs / "missing.png"],
+        "no-image": [],
+        "image-and-frames": [frame_png, "--frames", frame_png.parent],
+        "frames-and-lines": ["--frames", frame_png.parent, "--lines", nonutf8],
+        "frames-and-centre": ["--frames", frame_png.parent, "--center", "auto"],
+        "frames-zero-pairs": ["--frames", frame_png.parent, "--pairs", "0"],
+        "frames-step-zero": ["--frames", frame_png.parent, "--step", "0"],
+        "frames-one-frame": ["--frames", frame_png],
+        "frames-missing": ["--frames", inputs / "missing"],
     }[kind]
     before = snapshot(tmp_path)
     code, _, err = cli(capsys, "calibrate", *argv)

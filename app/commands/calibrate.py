@@ -2,7 +2,9 @@
 
 With ``--lines LINES.json`` γ is fitted to polylines traced along straight world features (the
 format is documented in :mod:`registration.lines_file`); without it, long edges are detected in
-the image and γ is fitted robustly to them. Besides γ and its uncertainty the command reports
+the image and γ is fitted robustly to them. With ``--frames`` (a video, a folder of frames or a
+glob, instead of IMAGE) γ is fitted to the SIFT matches between frame pairs of the flight
+(:mod:`registration.motion_gamma`): through the right γ they obey one homography per pair. Besides γ and its uncertainty the command reports
 whether the estimate is confident, where the lines put the distortion centre
 (:func:`registration.lens_fit.fit_center`; used with ``--center auto`` when the lines support
 it) and whether one parameter is enough (:func:`registration.lens_fit.check_one_parameter`).
@@ -30,7 +32,29 @@ HELP = "Estimate the Harris distortion parameter γ from straight lines (drawn o
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("image", metavar="IMAGE", help="raw (distorted) image file")
+    p.add_argument("image", metavar="IMAGE", nargs="?", help="raw (distorted) image file")
+    p.add_argument(
+        "--frames",
+        metavar="FRAMES",
+        help="instead of IMAGE: the flight's raw frames (video file, folder of images or glob); "
+        "γ is fitted to the matches between frame pairs, which needs no straight lines",
+    )
+    p.add_argument(
+        "--pairs",
+        type=int,
+        default=6,
+        metavar="N",
+        help="with --frames: frame pairs, spread over the flight (default 6; 3 or more let the "
+        "uncertainty see a rolling shutter)",
+    )
+    p.add_argument(
+        "--step",
+        type=int,
+        default=None,
+        metavar="K",
+        help="with --frames: frames apart within a pair (default: the smallest power of 2 at "
+        "which the ground moves a quarter of the frame width, from the first frame)",
+    )
     p.add_argument(
         "--lines",
         metavar="LINES.json",
@@ -79,8 +103,68 @@ def _parse_range(text: str | None) -> tuple[float, float] | None:
     return lo, hi
 
 
+def _check_motion_args(args: argparse.Namespace) -> None:
+    if args.image is not None:
+        raise UsageError(f"give IMAGE or --frames, not both (got {args.image!r} and --frames)")
+    if args.lines:
+        raise UsageError("--lines is for one IMAGE; γ from --frames uses the frames' motion")
+    if args.center != "frame":
+        raise UsageError(
+            f"--center {args.center!r} is for straight lines; γ from --frames assumes the frame "
+            "centre (conventions.md)"
+        )
+    if args.pairs < 1:
+        raise UsageError(f"--pairs must be >= 1, got {args.pairs}")
+    if args.step is not None and args.step < 1:
+        raise UsageError(f"--step must be >= 1, got {args.step}")
+
+
+def _run_motion(args: argparse.Namespace, gamma_range) -> int:
+    from app.progress import ProgressBar
+    from registration.io import open_frames
+    from registration.motion_gamma import estimate_gamma_from_flight
+
+    _check_motion_args(args)
+    src = open_frames(args.frames)
+    if len(src) < 2:
+        raise UsageError(
+            f"--frames {args.frames!r} has {len(src)} frame; γ from motion needs 2 or more"
+        )
+    with ProgressBar(args.pairs, "calibrate (matching frame pairs)") as bar:
+        est = estimate_gamma_from_flight(
+            src.get,
+            len(src),
+            n_pairs=args.pairs,
+            step=args.step,
+            gamma_range=gamma_range,
+            progress=lambda done, total: bar.update(1),
+        )
+    if args.json:
+        emit_json(est.to_dict())
+        return 0
+    sys.stdout.write(f"gamma {est.gamma:.4f} ± {est.uncertainty:.4f}\n")
+    sys.stderr.write(motion_summary(est) + "\n")
+    return 0
+
+
+def motion_summary(est) -> str:
+    """Two lines on a :class:`registration.motion_gamma.MotionGammaEstimate` of a flight."""
+    pair_text = ", ".join(f"{i}-{j}" for i, j in est.frame_pairs)
+    return (
+        f"motion: {est.n_pairs} of {len(est.frame_pairs)} frame pairs ({pair_text}; {est.step} "
+        f"apart), {est.n_inliers} of {sum(est.pair_matches)} matches kept; transfer error "
+        f"{est.residual:.2f} px RMS at gamma {est.gamma:.3f} (uncorrected "
+        f"{est.residual_uncorrected:.2f} px)\n"
+        f"{'confident' if est.confident else 'NOT confident'}: {est.evidence}"
+    )
+
+
 def run(args: argparse.Namespace) -> int:
     gamma_range = _parse_range(args.gamma_range)
+    if args.frames is not None:
+        return _run_motion(args, gamma_range)
+    if args.image is None:
+        raise UsageError("give a raw IMAGE, or the flight's frames with --frames")
     mode = args.center
     fixed_center = None if mode in ("frame", "auto") else parse_center(mode)
     image = read_image(args.image)

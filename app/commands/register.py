@@ -50,9 +50,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, help="result folder (created; written frame by frame)")
     p.add_argument(
         "--gamma",
-        type=float,
-        default=0.7,
-        help="Harris radial distortion γ of the frames (default 0.7, the paper's camera)",
+        default="0.7",
+        metavar="G|auto",
+        help="Harris radial distortion γ of the frames (default 0.7, the paper's camera); "
+        "'auto' = estimated from the frames' motion first (as calibrate --frames), reported on "
+        "standard error",
     )
     p.add_argument(
         "--seed",
@@ -153,6 +155,35 @@ def parse_seed(text: str | list[str] | None):
     return seeds[0] if len(seeds) == 1 else seeds
 
 
+def parse_gamma(text: str) -> float | None:
+    """``--gamma``: a finite number, or None for 'auto'."""
+    if text.strip().lower() == "auto":
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        raise UsageError(f"--gamma must be a number or 'auto', got {text!r}") from None
+    if not math.isfinite(value):
+        raise UsageError(f"--gamma must be a finite number, got {text}")
+    return value
+
+
+def gamma_from_motion(frames) -> float:
+    """``--gamma auto``: γ from 6 frame pairs of the flight, reported on standard error."""
+    from app.commands.calibrate import motion_summary
+    from registration.motion_gamma import estimate_gamma_from_flight
+
+    if len(frames) < 2:
+        raise UsageError(f"--gamma auto needs 2 frames or more, got {len(frames)}")
+    with ProgressBar(6, "register (gamma from motion)") as bar:
+        est = estimate_gamma_from_flight(
+            frames.get, len(frames), progress=lambda done, total: bar.update(1)
+        )
+    sys.stderr.write(f"gamma {est.gamma:.4f} ± {est.uncertainty:.4f} from the frames' motion\n")
+    sys.stderr.write(motion_summary(est) + "\n")
+    return float(est.gamma)
+
+
 def run(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
@@ -162,8 +193,7 @@ def run(args: argparse.Namespace) -> int:
     from registration.result import check_out_dir
 
     seed = parse_seed(args.seed)
-    if not math.isfinite(args.gamma):
-        raise UsageError(f"--gamma must be a finite number, got {args.gamma}")
+    gamma = parse_gamma(args.gamma)
     config = get_preset(args.preset)
     if args.no_local:
         config = replace(config, run_local=False)
@@ -181,7 +211,9 @@ def run(args: argparse.Namespace) -> int:
     base_map = read_base_map(args.base, crs=args.base_crs, nodata=nodata)
     base = base_map.image
     frames = open_frames(args.frames)
-    validate_inputs(frames, base, args.gamma, seed, args.reference_frame)
+    if gamma is None:
+        gamma = gamma_from_motion(frames)
+    validate_inputs(frames, base, gamma, seed, args.reference_frame)
     t0 = time.perf_counter()
     # The bar starts with the first frame, so a refused folder gives just the error line.
     bar = None
@@ -197,7 +229,7 @@ def run(args: argparse.Namespace) -> int:
             result = register_sequence(
                 frames,
                 base,
-                args.gamma,
+                gamma,
                 Path(args.out),
                 config=config,
                 preset=args.preset,

@@ -21,7 +21,7 @@ from app import scene2d
 from app.assets import resend_value
 from app.security import escape_md
 from app.views.base import Scene, View
-from registration import calibration, distortion
+from registration import calibration, distortion, motion_gamma
 
 LINE_COLOURS = np.array(
     [
@@ -40,6 +40,7 @@ DETECTED_COLOUR = (255, 0, 200)
 SETTLE_S = 0.35
 """After this long without a new γ/frame request, the full-resolution image replaces the preview."""
 GAMMA_STEP = 0.005
+MOTION_PAIRS = 6  # frame pairs for γ from motion (3 or more let it see a rolling shutter)
 
 
 class CalibratePanel:
@@ -59,6 +60,7 @@ class CalibratePanel:
         with gui.add_folder("Estimate γ"):
             self.btn_est_lines = gui.add_button("Estimate γ from lines")
             self.btn_est_auto = gui.add_button("Estimate γ automatically")
+            self.btn_est_motion = gui.add_button("Estimate γ from the frames' motion")
             self.show_detected = gui.add_checkbox("Show the lines the estimate used", True)
             self.estimate_md = gui.add_markdown("")
             self.plot = gui.add_uplot(
@@ -135,12 +137,23 @@ class CalibratePanel:
         self.lines_md.content = "\n\n".join(text)
 
     def show_estimate(self, est, how: str, gamma_now: float) -> None:
-        self.estimate_md.content = (
+        head = (
             f"γ = **{est.gamma:.4f}** ± {est.uncertainty:.4f} ({how}, {est.uncertainty_method}); "
-            f"{est.n_lines} lines used"
-            + (f", {est.n_rejected} rejected as curved" if est.n_rejected else "")
-            + f"; straightness {est.residual:.2f} px (uncorrected {est.residual_uncorrected:.2f} px)"
         )
+        if est.method == "motion":
+            self.estimate_md.content = head + escape_md(
+                f"{est.n_inliers} matches in {est.n_pairs} frame pairs; transfer error "
+                f"{est.residual:.2f} px (uncorrected {est.residual_uncorrected:.2f} px); "
+                f"{'confident' if est.confident else 'NOT confident'}: {est.evidence}"
+            )
+        else:
+            self.estimate_md.content = (
+                head
+                + f"{est.n_lines} lines used"
+                + (f", {est.n_rejected} rejected as curved" if est.n_rejected else "")
+                + f"; straightness {est.residual:.2f} px (uncorrected "
+                f"{est.residual_uncorrected:.2f} px)"
+            )
         grid = np.asarray(est.gamma_grid, np.float64)
         curve = np.asarray(est.residual_curve, np.float64)
         ok = np.isfinite(curve)
@@ -245,6 +258,7 @@ class CalibrateView(View):
         p.btn_clear.on_click(lambda ev: self.clear_lines())
         p.btn_est_lines.on_click(lambda ev: self.estimate(auto=False, client=ev.client))
         p.btn_est_auto.on_click(lambda ev: self.estimate(auto=True, client=ev.client))
+        p.btn_est_motion.on_click(lambda ev: self.estimate_from_motion(client=ev.client))
         self._settle_timer: threading.Timer | None = None
         self._timer_lock = threading.Lock()
         self._stopped = False
@@ -430,6 +444,32 @@ class CalibrateView(View):
             self.request_overlays()
 
         self.app.run_job("estimate γ", job, client)
+
+    def estimate_from_motion(self, client=None) -> None:
+        """γ from the matches between ``MOTION_PAIRS`` frame pairs spread over the flight."""
+        inp = self.app.inputs
+        if inp is None:
+            return
+        if inp.n_frames < 2:
+            self.notify(client, "One frame", "γ from motion needs 2 frames or more", "yellow")
+            return
+
+        def job(progress) -> None:
+            self.panel.estimate_md.content = "Estimating γ from the frames' motion ..."
+            progress(0, None, "choosing how many frames apart")
+            est = motion_gamma.estimate_gamma_from_flight(
+                inp.frame,
+                inp.n_frames,
+                n_pairs=MOTION_PAIRS,
+                progress=lambda done, total: progress(done, total, "frame pairs matched"),
+            )
+            self.last_estimate = est
+            how = f"from {len(est.frame_pairs)} frame pairs {est.step} apart"
+            self.panel.show_estimate(est, how, est.gamma)
+            self.set_gamma(float(est.gamma), client)
+            self.request_overlays()
+
+        self.app.run_job("estimate γ from motion", job, client)
 
     def shutdown(self) -> None:
         with self._timer_lock:
