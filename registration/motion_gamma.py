@@ -288,14 +288,17 @@ def pair_matches(
 
 
 # -------------------------------------------------------------------------- the lens, normalised
+# conventions.md's Harris formula with c = 0 and r_n = 1: the fit works in frame-centred units
+# of the half-diagonal, where the homographies are well conditioned.
 def _undistort(d: NDArray, gamma: float) -> NDArray:
-    """Normalised raw -> normalised corrected (conventions.md with -γ); NaN where undefined."""
+    """Normalised raw -> normalised corrected (the formula with -γ); NaN where undefined."""
     den = 1.0 - gamma * np.sum(d * d, axis=1, keepdims=True)
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(den > 0, d / np.sqrt(np.where(den > 0, den, 1.0)), np.nan)
 
 
 def _distort(u: NDArray, gamma: float) -> NDArray:
+    """Normalised corrected -> normalised raw; NaN where undefined."""
     den = 1.0 + gamma * np.sum(u * u, axis=1, keepdims=True)
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(den > 0, u / np.sqrt(np.where(den > 0, den, 1.0)), np.nan)

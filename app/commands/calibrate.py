@@ -4,10 +4,11 @@ With ``--lines LINES.json`` γ is fitted to polylines traced along straight worl
 format is documented in :mod:`registration.lines_file`); without it, long edges are detected in
 the image and γ is fitted robustly to them. With ``--frames`` (a video, a folder of frames or a
 glob, instead of IMAGE) γ is fitted to the SIFT matches between frame pairs of the flight
-(:mod:`registration.motion_gamma`): through the right γ they obey one homography per pair. Besides γ and its uncertainty the command reports
-whether the estimate is confident, where the lines put the distortion centre
-(:func:`registration.lens_fit.fit_center`; used with ``--center auto`` when the lines support
-it) and whether one parameter is enough (:func:`registration.lens_fit.check_one_parameter`).
+(:mod:`registration.motion_gamma`): through the right γ they obey one homography per pair.
+Besides γ and its uncertainty the command reports whether the estimate is confident, and for
+lines where they put the distortion centre (:func:`registration.lens_fit.fit_center`; used with
+``--center auto`` when the lines support it) and whether one parameter is enough
+(:func:`registration.lens_fit.check_one_parameter`).
 """
 
 from __future__ import annotations
@@ -28,7 +29,10 @@ from registration.distortion import HARRIS_GAMMA_MIN
 from registration.lens_fit import check_one_parameter, fit_center
 
 NAME = "calibrate"
-HELP = "Estimate the Harris distortion parameter γ from straight lines (drawn or detected)."
+HELP = (
+    "Estimate the Harris distortion parameter γ from straight lines (drawn or detected) or "
+    "from the frames' motion."
+)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
