@@ -257,6 +257,23 @@ def test_truth_result_mismatch_is_one_line(attr, value, message):
     assert "\n" not in str(exc.value)
 
 
+def test_a_result_with_an_estimated_gamma_is_evaluated():
+    """A γ up to 0.05 off the truth's (an estimate: calibrate, register --gamma auto) is the same
+    sequence, evaluated like the exact one (the result maps its raw pixels through its own γ;
+    only the unregistered motion, in corrected px, follows the γ); further off is another
+    simulation, refused."""
+    truth = ShiftTruth(5)
+    exact = evaluation.evaluate_truth(OffsetResult(ShiftTruth(5)), truth)
+    near = OffsetResult(ShiftTruth(5))
+    near.gamma = truth.gamma + 0.03
+    estimated = evaluation.evaluate_truth(near, truth)
+    rows, exact_rows = (r.table_absolute.to_dict()["rows"] for r in (estimated, exact))
+    assert rows["global"] == exact_rows["global"] and rows["local"] == exact_rows["local"]
+    near.gamma = truth.gamma + 0.06
+    with pytest.raises(ValueError, match=r"gamma 0 in the truth, 0.06 in the result \(an"):
+        evaluation.evaluate_truth(near, truth)
+
+
 def test_table_frames_spread_evenly():
     assert evaluation.table_frames(100, 10) == [0, 11, 22, 33, 44, 55, 66, 77, 88, 99]
     assert evaluation.table_frames(4, 10) == [0, 1, 2, 3]
