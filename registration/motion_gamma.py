@@ -36,6 +36,7 @@ from scipy.optimize import least_squares
 from scipy.sparse import lil_matrix
 
 from registration.calibration import CONFIDENT_SIGMA, gamma_bounds
+from registration.coords import rescale
 from registration.distortion import HarrisModel
 from registration.features import SiftConfig, detect_sift, downscale, downscale_mask, match_ratio
 from registration.models import Projective
@@ -43,6 +44,7 @@ from registration.robust import RansacConfig, ransac
 
 __all__ = [
     "MotionGammaConfig",
+    "DEFAULT_PAIRS",
     "MIN_PAIRS_FOR_SHUTTER",
     "MotionGammaEstimate",
     "choose_step",
@@ -177,9 +179,6 @@ class MotionGammaEstimate:
     def n_inliers(self) -> int:
         return int(sum(self.pair_inliers))
 
-    def model(self) -> HarrisModel:
-        return HarrisModel(self.gamma, self.width, self.height)
-
     def to_dict(self) -> dict:
         return {
             "gamma": float(self.gamma),
@@ -246,9 +245,10 @@ def choose_step(
         raise ValueError(f"γ from motion needs at least 2 frames, got {n_frames}")
     first = frame(0)
     target = target_motion * first.shape[1]
+    first_kp = _keypoints(first, None, config)  # detected once for every step tried
     best, step = 1, 1
     while step < n_frames:
-        a, b = pair_matches(first, frame(step), config=config)
+        a, b = _matches(first_kp, _keypoints(frame(step), None, config), config)
         if len(a) < 4 * config.min_matches:
             break
         best = step
@@ -267,6 +267,15 @@ def _keypoints(frame: NDArray, mask: NDArray | None, config: MotionGammaConfig):
     return kp, scale
 
 
+def _matches(first, second, config: MotionGammaConfig) -> tuple[NDArray, NDArray]:
+    """Lowe-ratio matches between two ``_keypoints`` results, in raw px of each frame."""
+    (kp_a, s_a), (kp_b, s_b) = first, second
+    if len(kp_a.xy) < 2 or len(kp_b.xy) < 2:
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    m = match_ratio(kp_a, kp_b, config.ratio)
+    return rescale(kp_a.xy[m.idx_a], 1.0 / s_a), rescale(kp_b.xy[m.idx_b], 1.0 / s_b)
+
+
 def pair_matches(
     frame_a: NDArray,
     frame_b: NDArray,
@@ -276,15 +285,9 @@ def pair_matches(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """SIFT matches (Lowe ratio) between two raw frames: ``(M, 2)`` raw px in each."""
     config = config or MotionGammaConfig()
-    kp_a, s_a = _keypoints(frame_a, masks[0], config)
-    kp_b, s_b = _keypoints(frame_b, masks[1], config)
-    if len(kp_a.xy) < 2 or len(kp_b.xy) < 2:
-        return np.zeros((0, 2)), np.zeros((0, 2))
-    m = match_ratio(kp_a, kp_b, config.ratio)
-    # SIFT keypoint centres are pixel centres in OpenCV's convention, as ours (conventions.md).
-    a = (kp_a.xy[m.idx_a] + 0.5) / s_a - 0.5
-    b = (kp_b.xy[m.idx_b] + 0.5) / s_b - 0.5
-    return a, b
+    return _matches(
+        _keypoints(frame_a, masks[0], config), _keypoints(frame_b, masks[1], config), config
+    )
 
 
 # -------------------------------------------------------------------------- the lens, normalised
@@ -339,6 +342,8 @@ def _dlt(gamma: float, a: NDArray, b: NDArray) -> NDArray | None:
 
 # ------------------------------------------------------------------------------- the joint fit
 _H_PARAMS = 8  # per pair: a homography with h33 = 1
+# Frame pairs of a flight by default (calibrate --frames, register --gamma auto, the app).
+DEFAULT_PAIRS = 6
 # Fewer pairs cannot show a rolling shutter's bias (see _pair_jackknife): never confident.
 MIN_PAIRS_FOR_SHUTTER = 3
 
@@ -676,7 +681,7 @@ def estimate_gamma_from_flight(
     frame: Callable[[int], NDArray],
     n_frames: int,
     *,
-    n_pairs: int = 6,
+    n_pairs: int = DEFAULT_PAIRS,
     step: int | None = None,
     gamma_range: tuple[float, float] | None = None,
     config: MotionGammaConfig | None = None,

@@ -27,6 +27,7 @@ from registration.calibration import (
 )
 from registration.distortion import HARRIS_GAMMA_MIN
 from registration.lens_fit import check_one_parameter, fit_center
+from registration.motion_gamma import DEFAULT_PAIRS
 
 NAME = "calibrate"
 HELP = (
@@ -46,10 +47,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--pairs",
         type=int,
-        default=6,
+        default=DEFAULT_PAIRS,
         metavar="N",
-        help="with --frames: frame pairs, spread over the flight (default 6; 3 or more let the "
-        "uncertainty see a rolling shutter)",
+        help=f"with --frames: frame pairs, spread over the flight (default {DEFAULT_PAIRS}; 3 or "
+        "more let the uncertainty see a rolling shutter)",
     )
     p.add_argument(
         "--step",

@@ -169,13 +169,13 @@ def parse_gamma(text: str) -> float | None:
 
 
 def gamma_from_motion(frames) -> float:
-    """``--gamma auto``: γ from 6 frame pairs of the flight, reported on standard error."""
+    """``--gamma auto``: γ from frame pairs of the flight, reported on standard error."""
     from app.commands.calibrate import motion_summary
-    from registration.motion_gamma import estimate_gamma_from_flight
+    from registration.motion_gamma import DEFAULT_PAIRS, estimate_gamma_from_flight
 
     if len(frames) < 2:
         raise UsageError(f"--gamma auto needs 2 frames or more, got {len(frames)}")
-    with ProgressBar(6, "register (gamma from motion)") as bar:
+    with ProgressBar(DEFAULT_PAIRS, "register (gamma from motion)") as bar:
         est = estimate_gamma_from_flight(
             frames.get, len(frames), progress=lambda done, total: bar.update(1)
         )

@@ -40,7 +40,6 @@ DETECTED_COLOUR = (255, 0, 200)
 SETTLE_S = 0.35
 """After this long without a new γ/frame request, the full-resolution image replaces the preview."""
 GAMMA_STEP = 0.005
-MOTION_PAIRS = 6  # frame pairs for γ from motion (3 or more let it see a rolling shutter)
 
 
 class CalibratePanel:
@@ -446,7 +445,7 @@ class CalibrateView(View):
         self.app.run_job("estimate γ", job, client)
 
     def estimate_from_motion(self, client=None) -> None:
-        """γ from the matches between ``MOTION_PAIRS`` frame pairs spread over the flight."""
+        """γ from the matches between frame pairs spread over the flight."""
         inp = self.app.inputs
         if inp is None:
             return
@@ -460,7 +459,6 @@ class CalibrateView(View):
             est = motion_gamma.estimate_gamma_from_flight(
                 inp.frame,
                 inp.n_frames,
-                n_pairs=MOTION_PAIRS,
                 progress=lambda done, total: progress(done, total, "frame pairs matched"),
             )
             self.last_estimate = est
