@@ -15,16 +15,16 @@ from pathlib import Path
 
 import numpy as np
 
-from registration import config as rconfig
-from registration import global_registration, pipeline
-from registration.distortion import HarrisModel
-from registration.result import frame_record_path
+from registration import global_registration
+from registration.lens import HarrisModel
+from registration.run import config as run_config
+from registration.run import frame_record_path, pipeline
 
 
-def pipeline_config(preset: str, degree: int, run_local: bool) -> rconfig.PipelineConfig:
+def pipeline_config(preset: str, degree: int, run_local: bool) -> run_config.PipelineConfig:
     """The preset with the app's transform choice: polyprojective ``degree`` (1 = projective)
     for the reference and every frame, and the local displacement field on or off."""
-    cfg = rconfig.get_preset(preset)
+    cfg = run_config.get_preset(preset)
     fine = dataclasses.replace(cfg.fine, degree=int(degree))
     return dataclasses.replace(cfg, fine=fine, run_local=bool(run_local))
 

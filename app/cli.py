@@ -63,8 +63,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def parse_size(text: str, *, max_pixels: int | None = None) -> tuple[int, int]:
     """``"1280x960"`` -> ``(1280, 960)``; UsageError for anything else, sizes under
-    ``registration.io.MIN_IMAGE_SIDE`` a side or over ``max_pixels`` (default: the frame limit,
-    ``registration.io.MAX_FRAME_PIXELS``)."""
+    ``registration.io.images.MIN_IMAGE_SIDE`` a side or over ``max_pixels`` (default: the frame limit,
+    ``registration.io.images.MAX_FRAME_PIXELS``)."""
     from registration.io import MAX_FRAME_PIXELS, MIN_IMAGE_SIDE
 
     max_pixels = MAX_FRAME_PIXELS if max_pixels is None else max_pixels

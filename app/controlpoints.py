@@ -1,6 +1,6 @@
 """The control-point table (as in QGIS's Georeferencer) of one frame's fine fit.
 
-Rows come from a fine result (``registration.global_registration.FineResult`` of the reference
+Rows come from a fine result (``registration.global_registration.fine.FineResult`` of the reference
 frame, or a registered frame's control points in a result folder) plus the analyst's edits:
 points switched on or off, deleted, or added by hand. "Enabled" starts as what REQCON kept.
 A re-fit is the least-squares fit of the same model (warm-started from the current one, the
@@ -221,16 +221,16 @@ def refit(table: ControlPointTable, start, *, domain=None, optimizer: str = "lm"
 
 def write_qgis_points(table: ControlPointTable, path, georef=None):
     """The table as a QGIS Georeferencer ``.points`` file at ``path`` (written atomically by
-    :func:`registration.gis_vector.write_points_file`, the format QGIS 3 saves); returns the path.
+    :func:`registration.gis.vector.write_points_file`, the format QGIS 3 saves); returns the path.
 
     Source: the raw frame in QGIS's pixel coordinates (corner of the top-left pixel at (0, 0),
     rows negative: raw ``(x, y)`` is ``(x + 0.5, -(y + 0.5))``). Map: with a georeferenced base
-    (``georef``, :class:`registration.georef.GeoReference`) the points' map coordinates in its CRS
+    (``georef``, :class:`registration.gis.georef.GeoReference`) the points' map coordinates in its CRS
     (``#CRS:`` line), as QGIS expects; without one the base map's pixels in the same corner/y-up
     convention as the source. ``dX``, ``dY``, ``residual``: ``model(frame point) - map point`` in
     map units (base px without a georeference; 0 where there is no model).
     """
-    from registration.gis_vector import write_points_file
+    from registration.gis import write_points_file
 
     base = np.asarray(table.base_xy, np.float64).reshape(-1, 2)
     res = np.nan_to_num(np.asarray(table.residual_xy, np.float64).reshape(-1, 2), nan=0.0)

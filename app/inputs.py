@@ -26,11 +26,12 @@ class Inputs:
 
     def __init__(self, frames_path: str, base_path: str) -> None:
         from registration import io
+        from registration.gis import basemap
 
         self.frames_path, self.base_path = str(frames_path), str(base_path)
         self.frames = io.open_frames(frames_path)
         # GeoTIFFs (CRS, palette, 16-bit, no-data) and PNG/JPEG with a world file alike.
-        base_map = io.read_base_map(base_path)
+        base_map = basemap.read_base_map(base_path)
         self.base = base_map.image
         self.base_valid = base_map.valid_or_none
         self.base_georef = base_map.georef

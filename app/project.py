@@ -4,7 +4,7 @@ Layout of a project folder::
 
     project.json     session: inputs, γ, calibration frame, seed, reference frame, preset,
                      view settings, result folder, marked points (written atomically)
-    LINES.json       the analyst's polylines in registration.calibration's LINES.json format
+    LINES.json       the analyst's polylines in registration.lens.gamma_from_lines's LINES.json format
     POINTS.csv       marked ground points in registration.evaluation's POINTS.csv format
     result/          registration result folder (registration.load), written frame by frame
     uploads/         files uploaded through the browser
@@ -257,8 +257,8 @@ def reference_from_file(path: Path):
     file is missing or unreadable (it is a cache of recomputable results)."""
     import numpy as np
 
+    from registration.geometry import model_from_dict
     from registration.global_registration import CoarseResult, FineResult
-    from registration.models import model_from_dict
 
     def model(text: str):
         return model_from_dict(json.loads(text)) if text else None

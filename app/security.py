@@ -69,7 +69,7 @@ def resolve_allowed(path_text: str, allowed: list[Path]) -> Path | str:
 
     Returns:
         The resolved path, or for a glob the pattern itself (absolute), which
-        ``registration.io.open_frames`` expands to the files checked here.
+        ``registration.io.frames.open_frames`` expands to the files checked here.
 
     Raises:
         ValueError: naming the path when it is empty or anything it reaches lies outside every

@@ -69,20 +69,20 @@ class AppState:
             from it (:func:`app.calls.second_seed_from_similarity`) and follows pair 1.
         seed_pair: which pair the next clicks place (1 or 2).
         reference_frame: index of the reference frame (paper: the first).
-        preset: registration.config preset name; ``transform`` a :data:`TRANSFORMS` name;
+        preset: registration.run.config preset name; ``transform`` a :data:`TRANSFORMS` name;
             ``run_local``: compute the local displacement field.
         cp_edits: the analyst's control-point edits of the reference frame (for ``reference``'s
             key only).
         reference: :class:`ReferenceFit` or None (saved in the project's reference.npz).
         result_dir: the registration result folder (str) or None; ``result`` the opened
-            ``registration.result.RegistrationResult`` (not saved).
+            ``registration.run.result.RegistrationResult`` (not saved).
         seq_frame, overlay, opacity, vector_scale, stage: Sequence view settings
             (``vector_scale`` 0 = automatic).
         points: marked ground points ``{name: {frame index: (x, y) raw px}}``.
         pending: marks proposed by correlation and not yet confirmed ``{(name, frame): NCC}``.
         point_name, eval_frame: the point being marked and the frame shown in Evaluate.
         anchor: what Table 2 measures a point's motion from (:data:`ANCHORS`).
-        report: the last ``registration.evaluation.EvaluationReport`` of Table 2 (not saved).
+        report: the last ``registration.evaluation.report.EvaluationReport`` of Table 2 (not saved).
         zoom: world units per screen pixel of the last camera a browser reported.
         revision: bumped on every change (the worker uses it to drop stale renders).
     """

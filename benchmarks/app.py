@@ -93,9 +93,8 @@ def _old_scrub(app, k: int, stage: str) -> None:
     import cv2
 
     from app import scene2d
-    from registration import viz
     from registration.coords import frame_outline, rescale
-    from registration.render import render_registered
+    from registration.render import render_registered, viz
 
     r = app.state.result
     inp = app.inputs
@@ -131,7 +130,7 @@ def run(args) -> dict:
     from app.project import Project
     from app.security import make_server
     from app.server import App
-    from registration.distortion import HarrisModel
+    from registration.lens import HarrisModel
     from registration.synth import SimConfig, load_truth, simulate
 
     cv2.setNumThreads(2)
@@ -363,11 +362,11 @@ def run(args) -> dict:
     app.worker.wait_idle()
     figures["export_app_s"] = time.perf_counter() - t
     assert seqv.exporter.summary is not None and not seqv.exporter.summary["cancelled"]
-    from registration import io as rio
-    from registration.export import export_result
+    from registration.gis import export_result
+    from registration.io import frames
 
     t = time.perf_counter()
-    export_result(r, tmp / "export-direct", formats, frames=rio.open_frames(seq / "frames"))
+    export_result(r, tmp / "export-direct", formats, frames=frames.open_frames(seq / "frames"))
     figures["export_direct_s"] = time.perf_counter() - t
     rows.append(
         (

@@ -1,6 +1,6 @@
 """Radial distortion: correction speed at 2560x1920 and the accuracy of automatic γ estimation.
 
-* Speed: correcting a 2560x1920 colour frame with :func:`registration.distortion.undistort_image`
+* Speed: correcting a 2560x1920 colour frame with :func:`registration.lens.correction.undistort_image`
   (cached prepared maps) against baselines measured in the same run: plain ``cv2.remap`` with
   precomputed float maps, the project's float ``warp.remap``, and building the maps on every call
   (our own map build + remap, and ``cv2.undistort`` with the equivalent polynomial).
@@ -8,12 +8,12 @@
   SDD frames, the OrthoLoC UAV photos and orthophoto tiles, the LEVIR-CD satellite tiles; the
   generated chart as a control) seen through a synthetic Harris lens with known γ in
   {0.3, 0.7, 1.0}, the raw pixels that see beyond the scene masked; per image and γ: estimate,
-  error, reported σ, confidence and time of :func:`registration.calibration.estimate_gamma_auto`;
+  error, reported σ, confidence and time of :func:`registration.lens.gamma_from_lines.estimate_gamma_auto`;
   per dataset: worst and median error, share within 0.02 and within 2σ, the confident runs'
   worst error, time per image.
 * Real GoPro photos (``../shared/data/real-lens-distortion``): the automatic estimate, the
-  centre fitted with γ (:func:`registration.lens_fit.fit_center`), straightness before and
-  after, and one versus two radial parameters (:func:`registration.lens_fit.check_one_parameter`).
+  centre fitted with γ (:func:`registration.lens.centre_fit.fit_center`), straightness before and
+  after, and one versus two radial parameters (:func:`registration.lens.centre_fit.check_one_parameter`).
 """
 
 from __future__ import annotations
@@ -25,25 +25,25 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from registration import distortion
-from registration.calibration import (
+from registration.geometry import remap
+from registration.lens import (
     CONFIDENT_SIGMA,
     MIN_EFFECTIVE_LINES,
-    estimate_gamma_auto,
-    straight_edge_chart,
-    straightness,
-)
-from registration.distortion import (
     HarrisModel,
     PolynomialModel,
+    check_one_parameter,
+    correction,
     correction_source_map,
+    estimate_gamma_auto,
+    estimate_gamma_from_motion,
+    fit_center,
+    fit_division_from_lines,
     simulate_raw_frame,
+    straight_edge_chart,
+    straightness,
     undistort_image,
 )
-from registration.lens_fit import check_one_parameter, fit_center, fit_division_from_lines
-from registration.motion_gamma import estimate_gamma_from_motion
 from registration.synth.lens_views import lens_pair
-from registration.warp import remap
 
 TITLE = "Radial distortion (paper section 3): correction speed and γ estimation"
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -67,7 +67,7 @@ def bench_speed(gamma: float = 0.7) -> dict:
     model = HarrisModel(gamma, w, h)
     out: dict = {"frame": f"{w}x{h} colour ({source})", "gamma": gamma}
 
-    distortion.clear_map_cache()
+    correction.clear_map_cache()
     t0 = time.perf_counter()
     undistort_image(img, model)
     out["first_call_ms"] = 1e3 * (time.perf_counter() - t0)  # map build + conversion + remap
@@ -278,7 +278,7 @@ def bench_real_motion(seed: int = 0, progress=None) -> dict:
     """γ from motion on every real nadir image: each seen twice through a synthetic Harris lens
     with γ in ``GAMMAS`` (:func:`registration.synth.lens_views.lens_pair`: the second view moved
     by 0.3 of the frame's half width in a seeded direction and turned 8°), the two raw frames
-    given to :func:`registration.motion_gamma.estimate_gamma_from_motion`. Frames as in
+    given to :func:`registration.lens.gamma_from_motion.estimate_gamma_from_motion`. Frames as in
     :func:`bench_real`: 960x720, or the scene's own size when it is smaller."""
     scenes = {name: _labelled(files) for name, files in real_scenes().items()}
 

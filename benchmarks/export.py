@@ -33,7 +33,7 @@ def _time(fn, repeat: int = REPEAT) -> float:
 
 
 def _frame_writers(tmp: Path, georef):
-    from registration.export import write_geotiff, write_png_georeferenced
+    from registration.gis import write_geotiff, write_png_georeferenced
 
     return {
         "cv2.imwrite PNG (baseline)": lambda im, m: cv2.imwrite(str(tmp / "a.png"), im),
@@ -72,17 +72,10 @@ def run(args) -> dict:
 def _run(args, tmp: Path) -> dict:
     from pyproj import CRS
 
-    from registration.config import get_preset
-    from registration.export import (
-        ExportOptions,
-        _Mosaic,
-        _render_frame,
-        export_result,
-        write_geotiff,
-    )
-    from registration.georef import GeoReference
+    from registration.gis import ExportOptions, GeoReference, export_result, write_geotiff
+    from registration.gis.export import _Mosaic, _render_frame
     from registration.io import open_frames, read_image
-    from registration.pipeline import register_sequence
+    from registration.run import get_preset, register_sequence
     from registration.synth import SimConfig, load_truth, simulate
 
     w, h = args.size_wh

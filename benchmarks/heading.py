@@ -27,10 +27,10 @@ SEED_ERROR_PX = 2.0
 
 def _opencv_error(frame, base, gamma, grid, truth_xy, scale) -> tuple[float, float]:
     """Plain OpenCV's error (frame px) and time (s) for one frame and map."""
-    from registration.baseline import BaselineConfig, apply_homography, homography, sift_features
-    from registration.coarse import corrected_grey
-    from registration.distortion import HarrisModel
-    from registration.features import to_grey
+    from registration.evaluation import BaselineConfig, apply_homography, homography, sift_features
+    from registration.global_registration import corrected_grey
+    from registration.lens import HarrisModel
+    from registration.matching import to_grey
 
     t = time.perf_counter()
     h = homography(
@@ -46,10 +46,10 @@ def _opencv_error(frame, base, gamma, grid, truth_xy, scale) -> tuple[float, flo
 
 
 def run(args) -> dict:
-    from registration.config import get_preset
-    from registration.distortion import HarrisModel
     from registration.global_registration import coarse_register, fine_register_reference
     from registration.io import open_frames, read_image
+    from registration.lens import HarrisModel
+    from registration.run import get_preset
     from registration.synth import SimConfig, load_truth, rebase, simulate
 
     w, h = args.size_wh

@@ -122,7 +122,7 @@ def _marginal(stamps: list[float], result) -> float:
 
 def _run_ours(key, config, overlap, seq, out) -> dict:
     """Register ``seq`` with ``config`` (and ``overlap``) and measure the result."""
-    from registration.pipeline import register_sequence
+    from registration.run import register_sequence
 
     stamps: list[float] = []
     last = [-1]
@@ -167,7 +167,7 @@ def _baseline_row(res, truth, elapsed) -> dict:
 
 def our_runs(args) -> list[tuple[str, object, bool]]:
     """``(row key, configuration, overlap)`` of each of our runs that ``args`` asks for."""
-    from registration.config import get_preset
+    from registration.run import get_preset
 
     default = get_preset("default")
     runs = [("default", default, True), ("fast", get_preset("fast"), True)]
@@ -183,7 +183,7 @@ def our_runs(args) -> list[tuple[str, object, bool]]:
 
 def run(args) -> dict:
     from benchmarks.sequence import simulated_sequence
-    from registration.baseline import register_baseline, register_stabilo
+    from registration.evaluation import register_baseline, register_stabilo
 
     w, h = args.size_wh
     tmp = Path(tempfile.mkdtemp(prefix="aerialreg-bench-"))
@@ -194,8 +194,8 @@ def run(args) -> dict:
     }
     if args.speed_options:
         # As a flight arrives: H.264 video, decoded by ffmpeg frame after frame.
-        from registration.config import get_preset
         from registration.io import open_frames
+        from registration.run import get_preset
 
         video = dataclasses.replace(seq, frames=open_frames(seq.folder / "sequence.mp4"))
         rows["video"] = _run_ours("video", get_preset("default"), True, video, tmp / "video")

@@ -43,10 +43,14 @@ def run(args) -> dict:
     import logging
 
     from benchmarks.sequence import simulated_sequence
-    from registration.chunks import chunk_plan
-    from registration.config import get_preset
-    from registration.distributed import DaskExecutor, open_client, require_distributed
-    from registration.pipeline import register_sequence
+    from registration.run import (
+        DaskExecutor,
+        chunk_plan,
+        get_preset,
+        open_client,
+        register_sequence,
+        require_distributed,
+    )
 
     require_distributed()  # importing it sets its loggers' levels
     logging.getLogger("distributed").setLevel(logging.WARNING)

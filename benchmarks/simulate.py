@@ -28,7 +28,9 @@ def _best(fn, repeat: int = 3) -> float:
 def run(args) -> dict:
     from registration.synth import SimConfig, demo
     from registration.synth import city as citymod
-    from registration.synth.sequence import FrameRenderer, SimTruth, plan_procedural
+    from registration.synth.plan import plan_procedural
+    from registration.synth.render import FrameRenderer
+    from registration.synth.truth import SimTruth
 
     cv2.setNumThreads(2)
     seed = int(getattr(args, "seed", 0) or 0)

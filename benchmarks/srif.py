@@ -158,8 +158,8 @@ def _rates(err: np.ndarray) -> dict:
 
 
 def run(args) -> dict:
-    from registration.baseline import BaselineConfig, apply_homography, homography, sift_features
-    from registration.config import get_preset
+    from registration.evaluation import BaselineConfig, apply_homography, homography, sift_features
+    from registration.run import get_preset
 
     if not DATA.is_dir():
         return {"skipped": f"{DATA} is absent", "markdown": f"skipped: {DATA} is absent"}

@@ -25,11 +25,11 @@ from typing import TYPE_CHECKING
 __all__ = ["load"]
 
 if TYPE_CHECKING:
-    from registration.result import RegistrationResult
+    from registration.run import RegistrationResult
 
 
 def load(out_dir) -> RegistrationResult:
-    """Open a result folder written by ``aerialreg register`` (see :mod:`registration.result`)."""
-    from registration.result import load_result
+    """Open a result folder written by ``aerialreg register`` (see :mod:`registration.run.result`)."""
+    from registration.run import load_result
 
     return load_result(out_dir)

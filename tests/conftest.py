@@ -59,9 +59,8 @@ def seed_for(sim: Path, k: int = 0) -> tuple[float, float, float, float]:
 def register(sim: Path, out: Path, preset: str = "default", frames_dir: Path | None = None, **kw):
     """``register_sequence`` of the simulated sequence ``sim`` (seeded at the reference frame's
     centre), with the preset's configuration unless ``config`` is given."""
-    from registration.config import get_preset
     from registration.io import open_frames, read_image
-    from registration.pipeline import register_sequence
+    from registration.run import get_preset, register_sequence
     from registration.synth import load_truth
 
     return register_sequence(

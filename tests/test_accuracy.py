@@ -21,8 +21,8 @@ import json
 import numpy as np
 import pytest
 
-from registration.config import config_to_dict, get_preset
 from registration.evaluation import evaluate_truth
+from registration.run import config_to_dict, get_preset
 from registration.synth import load_truth
 from tests.conftest import PAPER_FRAMES, FirstFrames
 

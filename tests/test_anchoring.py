@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from registration.anchoring import render_anchor
-from registration.camera import Camera
+from registration.geometry import Similarity
 from registration.global_registration import IntraConfig, JointBase
-from registration.models import Similarity
+from registration.lens import Camera
+from registration.run import render_anchor
 
 W, H = 160, 120
 BASE = (600, 450)

@@ -23,8 +23,8 @@ from app.security import make_server  # noqa: E402
 from app.server import App  # noqa: E402
 from app.state import AppState  # noqa: E402
 from app.worker import LatestWorker  # noqa: E402
-from registration import viz  # noqa: E402
-from registration.distortion import HarrisModel  # noqa: E402
+from registration.lens import HarrisModel  # noqa: E402
+from registration.render import viz  # noqa: E402
 
 CAMERA = (0.05, 0.02, -1.0)  # an off-centre camera so click rays are oblique
 
@@ -250,7 +250,7 @@ def registered(fitted):
 
 
 def test_calibrate_gamma_lines_and_restore(tmp_path, small_seq, make_app):
-    from registration.calibration import load_lines
+    from registration.lens import load_lines
 
     proj = tmp_path / "proj"
     app = make_app(proj, small_seq)
@@ -447,7 +447,7 @@ def test_seed_drop_moves_the_fit(fitted):
 
 
 def test_control_points_disable_worst_manual_and_export(fitted):
-    from registration.gis_vector import read_points_file
+    from registration.gis import read_points_file
 
     app, truth, bxy = fitted
     seed = app.views["Seed"]
@@ -557,9 +557,9 @@ def test_sequence_plot_jump_failed_list_and_rerun(registered):
     assert all(after[n] == m for n, m in mtimes.items() if n != "000002.json")
     assert app.state.result.is_ok(2)
     # A failed frame is listed with its reason and can be jumped to.
-    import registration.result as rresult
+    from registration.run import records as run_records
 
-    rec = rresult.frame_record_path(app.project.result_dir, 3, ".json")
+    rec = run_records.frame_record_path(app.project.result_dir, 3, ".json")
     rec.write_text(
         json.dumps({"k": 3, "status": "failed", "reason": "too few matches <b>", "stats": {}})
     )

@@ -17,7 +17,7 @@ import pytest
 
 viser = pytest.importorskip("viser")
 
-from registration.georef import GeoReference  # noqa: E402
+from registration.gis import GeoReference  # noqa: E402
 from tests.test_app import small_seq  # noqa: E402,F401  (session fixture)
 
 TRANSFORM = (0.5, 0.0, 300000.0, 0.0, -0.5, 3700000.0)  # 0.5 m pixels, UTM 43N
@@ -28,8 +28,8 @@ CRS = "EPSG:32643"
 def registered_dir(small_seq, tmp_path_factory):  # noqa: F811
     """The small sequence registered with a seed at the truth (plain base)."""
     from app import calls
-    from registration import io as rio
-    from registration import pipeline
+    from registration.io import frames, images
+    from registration.run import pipeline
     from registration.synth import load_truth
 
     truth = load_truth(small_seq)
@@ -37,8 +37,8 @@ def registered_dir(small_seq, tmp_path_factory):  # noqa: F811
     bxy = truth.frame_to_base(0, fxy)[0]
     out = tmp_path_factory.mktemp("registered") / "result"
     pipeline.register_sequence(
-        rio.open_frames(small_seq / "frames"),
-        rio.read_image(small_seq / "base.png"),
+        frames.open_frames(small_seq / "frames"),
+        images.read_image(small_seq / "base.png"),
         truth.gamma,
         out,
         config=calls.pipeline_config("default", 2, True),
@@ -51,11 +51,11 @@ def registered_dir(small_seq, tmp_path_factory):  # noqa: F811
 @pytest.fixture(scope="module")
 def tif_base(small_seq, tmp_path_factory):  # noqa: F811
     """The simulated base map as a GeoTIFF (known transform and CRS)."""
-    from registration import io as rio
-    from registration.export import write_geotiff
+    from registration.gis import write_geotiff
+    from registration.io import images
 
     path = tmp_path_factory.mktemp("tif") / "base.tif"
-    write_geotiff(path, rio.read_image(small_seq / "base.png"), GeoReference(TRANSFORM, CRS))
+    write_geotiff(path, images.read_image(small_seq / "base.png"), GeoReference(TRANSFORM, CRS))
     return path
 
 
@@ -161,7 +161,7 @@ def test_plain_base_disables_map_formats_asks_before_overwriting_and_downloads(
 def test_georeferenced_base_exports_geotiff_points_geojson_and_cancels(open_registered, tif_base):
     import rasterio
 
-    from registration.gis_vector import read_points_file
+    from registration.gis import read_points_file
 
     app = open_registered(tif_base)
     georef = app.inputs.base_georef

@@ -10,8 +10,8 @@ import pytest
 
 from app import assets, controlpoints, scene2d
 from app.controlpoints import Edits
-from registration.distortion import HarrisModel
-from registration.models import PolyProjective, Projective
+from registration.geometry import PolyProjective, Projective
+from registration.lens import HarrisModel
 
 
 @pytest.fixture
@@ -93,8 +93,7 @@ def test_manual_and_deleted_points(known):
 
 
 def test_qgis_points_plain_and_georeferenced(known, tmp_path):
-    from registration.georef import GeoReference, parse_crs
-    from registration.gis_vector import read_points_file
+    from registration.gis import GeoReference, parse_crs, read_points_file
 
     src, dst, kept, model = known
     harris = HarrisModel(0.0, 640, 480)

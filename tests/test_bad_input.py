@@ -28,10 +28,8 @@ import pytest
 
 import registration
 from app.cli import main as cli_main
-from registration.config import get_preset
 from registration.io import MAX_FRAME_PIXELS, open_frames, read_image
-from registration.pipeline import register_sequence
-from registration.result import ResultLock
+from registration.run import ResultLock, get_preset, register_sequence
 from registration.synth import SimConfig, load_truth, simulate
 
 REPO = Path(__file__).resolve().parents[1]
@@ -289,7 +287,7 @@ def _hold_lock(out: Path) -> subprocess.Popen:
     code = (
         "import sys, time\n"
         "from pathlib import Path\n"
-        "from registration.result import ResultLock\n"
+        "from registration.run.result import ResultLock\n"
         "ResultLock(Path(sys.argv[1])).acquire()\n"
         "print('locked', flush=True)\n"
         "time.sleep(120)\n"

@@ -14,7 +14,7 @@ import pytest
 from app.cli import main as cli_main
 from app.commands.bench import PROFILE_RUNS
 from benchmarks.register import our_runs, tenths
-from registration.config import get_preset
+from registration.run import get_preset
 from registration.synth import PROFILES
 
 

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 
 from benchmarks.srif import corner_error, dominant_plane, follows_another_plane
-from registration.models import Similarity
+from registration.geometry import Similarity
 from tests.conftest import shared_data
 
 SHIFT = np.array([[0, 0, 9.0], [0, 0, -8.0]])  # 12.04 px everywhere

@@ -35,7 +35,7 @@ playwright_api = pytest.importorskip("playwright.sync_api")
 from app.project import Project  # noqa: E402
 from app.security import make_server  # noqa: E402
 from app.server import App  # noqa: E402
-from registration.distortion import HarrisModel  # noqa: E402
+from registration.lens import HarrisModel  # noqa: E402
 from tests.test_app import small_seq  # noqa: E402,F401  (session fixture: 4 frames 640x480)
 
 VIEWPORT = {"width": 1280, "height": 800}
@@ -445,7 +445,7 @@ def test_seed_click_drag_and_disable_worst(browser, live_app, small_seq):  # noq
 @pytest.fixture(scope="module")
 def turned_seq(small_seq, tmp_path_factory):  # noqa: F811
     """The small sequence over its map turned by 90° (``registration.synth.rebase``)."""
-    from registration.synth.basemap import rebase
+    from registration.synth.rebase import rebase
 
     return rebase(small_seq, tmp_path_factory.mktemp("turned") / "seq", 90.0, 1.0)
 

@@ -8,24 +8,25 @@ import cv2
 import numpy as np
 import pytest
 
-from registration.calibration import (
+from registration.lens import (
     CONFIDENT_SIGMA,
+    DivisionModel,
+    HarrisModel,
+    PolynomialModel,
+    check_one_parameter,
     estimate_gamma_auto,
     estimate_gamma_from_lines,
+    fit_center,
+    fit_division_from_lines,
+    fit_polynomial_from_lines,
     line_groups,
     lines_to_json,
     load_lines,
     parse_lines,
     save_lines,
+    simulate_raw_frame,
     straight_edge_chart,
     straightness,
-)
-from registration.distortion import DivisionModel, HarrisModel, PolynomialModel, simulate_raw_frame
-from registration.lens_fit import (
-    check_one_parameter,
-    fit_center,
-    fit_division_from_lines,
-    fit_polynomial_from_lines,
 )
 from tests.conftest import shared_data
 

@@ -1,4 +1,4 @@
-"""The camera object the stages share (registration.camera): the exact Harris model of
+"""The camera object the stages share (registration.lens.camera): the exact Harris model of
 conventions.md for the frame size, built once, and the conversions the stages make with it."""
 
 from __future__ import annotations
@@ -8,9 +8,8 @@ import pickle
 import numpy as np
 import pytest
 
-from registration.camera import Camera, as_camera
 from registration.coords import frame_outline
-from registration.distortion import HarrisModel, undistort_image
+from registration.lens import Camera, HarrisModel, as_camera, undistort_image
 
 W, H = 64, 48
 

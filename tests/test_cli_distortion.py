@@ -9,8 +9,13 @@ import numpy as np
 import pytest
 
 from app.cli import main
-from registration.calibration import save_lines, straight_edge_chart
-from registration.distortion import HarrisModel, simulate_raw_frame, undistort_image
+from registration.lens import (
+    HarrisModel,
+    save_lines,
+    simulate_raw_frame,
+    straight_edge_chart,
+    undistort_image,
+)
 
 W, H = 480, 360
 
@@ -422,7 +427,7 @@ def test_degenerate_lines_json_is_refused(workdir, capsys):
 
 
 def test_lines_json_size_limits(workdir, capsys, monkeypatch):
-    import registration.lines_file as lines_file
+    from registration.lens import lines_file
 
     img = str(workdir / "x.png")
     good = workdir / "good.json"

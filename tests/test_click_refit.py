@@ -18,12 +18,8 @@ import numpy as np
 import pytest
 
 from app.project import reference_from_file, reference_to_bytes
-from registration.config import get_preset
-from registration.global_registration import (
-    FineConfig,
-    coarse_register,
-    fine_register_reference,
-)
+from registration.global_registration import FineConfig, coarse_register, fine_register_reference
+from registration.run import get_preset
 from tests.conftest import shared_data
 
 ROOF_SHIFT = np.array([13.0, -6.0])

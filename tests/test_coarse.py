@@ -14,14 +14,20 @@ import cv2
 import numpy as np
 import pytest
 
-from registration.coarse import coarse_register, frame_view
-from registration.config import get_preset
-from registration.correlation import CorrelationConfig, gradient_images, refine_by_correlation
-from registration.distortion import HarrisModel
-from registration.features import detect_sift, match_ratio, to_grey
-from registration.heading import attribute_differences, prior_from_seed
+from registration.geometry import Similarity
+from registration.global_registration import (
+    CorrelationConfig,
+    attribute_differences,
+    coarse_register,
+    frame_view,
+    gradient_images,
+    prior_from_seed,
+    refine_by_correlation,
+)
 from registration.io import open_frames, read_image
-from registration.models import Similarity
+from registration.lens import HarrisModel
+from registration.matching import detect_sift, match_ratio, to_grey
+from registration.run import get_preset
 from registration.synth import load_truth
 
 MARGIN = 1.3
@@ -169,7 +175,8 @@ def test_patch_prior_at_a_coarse_scale_keeps_the_click_error_in_full_scale_pixel
     the SIFT one: its heading and scale are the truth's (scale in coarse units), and its anchor
     error is the clicks' error (``seed_error_px`` in each image, full-scale px) at the base's
     coarse scale, not the full-scale figure (a gate 4x too wide at 1/4 scale)."""
-    from registration.coarse import CoarseBase, _patch_prior
+    from registration.global_registration import CoarseBase
+    from registration.global_registration.coarse import _patch_prior
     from tests.conftest import shared_data
 
     folder = shared_data("srif-optical-optical")

@@ -1,4 +1,4 @@
-"""registration.config: the ``paper`` preset holds the paper's numbers (section by section), every
+"""registration.run.config: the ``paper`` preset holds the paper's numbers (section by section), every
 setting of every stage is documented in its dataclass and read by the code, configurations
 survive the JSON round trip of result.json, and bad names are one-line errors."""
 
@@ -14,15 +14,9 @@ from pathlib import Path
 
 import pytest
 
-from registration.config import (
-    PRESETS,
-    PipelineConfig,
-    _dataclass_in,
-    config_from_dict,
-    config_to_dict,
-    get_preset,
-)
-from registration.templates import TemplateConfig
+from registration.matching import TemplateConfig
+from registration.run import PRESETS, PipelineConfig, config_from_dict, config_to_dict, get_preset
+from registration.run.config import _dataclass_in
 
 REPO = Path(__file__).resolve().parents[1]
 

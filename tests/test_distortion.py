@@ -5,20 +5,21 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from registration import distortion
-from registration.calibration import straight_edge_chart, straightness
-from registration.distortion import (
+from registration.geometry import prepare_source_map, remap, remap_prepared
+from registration.lens import (
     CanvasInfo,
     DivisionModel,
     HarrisModel,
     PolynomialModel,
     check_valid,
+    correction,
     correction_canvas,
     distort_image,
     harris_gamma_limit,
+    straight_edge_chart,
+    straightness,
     undistort_image,
 )
-from registration.warp import prepare_source_map, remap, remap_prepared
 
 W, H = 640, 480
 
@@ -242,19 +243,19 @@ def test_full_canvas_refuses_runaway_size():
 
 
 def test_maps_are_cached_per_model_and_canvas():
-    distortion.clear_map_cache()
+    correction.clear_map_cache()
     img = np.random.default_rng(0).integers(0, 255, (H, W, 3), dtype=np.uint8)
     model = HarrisModel(0.4, W, H)
     a, _ = undistort_image(img, model)
-    info0 = distortion._prepared_correction.cache_info()
+    info0 = correction._prepared_correction.cache_info()
     b, _ = undistort_image(img, HarrisModel(0.4, W, H))  # equal model -> same cache entry
     grey, _ = undistort_image(img[:, :, 0], model)  # channels do not matter
-    info1 = distortion._prepared_correction.cache_info()
+    info1 = correction._prepared_correction.cache_info()
     assert info1.hits == info0.hits + 2 and info1.misses == info0.misses
     np.testing.assert_array_equal(a, b)
     np.testing.assert_array_equal(grey, a[:, :, 0])
     undistort_image(img, model, canvas="full")
-    assert distortion._prepared_correction.cache_info().misses == info0.misses + 1
+    assert correction._prepared_correction.cache_info().misses == info0.misses + 1
 
 
 def test_prepared_map_matches_float_remap(rng):
@@ -263,7 +264,7 @@ def test_prepared_map_matches_float_remap(rng):
         __import__("cv2").GaussianBlur(img, (0, 0), 3), dtype=np.uint8
     )  # smooth: fixed-point positions differ by <= 1/64 px
     m = HarrisModel(0.6, W, H)
-    src, _ = distortion.correction_source_map(m)
+    src, _ = correction.correction_source_map(m)
     for interp in ("nearest", "linear", "cubic"):
         ref = remap(smooth, src, interpolation=interp)
         prepared = prepare_source_map(src, interpolation=interp)
@@ -278,7 +279,7 @@ def test_prepared_map_matches_float_remap(rng):
 
 def test_source_map_is_exact_to_hundredths(rng):
     m = HarrisModel(0.9, W, H)
-    src, _ = distortion.correction_source_map(m)
+    src, _ = correction.correction_source_map(m)
     pts = rng.uniform([0, 0], [W - 1, H - 1], (500, 2)).round()
     exact = m.raw_from_corrected(pts)
     got = src[pts[:, 1].astype(int), pts[:, 0].astype(int)]
@@ -372,7 +373,7 @@ def test_undistorted_image_with_a_given_centre_matches_an_independent_remap():
 
 
 def test_correction_stretch_is_exact_for_harris(rng):
-    from registration.distortion import _Radial
+    from registration.lens.radial import _Radial
 
     m = HarrisModel(0.9, W, H, center=(300.0, 200.0))
     pts = frame_points(rng, n=500)
@@ -402,7 +403,7 @@ def test_correction_stretch_is_exact_for_harris(rng):
 
 
 def test_gamma_range_names_both_ends():
-    from registration.distortion import check_harris_gamma, harris_gamma_range
+    from registration.lens import check_harris_gamma, harris_gamma_range
 
     lo, hi = harris_gamma_range(480, 360)
     assert lo == -1.0 and 1.0 < hi < 1.01
@@ -426,7 +427,7 @@ def test_one_pixel_frame_has_no_limit_and_no_division_by_zero():
 
 
 def test_simulated_frame_mask_marks_what_sees_the_scene():
-    from registration.distortion import simulate_raw_frame
+    from registration.lens import simulate_raw_frame
 
     scene = straight_edge_chart(600, 450, seed=5) // 2 + 100  # nothing black in the scene
     for gamma, zoom in ((0.3, 2.5), (1.0, 1.5)):

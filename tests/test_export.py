@@ -18,12 +18,19 @@ from pyproj import CRS, Transformer
 
 import registration
 from app.cli import main as cli_main
-from registration.config import get_preset
 from registration.coords import frame_outline
-from registration.export import ExportOptions, _Mosaic, export_result
-from registration.gis_vector import QGIS_POINTS_HEADER, read_points_file, write_points_file
+from registration.gis import (
+    QGIS_POINTS_HEADER,
+    ExportOptions,
+    export_result,
+    read_base_map,
+    read_points_file,
+    write_points_file,
+)
+from registration.gis.export import _Mosaic
 from registration.global_registration import coarse_register, fine_register_reference
-from registration.io import open_frames, read_base_map, read_image
+from registration.io import open_frames, read_image
+from registration.run import get_preset
 from registration.synth import SimConfig, load_truth, simulate
 from tests.conftest import shared_data
 
@@ -530,7 +537,7 @@ def test_base_no_data_region_gets_no_control_points(tmp_path):
 
 
 def truth_corrected(truth, raw):
-    from registration.distortion import HarrisModel
+    from registration.lens import HarrisModel
 
     return HarrisModel(truth.gamma, *truth.frame_size).corrected_from_raw(raw)
 

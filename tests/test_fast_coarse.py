@@ -11,10 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from registration.config import get_preset
-from registration.fast_coarse import phase_shift
-from registration.features import downscale, to_grey
+from registration.global_registration import phase_shift
 from registration.io import read_image
+from registration.matching import downscale, to_grey
+from registration.run import get_preset
 from registration.synth import SimConfig, load_truth, simulate
 from tests.conftest import register
 

@@ -1,8 +1,8 @@
-"""Tests of registration.features: known warps, exact ground truth, false matches at named indices.
+"""Tests of registration.matching.sift: known warps, exact ground truth, false matches at named indices.
 
 Images: a seeded generated texture (always available) and real imagery from ``../shared/data``
 (skipped with a reason when absent), warped with known transforms through
-``registration.warp.remap``.
+``registration.geometry.warp.remap``.
 """
 
 from __future__ import annotations
@@ -13,8 +13,9 @@ import cv2
 import numpy as np
 import pytest
 
-from registration import coords, warp
-from registration.features import (
+from registration import coords
+from registration.geometry import warp
+from registration.matching import (
     ControlPoints,
     GriddedSiftConfig,
     Keypoints,

@@ -10,13 +10,15 @@ from affine import Affine
 from pyproj import CRS, Transformer
 from rasterio.transform import xy as rio_xy
 
-from registration.georef import (
+from registration.gis import (
     GeoReference,
     find_world_file,
+    read_base_map,
+    read_georeference,
     read_world_file,
+    stretch_to_uint8,
     world_file_text,
 )
-from registration.io import read_base_map, read_georeference, stretch_to_uint8
 from tests.conftest import shared_data
 
 UTM33 = CRS.from_epsg(32633).to_wkt()
@@ -256,7 +258,8 @@ def test_plain_colour_base_reads_as_the_same_bgr_pixels_as_a_frame(tmp_path):
     other image of the pipeline (a swapped channel order changes every grey level)."""
     import cv2
 
-    from registration.io import read_base_map, read_image
+    from registration.gis import read_base_map
+    from registration.io import read_image
 
     rng = np.random.default_rng(3)
     img = rng.integers(0, 256, (40, 60, 3), dtype=np.uint8)

@@ -1,4 +1,4 @@
-"""The global registration steps on their own (registration.coarse's seeded step as the pipeline
+"""The global registration steps on their own (registration.global_registration.coarse's seeded step as the pipeline
 calls it, registration.global_registration's fine and intra-sensor steps), against the
 simulator's exact truth on the session's sequence (tests/conftest.py: 640x480, seed 1).
 
@@ -13,9 +13,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from registration.camera import Camera
-from registration.config import get_preset
-from registration.distortion import HarrisModel
+from registration.geometry import PolyProjective, Projective
 from registration.global_registration import (
     coarse_register,
     fine_register_reference,
@@ -24,8 +22,9 @@ from registration.global_registration import (
     register_intra,
 )
 from registration.io import open_frames, read_image
-from registration.models import PolyProjective, Projective
+from registration.lens import Camera, HarrisModel
 from registration.render import render_to_base
+from registration.run import get_preset
 from registration.synth import load_truth
 from tests.conftest import seed_for
 

@@ -12,11 +12,9 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from registration.anchoring import ANCHOR_STAGE
-from registration.config import get_preset
 from registration.evaluation import evaluate_truth
 from registration.io import open_frames, read_image
-from registration.pipeline import register_sequence
+from registration.run import ANCHOR_STAGE, get_preset, register_sequence
 from registration.synth import PROFILES, load_truth, simulate
 
 W, H, N = 480, 360, 40

@@ -1,4 +1,4 @@
-"""Tests for registration.heading: heading and scale from one seed, two seeds or none, the gate
+"""Tests for registration.global_registration.heading: heading and scale from one seed, two seeds or none, the gate
 built on them and guided matching, against known similarities with outliers at named indices."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ import cv2
 import numpy as np
 import pytest
 
-from registration.features import Keypoints, detect_sift, match_ratio, to_grey
-from registration.heading import (
+from registration.geometry import Similarity
+from registration.global_registration import (
     HeadingConfig,
     SimilarityPrior,
     attribute_differences,
@@ -21,7 +21,7 @@ from registration.heading import (
     prior_from_seeds,
     priors_without_seed,
 )
-from registration.models import Similarity
+from registration.matching import Keypoints, detect_sift, match_ratio, to_grey
 from tests.conftest import shared_data
 
 TRUE_HEADING, TRUE_SCALE = 143.0, 0.55

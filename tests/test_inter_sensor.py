@@ -13,14 +13,19 @@ import cv2
 import numpy as np
 import pytest
 
-from registration.coarse import CoarseBase, frame_view
-from registration.config import get_preset
-from registration.correlation import agreement, gradient_images
-from registration.distortion import HarrisModel
-from registration.features import to_grey
-from registration.global_registration import coarse_register, fine_register_reference
+from registration.geometry import Projective
+from registration.global_registration import (
+    CoarseBase,
+    agreement,
+    coarse_register,
+    fine_register_reference,
+    frame_view,
+    gradient_images,
+)
 from registration.io import open_frames, read_image
-from registration.models import Projective
+from registration.lens import HarrisModel
+from registration.matching import to_grey
+from registration.run import get_preset
 from registration.synth import SimConfig, load_truth, rebase, simulate
 from tests.conftest import shared_data
 

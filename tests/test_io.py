@@ -22,7 +22,7 @@ from registration.io import (
     write_json_atomic,
     write_npz_atomic,
 )
-from registration.result import _TEMP
+from registration.run.result_folder import _TEMP
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -1,4 +1,4 @@
-"""The lens beyond Harris (registration.lens_k2): estimated from control points of known
+"""The lens beyond Harris (registration.lens.k2): estimated from control points of known
 geometry, and used by the pipeline on a simulated flight whose lens is not Harris."""
 
 from __future__ import annotations
@@ -9,13 +9,10 @@ import shutil
 import numpy as np
 import pytest
 
-from registration.camera import Camera
-from registration.config import get_preset
-from registration.distortion import HarrisModel, TwoTermHarrisModel
 from registration.evaluation import evaluate_truth
 from registration.io import open_frames, read_image
-from registration.lens_k2 import LensConfig, estimate_k2
-from registration.pipeline import register_sequence
+from registration.lens import Camera, HarrisModel, LensConfig, TwoTermHarrisModel, estimate_k2
+from registration.run import get_preset, register_sequence
 from registration.synth import PROFILES, load_truth, simulate
 
 W, H = 640, 480

@@ -8,15 +8,10 @@ import cv2
 import numpy as np
 import pytest
 
-from registration import local, local_flow, warp
-from registration.local import (
-    NEIGHBOUR_OUTLIER,
-    NO_CONSENSUS,
-    OK,
-    RIVAL_MOTION,
-    DisplacementField,
-    LocalConfig,
-)
+from registration import local
+from registration.geometry import DisplacementField, displacement_field, warp
+from registration.local import NEIGHBOUR_OUTLIER, NO_CONSENSUS, OK, RIVAL_MOTION, LocalConfig
+from registration.matching import dense_flow
 from tests.conftest import shared_data
 
 W, H = 640, 480
@@ -74,7 +69,7 @@ def warp_by(reference, e):
 
 
 def test_grid_nodes_sit_on_the_base_lattice_and_cover_the_crop():
-    (x0, y0), (gx, gy) = local.grid_nodes(1280, 960, 200, origin=(100, 50))
+    (x0, y0), (gx, gy) = displacement_field.grid_nodes(1280, 960, 200, origin=(100, 50))
     assert (x0, y0) == (0.0, 0.0)
     assert (gx, gy) == (8, 7)  # nodes 0..1400 bracket x 100..1379, 0..1200 bracket y 50..1009
     f = DisplacementField.zeros(1280, 960, 200, origin=(100, 50))
@@ -82,8 +77,11 @@ def test_grid_nodes_sit_on_the_base_lattice_and_cover_the_crop():
     assert ext[0] <= 100 - 0.5 and ext[2] >= 100 + 1279.5
     assert ext[1] <= 50 - 0.5 and ext[3] >= 50 + 959.5
     # A crop shifted by a pixel keeps its nodes.
-    assert local.grid_nodes(1280, 960, 200, origin=(101, 49))[0] == (0.0, 0.0)
-    assert local.grid_nodes(400, 400, 200, origin=(200, 200)) == ((200.0, 200.0), (3, 3))
+    assert displacement_field.grid_nodes(1280, 960, 200, origin=(101, 49))[0] == (0.0, 0.0)
+    assert displacement_field.grid_nodes(400, 400, 200, origin=(200, 200)) == (
+        (200.0, 200.0),
+        (3, 3),
+    )
 
 
 def test_sample_and_dense_agree_bilinear_and_nan_outside(rng):
@@ -123,21 +121,23 @@ def test_local_frame_to_base_inverts_local_base_to_frame(rng):
         return (b - t) @ np.linalg.inv(a).T
 
     q = rng.uniform(0, 700, size=(200, 2))
-    x = local.local_frame_to_base(frame_to_base, f, q)
+    x = displacement_field.local_frame_to_base(frame_to_base, f, q)
     assert np.isfinite(x).all()
     # x + d(x) = g(q) to the 1e-4 px the iteration promises.
     assert np.abs(x + f.sample(x) - frame_to_base(q)).max() < 1e-4
-    back = local.local_base_to_frame(base_to_frame, f, x)
+    back = displacement_field.local_base_to_frame(base_to_frame, f, x)
     assert np.abs(back - q).max() < 1e-3
     # Beyond the field it is extended constantly (the global mapping decides coverage) ...
-    far = local.local_frame_to_base(frame_to_base, f, [[5000.0, 5000.0]])
+    far = displacement_field.local_frame_to_base(frame_to_base, f, [[5000.0, 5000.0]])
     assert np.allclose(far, frame_to_base(np.array([[5000.0, 5000.0]])) - vec[-1, -1], atol=1e-4)
     assert np.allclose(f.sample([[9000.0, 9000.0]], outside="clamp"), vec[-1, -1], atol=1e-6)
     # ... and NaN from the global mapping stays NaN, never an exception.
-    nan_map = local.local_frame_to_base(lambda q: np.full_like(q, np.nan), f, [[1.0, 2.0]])
+    nan_map = displacement_field.local_frame_to_base(
+        lambda q: np.full_like(q, np.nan), f, [[1.0, 2.0]]
+    )
     assert np.isnan(nan_map).all()
     assert np.isnan(
-        local.local_base_to_frame(lambda b: np.full_like(b, np.nan), f, [[1.0, 2.0]])
+        displacement_field.local_base_to_frame(lambda b: np.full_like(b, np.nan), f, [[1.0, 2.0]])
     ).all()
 
 
@@ -148,7 +148,7 @@ def test_apply_field_direction_constant_shift():
     f = DisplacementField(
         (0.0, 0.0), 200.0, np.tile(np.float32([3, -2]), (3, 4, 1)), np.ones((3, 4), bool)
     )
-    out = local.apply_field(registered, f, interpolation="cubic")
+    out = displacement_field.apply_field(registered, f, interpolation="cubic")
     inner = (slice(10, H - 10), slice(10, W - 10))
     assert np.abs(out[inner].astype(int) - ref[inner]).mean() < 1.0
 
@@ -239,7 +239,7 @@ def test_estimate_field_recovers_a_known_smooth_field():
     before = np.linalg.norm(truth, axis=1)
     assert np.nanmean(after) < 1.0 and np.nanmean(after) < 0.25 * before.mean()
     # And the locally registered image matches the reference better than the global one.
-    out = local.apply_field(registered, f, interpolation="cubic")
+    out = displacement_field.apply_field(registered, f, interpolation="cubic")
     inner = (slice(12, H - 12), slice(12, W - 12))
     diff_after = np.abs(out[inner].astype(float) - ref[inner]).mean()
     diff_before = np.abs(registered[inner].astype(float) - ref[inner]).mean()
@@ -294,7 +294,7 @@ def car_scene(flat_cell: bool):
     pad = 20
     bg = texture(W + 2 * pad, H + 2 * pad, 5)
     base = 128 + 40 * bg
-    (x0, y0), _ = local.grid_nodes(W, H, 200)
+    (x0, y0), _ = displacement_field.grid_nodes(W, H, 200)
     cx, cy = x0 + 200 + pad, y0 + 200 + pad
     if flat_cell:  # little ground texture in that cell: the cars dominate its matches
         m = np.zeros_like(base)
@@ -449,7 +449,7 @@ def test_field_measured_in_frame_geometry_recovers_a_known_field(scale, refineme
     cfg = replace(
         FLOW, flow_scale=scale, flow_preset="medium", flow_refinement_iterations=refinement
     )
-    reference = local.prepare_flow_reference(
+    reference = dense_flow.prepare_flow_reference(
         np.where(valid, base, 0).astype(np.uint8), valid, scale
     )
     f, stats = local.estimate_field_in_frame(frame, g, reference, cfg)
@@ -466,7 +466,7 @@ def test_field_measured_in_frame_geometry_recovers_a_known_field(scale, refineme
     b_true = g(q)
     for _ in range(30):
         b_true = g(q) - smooth_field(b_true)
-    b = local.local_frame_to_base(g, f, q)
+    b = displacement_field.local_frame_to_base(g, f, q)
     assert np.linalg.norm(b - b_true, axis=1).max() < 0.3
 
 
@@ -485,8 +485,8 @@ def test_one_flow_through_the_coarse_model_serves_both_stages():
     assert off.max() > 2.5  # the flow has to bridge what the coarse model misses
     frame = frame_of_base(base, g, smooth_field, W, H)
     cfg = replace(FLOW, flow_preset="medium")
-    reference = local.prepare_flow_reference(base, valid, 1.0)
-    flow = local_flow.frame_flow(frame, coarse, reference, cfg, point_step_px=48)
+    reference = dense_flow.prepare_flow_reference(base, valid, 1.0)
+    flow = dense_flow.frame_flow(frame, coarse, reference, cfg, point_step_px=48)
     q, b = flow.point_frame_xy, flow.point_base_xy
     assert len(q) >= 80
     b_true = g(q)
@@ -503,7 +503,7 @@ def test_one_flow_through_the_coarse_model_serves_both_stages():
 
 
 def test_field_in_frame_needs_the_flow_method_and_a_grey_frame():
-    reference = local.prepare_flow_reference(
+    reference = dense_flow.prepare_flow_reference(
         np.zeros((50, 50), np.uint8), np.ones((50, 50), bool), 1
     )
     with pytest.raises(ValueError, match="needs method='flow', got 'sift'"):
@@ -545,7 +545,7 @@ def test_worst_kept_breaks_ties_as_a_stable_sort(rng):
     first, as the stable sort it replaced did, also when the tie straddles the partition's
     boundary (rows 0 and 1 hold exact ties there; row 2 fewer kept slots than the most any row
     drops)."""
-    from registration.local_fit import _worst_kept
+    from registration.local.consensus import _worst_kept
 
     r = rng.uniform(0, 1, (3, 12))
     r[0, [2, 5, 9]] = 2.0  # three-way tie for the two worst
@@ -696,7 +696,7 @@ def test_estimate_field_from_matches_dispatches_on_fit(rng):
 
 
 def test_flow_refinement_iterations_and_patch_stride_reach_dis():
-    from registration.local_flow import dis_flow
+    from registration.matching import dis_flow
 
     medium = dis_flow(replace(FLOW, flow_preset="medium"))
     assert medium.getVariationalRefinementIterations() == 5 and medium.getPatchStride() == 3
@@ -706,7 +706,7 @@ def test_flow_refinement_iterations_and_patch_stride_reach_dis():
 
 
 def test_local_lengths_grow_with_a_map_finer_than_the_frames():
-    from registration.config import get_preset
+    from registration.run import get_preset
 
     cfg = get_preset("default").local  # cells 200 base px every 100, above 1.5 base px/frame px
     assert cfg.for_base_scale(1.2) is cfg and cfg.for_base_scale(1.5) is cfg
@@ -730,10 +730,10 @@ def test_the_reference_field_follows_a_map_finer_than_the_frames_too():
     238 base px apart, as the other frames' cells are (at 100 base px, ~3 template matches per
     node, its field followed their noise: paper-hard 1280x960 against a 2x map, motion after
     local 0.82 -> 0.42 base px); at 1.2 nothing changes."""
-    from registration.camera import Camera
-    from registration.config import get_preset
-    from registration.models import Similarity
-    from registration.pipeline import _at_base_resolution
+    from registration.geometry import Similarity
+    from registration.lens import Camera
+    from registration.run import get_preset
+    from registration.run.pipeline import _at_base_resolution
 
     config = get_preset("default")
     camera = Camera(0.7, 640, 480)
@@ -756,7 +756,7 @@ def test_flow_correspondences_are_read_through_the_warps_lattice():
     lattice, where the warp took the content the flow compares. Against the exact truth, median
     0.095 px at 0.6-0.85 of the half-diagonal, 0.249 px beyond (the model itself read at the
     sample: 0.130 and 0.345 px)."""
-    from registration.camera import Camera
+    from registration.lens import Camera
     from tests.test_features import texture as aerial_texture
     from tests.test_features import warp_into
 
@@ -769,8 +769,8 @@ def test_flow_correspondences_are_read_through_the_warps_lattice():
 
     frame = warp_into(base, base_from_frame, w, h)  # exact at every pixel (step 1)
     cfg = replace(FLOW, flow_preset="medium", flow_scale=1.0, flow_min_width_px=0, flow_step_px=8)
-    reference = local.prepare_flow_reference(base, np.ones(base.shape, bool), 1.0)
-    flow = local_flow.frame_flow(frame, base_from_frame, reference, cfg)
+    reference = dense_flow.prepare_flow_reference(base, np.ones(base.shape, bool), 1.0)
+    flow = dense_flow.frame_flow(frame, base_from_frame, reference, cfg)
     err = np.linalg.norm(base_from_frame(flow.frame_xy) - flow.base_xy, axis=1)
     r = np.hypot(*(flow.frame_xy - [(w - 1) / 2, (h - 1) / 2]).T) / np.hypot(w / 2, h / 2)
     middle, ring = (r >= 0.6) & (r < 0.85), r >= 0.85

@@ -1,4 +1,4 @@
-"""Model choice by spatial cross-validation (registration.robust.simplest_supported), which the
+"""Model choice by spatial cross-validation (registration.geometry.model_choice.simplest_supported), which the
 coarse and fine steps use to keep the simplest model the control points support: known models
 with noise must be recognised, richer ones kept only when the data need them, and none chosen
 beyond the share of the frame its points span."""
@@ -8,8 +8,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from registration.models import Affine, PolyProjective, Projective, Similarity
-from registration.robust import cross_validated_error, hull_coverage, simplest_supported
+from registration.geometry import (
+    Affine,
+    PolyProjective,
+    Projective,
+    Similarity,
+    cross_validated_error,
+    hull_coverage,
+    simplest_supported,
+)
 
 W, H = 640, 480
 
@@ -88,8 +95,7 @@ def test_the_registration_steps_keep_a_similarity_for_points_in_part_of_the_fram
     give a similarity (the affine's shear and unequal scales, fitted there, are not trusted at
     the far corners), the same affine over the whole frame gives the affine (the coarse step
     has no polyprojective candidate)."""
-    from registration.coarse import COARSE_MIN_COVERAGE
-    from registration.global_registration import FINE_MIN_COVERAGE
+    from registration.global_registration import COARSE_MIN_COVERAGE, FINE_MIN_COVERAGE
 
     probes = _frame_probes()
     for rule in (COARSE_MIN_COVERAGE, FINE_MIN_COVERAGE):
@@ -113,7 +119,7 @@ def test_a_coarse_projective_on_matches_in_one_corner_gives_way(rng):
     top-left quarter of the frame, as the intra-sensor SIFT step finds on low-texture frames.
     The projective fitted to them puts the far corner tens of px off; the model chosen instead
     stays within a few px. Over the whole frame the fitted projective is kept as it is."""
-    from registration.coarse import CoarseConfig, projective_or_simpler
+    from registration.global_registration import CoarseConfig, projective_or_simpler
 
     cfg = CoarseConfig(models=("similarity", "affine", "projective"))
     truth = np.asarray(TRUE["similarity"])
@@ -147,9 +153,9 @@ def test_intra_fine_step_on_points_along_one_side_keeps_a_simpler_model(rng):
     fits follows the noise and bends on the empty side; with "sparse" the simplest model that
     cross-validates as well is kept and the far side stays close. Points over the whole frame
     keep the polyprojective with or without it."""
-    from registration.config import get_preset
-    from registration.features import ControlPoints
-    from registration.global_registration import _fit_fine
+    from registration.global_registration.fine import _fit_fine
+    from registration.matching import ControlPoints
+    from registration.run import get_preset
 
     reqcon = get_preset("default").intra.reqcon
     # A nadir frame: a similarity with a little perspective (1 % over the frame).

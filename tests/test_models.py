@@ -1,4 +1,4 @@
-"""Tests for registration.models against known transforms and exact ground truth."""
+"""Tests for registration.geometry.models against known transforms and exact ground truth."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from registration.coords import rescale
-from registration.models import (
+from registration.geometry import (
     Chain,
     FailedEstimation,
     GeometricModel,
@@ -354,7 +354,7 @@ def test_levenberg_marquardt_reaches_minpacks_minimum():
     problem (Rosenbrock's, plus a noisy exponential fit): the same minimum."""
     import scipy.optimize
 
-    from registration.models import levenberg_marquardt
+    from registration.geometry import levenberg_marquardt
 
     def rosen(p):
         return np.array([10.0 * (p[1] - p[0] ** 2), 1.0 - p[0]])
@@ -385,7 +385,7 @@ def test_levenberg_marquardt_reaches_minpacks_minimum():
 def test_levenberg_marquardt_stops_where_the_jacobian_or_steps_are_not_finite():
     """A Jacobian with NaN (the model undefined at the start) or residuals that are infinite
     beyond the start: the start comes back, the loop ends (it once spun on NaN steps)."""
-    from registration.models import levenberg_marquardt
+    from registration.geometry import levenberg_marquardt
 
     p0 = np.array([1.0, 2.0])
     calls = []
@@ -412,8 +412,8 @@ def test_levenberg_marquardt_stops_where_the_jacobian_or_steps_are_not_finite():
 def _start_under_the_floor(coef: float):
     """Degree-2 identity with denominator ``1 + coef * u * v`` on five points at the corners
     and centre of [-0.5, 0.5]^2 (normalised), their destinations and helpers."""
-    from registration.rational import _identity_params
-    from registration.rational_fit import _exponents
+    from registration.geometry.rational import _identity_params
+    from registration.geometry.rational_fit import _exponents
 
     degree = 2
     sn = np.array([[-0.5, -0.5], [0.5, -0.5], [-0.5, 0.5], [0.5, 0.5], [0.0, 0.0]])
@@ -430,7 +430,8 @@ def test_a_fit_from_a_start_under_the_floor_keeps_the_starts_own_floor():
     MIN_DENOMINATOR (a previous fit that ended on the floor, then rounded) keeps a barrier at
     its own smallest denominator: no step may go lower. Without it the barrier was off and a
     re-anchored long-flight frame's fit put a pole inside the frame (a corner 172 px off)."""
-    from registration.rational_fit import _BARRIER_RESIDUAL, MIN_DENOMINATOR, _geometric_fun
+    from registration.geometry import MIN_DENOMINATOR
+    from registration.geometry.rational_fit import _BARRIER_RESIDUAL, _geometric_fun
 
     # Denominator 1 - 3.8 u v: 0.05 at (0.5, 0.5) and (-0.5, -0.5), its minimum over the box.
     degree, sn, dst, norm, p0, uv = _start_under_the_floor(-3.8)
@@ -450,7 +451,12 @@ def test_a_fit_from_a_start_that_folds_in_its_domain_still_never_folds_at_its_po
     has no floor to keep; a step that folds the map at one of the points (denominator <= 0
     there) must still be refused (barrier residual), or a long Gauss-Newton step can land on a
     fold that fits outliers (a long flight's anchor failed so)."""
-    from registration.rational_fit import _BARRIER_RESIDUAL, _design, _geometric_fun, _split
+    from registration.geometry.rational_fit import (
+        _BARRIER_RESIDUAL,
+        _design,
+        _geometric_fun,
+        _split,
+    )
 
     degree, sn, dst, norm, p0, uv = _start_under_the_floor(-3.8)
     domain_n = np.array([[1.0, 1.0]])  # 1 - 3.8 < 0: the start folds there

@@ -7,9 +7,10 @@ import cv2
 import numpy as np
 import pytest
 
-from registration.distortion import HarrisModel, TwoTermHarrisModel
-from registration.motion_gamma import (
+from registration.lens import (
+    HarrisModel,
     MotionGammaConfig,
+    TwoTermHarrisModel,
     choose_step,
     estimate_gamma_from_motion,
     frame_pairs,

@@ -1,4 +1,4 @@
-"""Both cores busy within a chunk (registration/overlap.py, registration.chunks.run_chunk):
+"""Both cores busy within a chunk (registration/overlap.py, registration.run.intra_frames.run_chunk):
 frames decoded ahead and the local stage in a second thread give the serial result to the bit,
 through failed frames, re-anchored frames and jumps."""
 
@@ -14,10 +14,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from registration import chunks
 from registration.global_registration import JointBase
 from registration.io import FrameReadError, open_frames
-from registration.overlap import FramesAhead, LocalAhead
+from registration.run import FramesAhead, LocalAhead, intra_frames
 from registration.synth import SimConfig, simulate
 from tests.conftest import register
 
@@ -135,7 +134,7 @@ def test_overlapped_run_starts_the_next_local_stage_while_one_runs(
     second_started = threading.Event()
     calls: list[int] = []
     waited: list[bool] = []
-    local_stage = chunks._local_stage
+    local_stage = intra_frames._local_stage
 
     def first_waits_for_second(*args):
         calls.append(1)
@@ -145,7 +144,7 @@ def test_overlapped_run_starts_the_next_local_stage_while_one_runs(
             second_started.set()
         return local_stage(*args)
 
-    monkeypatch.setattr(chunks, "_local_stage", first_waits_for_second)
+    monkeypatch.setattr(intra_frames, "_local_stage", first_waits_for_second)
     overlapped = register(sim_seq, tmp_path / "overlapped", overlap=True)
     assert waited == [True] and len(calls) >= 3
     _assert_same(Path(default_result.out_dir), Path(overlapped.out_dir))

@@ -6,7 +6,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from registration.local_fit import _box_counts, _cell_members
+from registration.local.consensus import _box_counts, _cell_members
 
 
 def test_box_counts_equal_an_integral_image():

@@ -14,10 +14,9 @@ import pytest
 
 import registration
 from app.cli import main as cli_main
-from registration.config import get_preset
 from registration.evaluation import evaluate_truth
 from registration.io import open_frames, read_image
-from registration.pipeline import RegistrationFailed, register_sequence
+from registration.run import RegistrationFailed, get_preset, register_sequence
 from registration.synth import load_truth
 from tests.conftest import PAPER_FRAMES, SIM_SEQUENCE, seed_for
 from tests.conftest import register as run
@@ -118,15 +117,15 @@ def test_each_intra_frame_is_measured_by_one_flow(sim, tmp_path, monkeypatch):
     against the mid base image and the local stage reuses that flow: one DIS flow per
     intra-sensor frame (both cores: the local stage runs in its own thread), and the frames land
     on the truth."""
-    from registration import local_flow
+    from registration.matching import dense_flow
 
     frames = tmp_path / "frames"
     frames.mkdir()
     for k in range(4):
         shutil.copy(sim / "frames" / f"{k:06d}.png", frames)
     calls = []
-    dis_flow = local_flow.dis_flow
-    monkeypatch.setattr(local_flow, "dis_flow", lambda cfg: calls.append(1) or dis_flow(cfg))
+    dis_flow = dense_flow.dis_flow
+    monkeypatch.setattr(dense_flow, "dis_flow", lambda cfg: calls.append(1) or dis_flow(cfg))
     res = run(sim, tmp_path / "out", preset="fast", frames_dir=frames, overlap=True)
     assert [r["status"] for r in res.records] == ["ok"] * 4
     assert len(calls) == 3
@@ -301,7 +300,7 @@ def test_video_frames_read_on_from_an_open_reader_equal_a_fresh_seek(sim, tmp_pa
 
 
 def test_opencv_baseline_scores_through_the_same_evaluation(sim, result):
-    from registration.baseline import register_baseline
+    from registration.evaluation import register_baseline
 
     truth = load_truth(sim)
     base_res = register_baseline(open_frames(sim / "frames"), read_image(sim / "base.png"), 0.7)
@@ -313,7 +312,8 @@ def test_opencv_baseline_scores_through_the_same_evaluation(sim, result):
 
 
 def test_stabilo_baseline_recovers_a_known_homography(sim):
-    from registration.baseline import StabiloConfig, _orb_features, stabilo_homography
+    from registration.evaluation import StabiloConfig, stabilo_homography
+    from registration.evaluation.baselines import _orb_features
 
     ref = read_image(sim / "frames" / "000000.png")
     h, w = ref.shape[:2]
@@ -333,7 +333,7 @@ def test_stabilo_baseline_recovers_a_known_homography(sim):
 
 
 def test_stabilo_baseline_scores_through_the_same_evaluation(sim, result):
-    from registration.baseline import register_baseline, register_stabilo
+    from registration.evaluation import register_baseline, register_stabilo
 
     truth = load_truth(sim)
     frames = open_frames(sim / "frames")

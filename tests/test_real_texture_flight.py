@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 import pytest
 
-from registration.config import get_preset
+from registration.run import get_preset
 from registration.synth import SimConfig, load_truth, simulate
 from tests.conftest import register, shared_data
 

@@ -11,10 +11,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from registration.chunks import previous_in_order, processing_order
 from registration.evaluation import evaluate_truth, truth_errors
 from registration.io import open_frames, read_image
 from registration.render import write_registered_sequence
+from registration.run import previous_in_order, processing_order
 from registration.synth import load_truth
 from tests.conftest import MID_REFERENCE
 

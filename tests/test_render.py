@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from registration import render
+from registration.geometry import DisplacementField
 from registration.io import read_image
-from registration.local import DisplacementField
 
 
 def frame_image(w=120, h=90, seed=0):

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 import registration
+from registration.geometry import DisplacementField
 from registration.io import read_image
-from registration.local import DisplacementField
 from registration.render import write_registered_sequence
 
 W, H = 120, 90

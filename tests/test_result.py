@@ -1,4 +1,4 @@
-"""The result folder on its own (registration.result): hand-made folders with known models and
+"""The result folder on its own (registration.run.result): hand-made folders with known models and
 fields read back through the fixed interface (conventions.md), checked against formulas written
 out here; failed, pending and damaged frames; the writer's records and arrays round trip."""
 
@@ -12,10 +12,9 @@ import numpy as np
 import pytest
 
 import registration
+from registration.geometry import DisplacementField, Projective
 from registration.io import FrameSource
-from registration.local import DisplacementField
-from registration.models import Projective
-from registration.result import (
+from registration.run import (
     ResultWriter,
     frame_arrays,
     frame_stats,
@@ -241,6 +240,6 @@ def test_writer_round_trip_of_records_arrays_and_stats(tmp_path):
 
 
 def _config():
-    from registration.config import get_preset
+    from registration.run import get_preset
 
     return get_preset("default")

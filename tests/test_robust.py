@@ -1,4 +1,4 @@
-"""Tests for registration.robust: RANSAC and REQCON with outliers injected at named indices."""
+"""Tests for registration.geometry.ransac: RANSAC and REQCON with outliers injected at named indices."""
 
 from __future__ import annotations
 
@@ -7,9 +7,11 @@ import math
 import numpy as np
 import pytest
 
-from registration.models import Normalisation, PolyProjective, Projective
-from registration.robust import (
+from registration.geometry import (
     FitResult,
+    Normalisation,
+    PolyProjective,
+    Projective,
     RansacConfig,
     ReqconConfig,
     adaptive_max_iterations,

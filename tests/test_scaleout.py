@@ -21,12 +21,18 @@ import pytest
 
 import registration
 from app.cli import main as cli_main
-from registration.anchoring import ANCHOR_STAGE
-from registration.camera import Camera
-from registration.chunks import ChunkContext, ChunkJob, SerialExecutor, chunk_plan, processing_order
-from registration.config import get_preset
 from registration.io import open_frames, read_image
-from registration.pipeline import register_sequence
+from registration.lens import Camera
+from registration.run import (
+    ANCHOR_STAGE,
+    ChunkContext,
+    ChunkJob,
+    SerialExecutor,
+    chunk_plan,
+    get_preset,
+    processing_order,
+    register_sequence,
+)
 from registration.synth import PROFILES, SimConfig, load_truth, simulate
 
 distributed = pytest.importorskip("distributed", reason="needs dask[distributed] (test extra)")
@@ -69,9 +75,9 @@ def test_chunk_plan_zero_is_one_chain_in_processing_order():
 def test_default_chunk_size_and_suites_agree_with_their_sources():
     import benchmarks
     from app.commands import bench, register
-    from registration import distributed as dist
+    from registration.run import dask_executor
 
-    assert register.DEFAULT_CHUNK_FRAMES == dist.DEFAULT_CHUNK_FRAMES
+    assert register.DEFAULT_CHUNK_FRAMES == dask_executor.DEFAULT_CHUNK_FRAMES
     assert bench.SUITES == benchmarks.SUITES
 
 
@@ -150,7 +156,7 @@ def assert_same_result(a: Path, b: Path, n: int = N) -> None:
 
 
 def test_local_cluster_of_two_workers_gives_the_serial_result(sim, chunked, tmp_path):
-    from registration.distributed import DaskExecutor, open_client
+    from registration.run import DaskExecutor, open_client
 
     seen = []
     with open_client(workers=2) as client:
@@ -262,7 +268,7 @@ def test_dask_run_killed_while_chunks_run_is_redone_on_resume(sim, chunked, tmp_
 def test_cancelled_dask_run_keeps_its_frames_and_resumes_serially(sim, chunked, tmp_path):
     """Cancel (the app's stop button) after a few frames: the run returns with those frames
     written; resuming in this process, with the same chunks, completes the serial result."""
-    from registration.distributed import DaskExecutor, open_client
+    from registration.run import DaskExecutor, open_client
 
     cancel = threading.Event()
 
@@ -359,7 +365,7 @@ def _context(sim: Path) -> ChunkContext:
 
 
 def test_worker_that_sees_other_frames_refuses_the_chunk(sim, tmp_path):
-    from registration.distributed import check_frames
+    from registration.run import check_frames
 
     ctx = _context(sim)
     job = ChunkJob(chunk_plan(N, REF, CHUNK)[0])
@@ -375,7 +381,7 @@ def test_worker_that_sees_other_frames_refuses_the_chunk(sim, tmp_path):
 
 
 def test_worker_running_other_code_refuses_the_chunk(sim):
-    from registration.distributed import _chunk_task
+    from registration.run.dask_executor import _chunk_task
 
     with pytest.raises(ValueError, match="another version of aerialreg"):
         _chunk_task(_context(sim), ChunkJob(chunk_plan(N, REF, CHUNK)[0]), "q", "e", "0" * 64)
@@ -428,10 +434,10 @@ def test_resume_takes_the_folders_chunk_size_and_refuses_another(sim, chunked, t
 
 def test_unreachable_scheduler_and_missing_dask_are_one_line_errors(sim, tmp_path, capsys,
                                                                     monkeypatch):  # fmt: skip
-    from registration import distributed as dist
+    from registration.run import dask_executor
 
     argv = _cli_args(sim, tmp_path / "out")[3:]
-    monkeypatch.setattr(dist, "CONNECT_TIMEOUT_S", 2)
+    monkeypatch.setattr(dask_executor, "CONNECT_TIMEOUT_S", 2)
     _refused(capsys, [*argv, "--scheduler", "tcp://127.0.0.1:9"],
              "cannot connect to the Dask scheduler at tcp://127.0.0.1:9")  # fmt: skip
     monkeypatch.setitem(sys.modules, "distributed", None)  # import fails as if not installed

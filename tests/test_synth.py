@@ -10,11 +10,12 @@ import cv2
 import numpy as np
 import pytest
 
-from registration.distortion import HarrisModel
+from registration.lens import HarrisModel
 from registration.synth import SimConfig, load_truth, simulate
 from registration.synth import city as citymod
 from registration.synth import demo as demomod
-from registration.synth.sequence import SimTruth, plan_procedural, read_rgb
+from registration.synth.plan import plan_procedural
+from registration.synth.truth import SimTruth, read_rgb
 
 SMALL = dict(frame_size=(480, 360), n_frames=4, video=False)
 

@@ -10,13 +10,13 @@ import cv2
 import numpy as np
 import pytest
 
-from registration.distortion import HarrisModel
+from registration.lens import HarrisModel
 from registration.synth import PROFILES, SimConfig, load_truth, motion_stats, rebase, simulate
 from registration.synth import city as citymod
 from registration.synth.basemap import similarity, warp_base
 from registration.synth.camera import SimLens, best_harris_fit
 from registration.synth.plan import plan_procedural
-from registration.synth.sequence import SimTruth, read_rgb
+from registration.synth.truth import SimTruth, read_rgb
 
 SMALL = dict(frame_size=(320, 240), n_frames=3, video=False)
 

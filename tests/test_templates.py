@@ -1,4 +1,4 @@
-"""Tests for registration.templates: the template grid, normalised cross-correlation with a
+"""Tests for registration.matching.templates: the template grid, normalised cross-correlation with a
 sub-pixel and dithered peak, the structure anchor, the second reference, and the gradient
 signal, against known warps of synthetic and real images."""
 
@@ -8,15 +8,17 @@ import cv2
 import numpy as np
 import pytest
 
-from registration.config import CHANGE_LOG_RATIO
-from registration.features import ControlPoints, Reference, to_grey
 from registration.io import read_image
-from registration.templates import (
+from registration.matching import (
+    ControlPoints,
+    Reference,
     TemplateConfig,
     subpixel_peak,
     template_control_points,
     template_grid,
+    to_grey,
 )
+from registration.run import CHANGE_LOG_RATIO
 from tests.test_features import (
     bent_warp,
     coarse_model,
@@ -278,7 +280,7 @@ def test_sparse_grid_warps_only_its_windows_to_the_same_points(monkeypatch):
     """A sparse grid (an intra-sensor frame's) warps the reference over its search windows
     only; the control points are those of the whole-canvas warp, to the bit, also where the
     reference has no content."""
-    from registration import templates
+    from registration.matching import templates
 
     ref = real_grey("songdo-vision-drone", "images", "00972.jpg", scale=0.25)  # 960x540
     valid = np.ones(ref.shape, bool)
@@ -370,7 +372,7 @@ def test_change_mask_leaves_unchanged_scenes_alone():
 
 
 def test_masked_ncc_equals_opencvs_masked_correlation():
-    from registration.templates import _masked_ncc
+    from registration.matching.ncc_peaks import _masked_ncc
 
     rng = np.random.default_rng(3)
     window = (texture(81, 81, seed=4)).astype(np.uint8)
@@ -390,7 +392,7 @@ def test_matches_in_a_strongly_corrected_frame_are_read_through_the_warps_lattic
     corners. A match found in the warped reference is where the warp put that content, so
     ``dst`` is read through the lattice. Against the exact truth: median 0.027 px inside, 0.119
     px in the corner ring (the model itself read at the match: 0.083 and 0.319 px)."""
-    from registration.camera import Camera
+    from registration.lens import Camera
 
     w, h = 320, 240
     camera = Camera(0.6, w, h)

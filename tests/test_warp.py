@@ -1,4 +1,4 @@
-"""registration.warp against independent implementations: scipy's ``map_coordinates`` for
+"""registration.geometry.warp against independent implementations: scipy's ``map_coordinates`` for
 bilinear and nearest sampling, Keys' cubic convolution written out here for bicubic, and
 analytic images whose value at any point is known. The project's other tests build their warped
 inputs with ``warp.remap`` itself, so a bug here would be shared by input and code under test;
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from registration import warp
+from registration.geometry import warp
 
 # OpenCV quantises sampling positions to 1/32 px for bilinear and bicubic sampling: the value
 # error is at most |gradient| / 64 (plus float rounding).
@@ -227,7 +227,7 @@ def test_ghost_check_evaluates_a_smooth_mappings_straddling_pixels_exactly():
     (the corners of a raw frame seen through a γ = 0.7 Harris correction), the check evaluates
     those pixels exactly: they equal the exact mapping and differ from the interpolated lattice
     by a fraction of a px, and they are the only pixels it changes (2 here)."""
-    from registration.camera import Camera
+    from registration.lens import Camera
 
     camera = Camera(0.7, 160, 120)
 

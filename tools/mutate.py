@@ -42,13 +42,14 @@ E2E = ["tests/test_accuracy.py", "tests/test_reference_frame.py", "tests/test_pi
 
 @dataclass(frozen=True)
 class Mutation:
-    """A planted bug: ``patches`` are ``(search, replace, count)`` on ``path`` (each search text
+    """A planted bug: ``patches`` are ``(search, replace, count)`` on ``path``, or ``(search,
+    replace, count, other_path)`` where one bug spans two files (each search text
     must occur exactly ``count`` times); ``tests`` are the pytest paths or node ids to run."""
 
     name: str
     bug: str
     path: str
-    patches: tuple[tuple[str, str, int], ...]
+    patches: tuple[tuple, ...]
     tests: tuple[str, ...]
     tags: tuple[str, ...] = field(default=())
 
@@ -62,7 +63,7 @@ MUTATIONS: list[Mutation] = [
     _m(
         "fine_removed",
         "fine step removed: `_fit_fine` keeps the coarse projective",
-        "registration/global_registration.py",
+        "registration/global_registration/fine.py",
         [
             (
                 "if n < 3 * start.min_samples and check_support and isinstance(initial, Projective):",
@@ -75,7 +76,7 @@ MUTATIONS: list[Mutation] = [
     _m(
         "seed_gate_open",
         "seed gate dropped: `heading.gate_by_prior` passes every match",
-        "registration/heading.py",
+        "registration/global_registration/heading.py",
         [
             (
                 "return np.isfinite(dist) & (dist <= gate_radius_px(prior, p, config))",
@@ -93,28 +94,31 @@ MUTATIONS: list[Mutation] = [
     _m(
         "frames_before_reference_dropped",
         "frames before the reference frame never processed",
-        "registration/chunks.py",
+        "registration/run/chunk_plan.py",
         [("        *range(reference_frame - 1, -1, -1),\n", "", 1)],
         [*E2E, "tests/test_export.py"],
     ),
     _m(
         "evaluation_reference_is_frame_0",
         "evaluation always uses frame 0 as the reference frame",
-        "registration/evaluation.py",
-        [("ref = int(result.reference_frame)", "ref = 0", 3)],
+        "registration/evaluation/truth.py",
+        [
+            ("ref = int(result.reference_frame)", "ref = 0", 2),
+            ("ref = int(result.reference_frame)", "ref = 0", 1, "registration/evaluation/points.py"),
+        ],  # fmt: skip
         ["tests/test_evaluation.py", *E2E],
     ),
     _m(
         "harris_ignores_centre",
         "`HarrisModel` ignores a given distortion centre",
-        "registration/distortion.py",
+        "registration/lens/radial.py",
         [("        if self.center is None:\n", "        if True:\n", 1)],
         ["tests/test_distortion.py", "tests/test_calibration.py", "tests/test_cli_distortion.py"],
     ),
     _m(
         "overlay_base_only",
         "registered overlay renders only the base map",
-        "registration/render.py",
+        "registration/render/video.py",
         [("overlay(image, mid, mask=mask)", "overlay(mid, mid, mask=mask)", 1)],
         [
             "tests/test_render.py",
@@ -126,7 +130,7 @@ MUTATIONS: list[Mutation] = [
     _m(
         "field_image_components_swapped",
         "field images: the dx image shows dy and the dy image dx",
-        "registration/render.py",
+        "registration/render/figures.py",
         [
             (
                 'for c, title in ((0, "dx px"), (1, "dy px")):',
@@ -139,7 +143,7 @@ MUTATIONS: list[Mutation] = [
     _m(
         "previous_frame_fallback_disabled",
         "intra-sensor templates never fall back to the previous frame",
-        "registration/intra_points.py",
+        "registration/global_registration/intra_points.py",
         [
             (
                 "    fallbacks = []\n    if prev is not None:\n",
@@ -152,7 +156,7 @@ MUTATIONS: list[Mutation] = [
     _m(
         "paper_preset_is_default",
         "the paper preset returns the default configuration",
-        "registration/config.py",
+        "registration/run/config.py",
         [
             (
                 "def _paper() -> PipelineConfig:\n",
@@ -165,7 +169,7 @@ MUTATIONS: list[Mutation] = [
     _m(
         "dither_disabled",
         "dithered NCC disabled (no re-correlation at the sub-pixel estimate)",
-        "registration/templates.py",
+        "registration/matching/ncc_peaks.py",
         [("    for _ in range(config.dither_iterations):\n", "    for _ in range(0):\n", 1)],
         ["tests/test_templates.py", "tests/test_global_registration.py"],
         tags=("real-image",),
@@ -174,7 +178,7 @@ MUTATIONS: list[Mutation] = [
     _m(
         "gamma_sign_flipped",
         "Harris correction uses +γ (raw -> corrected with the wrong sign)",
-        "registration/distortion.py",
+        "registration/lens/radial.py",
         [
             (
                 "return self._apply(as_points(xy), -self.gamma, self.c, self.r_n)",
@@ -187,7 +191,7 @@ MUTATIONS: list[Mutation] = [
     _m(
         "result_ignores_field",
         "the local stage of a result ignores its displacement field (field zeroed)",
-        "registration/result.py",
+        "registration/run/result.py",
         [('field = self.field(k) if stage == "local" else None', "field = None", 2)],
         ["tests/test_result.py", *E2E],
     ),
@@ -195,7 +199,7 @@ MUTATIONS: list[Mutation] = [
     _m(
         "heading_off_by_90",
         "one-seed heading estimate off by 90°",
-        "registration/heading.py",
+        "registration/global_registration/heading.py",
         [("        float(peak_heading),\n", "        float((peak_heading + 90.0) % 360.0),\n", 1)],
         ["tests/test_heading.py", "tests/test_coarse.py"],
         tags=("real-image",),
@@ -203,14 +207,14 @@ MUTATIONS: list[Mutation] = [
     _m(
         "guided_matching_disabled",
         "coarse step without guided matching",
-        "registration/coarse.py",
+        "registration/global_registration/coarse_fit.py",
         [("    if config.guided and len(fk):\n", "    if False and len(fk):\n", 1)],
         ["tests/test_coarse.py", "tests/test_heading.py", *E2E],
     ),
     _m(
         "correlation_on_intensity",
         "coarse correlation rounds correlate intensity instead of gradient magnitude",
-        "registration/correlation.py",
+        "registration/global_registration/gradient_correlation.py",
         [
             (
                 "gradient_magnitude(frame_grey), gradient_magnitude(base)",
@@ -218,8 +222,8 @@ MUTATIONS: list[Mutation] = [
                 1,
             ),
             (
-                "from registration.features import downscale, downscale_mask\n",
-                "from registration.features import downscale, downscale_mask, to_grey\n",
+                "    downscale_mask,\n    gradient_magnitude,\n",
+                "    downscale_mask,\n    gradient_magnitude,\n    to_grey,\n",
                 1,
             ),
         ],  # fmt: skip
@@ -228,14 +232,14 @@ MUTATIONS: list[Mutation] = [
     _m(
         "model_choice_richest",
         "spatial cross-validation always keeps the richest model",
-        "registration/robust.py",
+        "registration/geometry/model_choice.py",
         [("        if err < (1.0 - margin) * best_err:\n", "        if True:\n", 1)],
         ["tests/test_robust.py", "tests/test_model_choice.py", "tests/test_coarse.py", *E2E],
     ),
     _m(
         "reqcon_outlier_rule_never_stops",
         "REQCON's outlier rule never stops: drops 5 % per round like the paper's rule",
-        "registration/robust.py",
+        "registration/geometry/reqcon.py",
         [
             ("            if n_out == 0:\n", "            if False:\n", 1),
             ("            n_drop = min(n_drop, n_out)\n", "", 1),
@@ -245,14 +249,14 @@ MUTATIONS: list[Mutation] = [
     _m(
         "reqcon_never_drops",
         "REQCON never drops a point",
-        "registration/robust.py",
+        "registration/geometry/reqcon.py",
         [("        kept[worst] = False\n", "        pass\n", 1)],
         ["tests/test_robust.py", *E2E],
     ),
     _m(
         "intra_gate_open",
         "intra-sensor prediction gate passes every match",
-        "registration/global_registration.py",
+        "registration/global_registration/intra.py",
         [
             (
                 "return np.linalg.norm(predict(fxy) + shift - bxy, axis=1) < limit",
@@ -265,7 +269,7 @@ MUTATIONS: list[Mutation] = [
     _m(
         "structure_anchor_ignored",
         "template matches attributed to the template centre instead of the structure centroid",
-        "registration/templates.py",
+        "registration/matching/templates.py",
         [
             (
                 '    use_structure = config.warp_reference and config.anchor == "structure"\n',
@@ -279,7 +283,7 @@ MUTATIONS: list[Mutation] = [
     _m(
         "mid_base_without_reference_field",
         "the mid base image is rendered without the reference frame's own field",
-        "registration/pipeline.py",
+        "registration/run/pipeline.py",
         [
             (
                 "mid, valid = render_to_base(frame, camera, model, (0, 0, wb, hb), field_)",
@@ -292,7 +296,7 @@ MUTATIONS: list[Mutation] = [
     _m(
         "warp_pixel_grid_half_pixel",
         "`warp.pixel_grid` half a pixel off in x (shared by test inputs and code)",
-        "registration/warp.py",
+        "registration/geometry/warp.py",
         [
             (
                 "np.arange(width, dtype=np.float32), np.arange(height",
@@ -310,7 +314,7 @@ MUTATIONS: list[Mutation] = [
     _m(
         "warp_lattice_shifted",
         "`warp.source_map_from_function` lattice nodes a pixel off (step > 1)",
-        "registration/warp.py",
+        "registration/geometry/warp.py",
         [
             (
                 "    xs = (np.arange(gx) - 1 + 0.5) * step - 0.5\n",
@@ -323,7 +327,7 @@ MUTATIONS: list[Mutation] = [
     _m(
         "atomic_write_in_place",
         "`io.write_bytes_atomic` writes the target in place (not atomic)",
-        "registration/io.py",
+        "registration/io/atomic.py",
         [
             (
                 '        with os.fdopen(fd, "wb") as f:\n',
@@ -337,7 +341,7 @@ MUTATIONS: list[Mutation] = [
     _m(
         "result_nan_outside_frame_lost",
         "`frame_to_base` maps points outside the frame instead of NaN",
-        "registration/result.py",
+        "registration/run/result.py",
         [("        out[~self._inside_frame(xy)] = np.nan\n", "", 1)],
         ["tests/test_result.py", *E2E],
     ),
@@ -362,16 +366,26 @@ def _copy_repo(src: Path, dst: Path, shared: Path | None) -> Path:
     return repo
 
 
+def _files(m: Mutation) -> list[str]:
+    """The files ``m`` patches, ``m.path`` first."""
+    out = [m.path]
+    for patch in m.patches:
+        if len(patch) == 4 and patch[3] not in out:
+            out.append(patch[3])
+    return out
+
+
 def _apply(repo: Path, m: Mutation) -> str:
-    """Apply ``m`` in place; "" or the reason it does not apply."""
-    path = repo / m.path
-    text = path.read_text()
-    for search, replace, count in m.patches:
-        found = text.count(search)
+    """Apply ``m`` in place (every patch or none); "" or the reason it does not apply."""
+    texts = {f: (repo / f).read_text() for f in _files(m)}
+    for search, replace, count, *where in m.patches:
+        f = where[0] if where else m.path
+        found = texts[f].count(search)
         if found != count:
             return f"search text found {found} times, expected {count}: {search.strip()[:60]!r}"
-        text = text.replace(search, replace)
-    path.write_text(text)
+        texts[f] = texts[f].replace(search, replace)
+    for f, text in texts.items():
+        (repo / f).write_text(text)
     return ""
 
 
@@ -419,10 +433,10 @@ def check(mutations: list[Mutation], src: Path) -> list[str]:
     with tempfile.TemporaryDirectory(prefix="aerialreg-mutate-") as tmp:
         repo = _copy_repo(src, Path(tmp), None)
         for m in mutations:
-            target = repo / m.path
-            original = target.read_text()
+            originals = {f: (repo / f).read_text() for f in _files(m)}
             problem = _apply(repo, m)
-            target.write_text(original)
+            for f, text in originals.items():
+                (repo / f).write_text(text)
             if problem:
                 problems.append(f"{m.name}: {problem}")
             missing = sorted(set(m.tests) - set(_selection(repo, m.tests)))

@@ -1,14 +1,14 @@
 """``aerialreg calibrate``: estimate the Harris γ that makes straight lines straight.
 
 With ``--lines LINES.json`` γ is fitted to polylines traced along straight world features (the
-format is documented in :mod:`registration.lines_file`); without it, long edges are detected in
+format is documented in :mod:`registration.lens.lines_file`); without it, long edges are detected in
 the image and γ is fitted robustly to them. With ``--frames`` (a video, a folder of frames or a
 glob, instead of IMAGE) γ is fitted to the SIFT matches between frame pairs of the flight
-(:mod:`registration.motion_gamma`): through the right γ they obey one homography per pair.
+(:mod:`registration.lens.gamma_from_motion`): through the right γ they obey one homography per pair.
 Besides γ and its uncertainty the command reports whether the estimate is confident, and for
-lines where they put the distortion centre (:func:`registration.lens_fit.fit_center`; used with
+lines where they put the distortion centre (:func:`registration.lens.centre_fit.fit_center`; used with
 ``--center auto`` when the lines support it) and whether one parameter is enough
-(:func:`registration.lens_fit.check_one_parameter`).
+(:func:`registration.lens.centre_fit.check_one_parameter`).
 """
 
 from __future__ import annotations
@@ -20,14 +20,15 @@ import numpy as np
 
 from app.cli import UsageError, emit_json
 from app.commands.undistort import parse_center, read_image
-from registration.calibration import (
+from registration.lens import (
+    DEFAULT_PAIRS,
+    HARRIS_GAMMA_MIN,
+    check_one_parameter,
     estimate_gamma_auto,
     estimate_gamma_from_lines,
+    fit_center,
     load_lines,
 )
-from registration.distortion import HARRIS_GAMMA_MIN
-from registration.lens_fit import check_one_parameter, fit_center
-from registration.motion_gamma import DEFAULT_PAIRS
 
 NAME = "calibrate"
 HELP = (
@@ -127,7 +128,7 @@ def _check_motion_args(args: argparse.Namespace) -> None:
 def _run_motion(args: argparse.Namespace, gamma_range) -> int:
     from app.progress import ProgressBar
     from registration.io import open_frames
-    from registration.motion_gamma import estimate_gamma_from_flight
+    from registration.lens import estimate_gamma_from_flight
 
     _check_motion_args(args)
     src = open_frames(args.frames)
@@ -153,7 +154,7 @@ def _run_motion(args: argparse.Namespace, gamma_range) -> int:
 
 
 def motion_summary(est) -> str:
-    """Two lines on a :class:`registration.motion_gamma.MotionGammaEstimate` of a flight."""
+    """Two lines on a :class:`registration.lens.gamma_from_motion.MotionGammaEstimate` of a flight."""
     pair_text = ", ".join(f"{i}-{j}" for i, j in est.frame_pairs)
     return (
         f"motion: {est.n_pairs} of {len(est.frame_pairs)} frame pairs ({pair_text}; {est.step} "

@@ -24,7 +24,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--points",
         metavar="POINTS.csv",
         help="hand-marked ground points: CSV with header point,frame,x,y (x, y raw pixels of "
-        "frame 'frame'; see registration.evaluation.read_points_csv)",
+        "frame 'frame'; see registration.evaluation.points.read_points_csv)",
     )
     p.add_argument(
         "--frames-for-table",

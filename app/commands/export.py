@@ -18,7 +18,7 @@ HELP = (
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from registration.export import COMPRESSIONS, FORMATS
+    from registration.gis import COMPRESSIONS, FORMATS
 
     p.add_argument("out", metavar="OUT", help="result folder written by 'aerialreg register'")
     p.add_argument(
@@ -92,8 +92,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import registration
-    from registration.export import ExportOptions, export_result, resolve_formats
-    from registration.io import open_frames, read_georeference
+    from registration.gis import ExportOptions, export_result, read_georeference, resolve_formats
+    from registration.io import open_frames
 
     formats = resolve_formats([f for spec in args.formats for f in spec.split(",") if f.strip()])
     result = registration.load(args.out)

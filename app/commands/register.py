@@ -12,7 +12,7 @@ from pathlib import Path
 from app.cli import UsageError, emit_json
 from app.progress import ProgressBar
 
-# Frames per chunk with --workers/--scheduler (registration.distributed.DEFAULT_CHUNK_FRAMES,
+# Frames per chunk with --workers/--scheduler (registration.run.dask_executor.DEFAULT_CHUNK_FRAMES,
 # repeated here so that --help does not import dask; a test checks they agree).
 DEFAULT_CHUNK_FRAMES = 100
 # More local worker processes than this is a typo (each holds the base map and a chunk's frames).
@@ -171,7 +171,7 @@ def parse_gamma(text: str) -> float | None:
 def gamma_from_motion(frames) -> float:
     """``--gamma auto``: γ from frame pairs of the flight, reported on standard error."""
     from app.commands.calibrate import motion_summary
-    from registration.motion_gamma import DEFAULT_PAIRS, estimate_gamma_from_flight
+    from registration.lens import DEFAULT_PAIRS, estimate_gamma_from_flight
 
     if len(frames) < 2:
         raise UsageError(f"--gamma auto needs 2 frames or more, got {len(frames)}")
@@ -187,10 +187,9 @@ def gamma_from_motion(frames) -> float:
 def run(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
-    from registration.config import get_preset
-    from registration.io import open_frames, read_base_map
-    from registration.pipeline import register_sequence, validate_inputs
-    from registration.result import check_out_dir
+    from registration.gis import read_base_map
+    from registration.io import open_frames
+    from registration.run import check_out_dir, get_preset, register_sequence, validate_inputs
 
     seed = parse_seed(args.seed)
     gamma = parse_gamma(args.gamma)
@@ -303,7 +302,7 @@ def chunk_frames(args: argparse.Namespace, state: str) -> int:
         raise UsageError("--scheduler needs an address, e.g. tcp://10.0.0.5:8786")
     recorded = None
     if args.resume and state == "result":
-        from registration.pipeline import load_config
+        from registration.run import load_config
 
         try:
             recorded = load_config(args.out).chunk_frames
@@ -337,7 +336,7 @@ def executor(args: argparse.Namespace):
         return
     import logging
 
-    from registration.distributed import DaskUnavailable, open_executor, require_distributed
+    from registration.run import DaskUnavailable, open_executor, require_distributed
 
     try:
         require_distributed()  # importing it sets its loggers' levels

@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 
 from app.cli import UsageError, emit_json
-from registration.distortion import (
+from registration.lens import (
     CANVASES,
     IMAGE_INTERPOLATIONS,
     HarrisModel,

@@ -3,7 +3,7 @@
 Shows the radially corrected frame for the current γ (JPEG preview at display resolution while
 the slider moves, full resolution once it settles), straight reference lines over it (the paper's
 Fig. 2), the analyst's polylines along streets drawn as corrected for the current γ with their
-straightness (``registration.calibration``), updated whenever γ changes, and after an automatic
+straightness (``registration.lens.gamma_from_lines``), updated whenever γ changes, and after an automatic
 estimate the lines it detected and used. Lines are stored in raw pixels, so they stay on the same
 street whatever γ is shown, and saved in the LINES.json format. The residual-versus-γ chart marks
 the estimate and the γ shown.
@@ -21,7 +21,14 @@ from app import scene2d
 from app.assets import resend_value
 from app.security import escape_md
 from app.views.base import Scene, View
-from registration import calibration, distortion, motion_gamma
+from registration.lens import (
+    correction,
+    gamma_from_lines,
+    gamma_from_motion,
+    lines_file,
+    radial,
+    straightness,
+)
 
 LINE_COLOURS = np.array(
     [
@@ -268,7 +275,7 @@ class CalibrateView(View):
         inp = self.app.inputs
         w, h = inp.frame_size
         self.scene.make_plane("frame", w, h)
-        limit = distortion.harris_gamma_limit(w, h)
+        limit = radial.harris_gamma_limit(w, h)
         self.gamma_max = float(np.floor((limit - 1e-3) * 1000) / 1000)
         self.panel.configure(inp.n_frames, self.gamma_max)
         with self.state.lock:
@@ -301,7 +308,7 @@ class CalibrateView(View):
         try:
             if not np.isfinite(gamma):
                 raise ValueError(f"γ must be a finite number, got {gamma}")
-            distortion.check_valid(distortion.HarrisModel(float(gamma), *inp.frame_size))
+            radial.check_valid(radial.HarrisModel(float(gamma), *inp.frame_size))
         except ValueError as exc:
             self.notify(client, "Invalid γ", str(exc), color="red")
             with self.state.lock:
@@ -334,7 +341,7 @@ class CalibrateView(View):
         """Add a point (given in corrected pixels of the shown image) to the open polyline."""
         inp = self.app.inputs
         with self.state.lock:
-            model = distortion.HarrisModel(self.state.gamma, *inp.frame_size)
+            model = radial.HarrisModel(self.state.gamma, *inp.frame_size)
             raw = model.raw_from_corrected(np.asarray(xy, float)[None])[0]
             if not np.isfinite(raw).all():
                 return
@@ -382,13 +389,13 @@ class CalibrateView(View):
         self.request_overlays()
 
     def save_lines_file(self) -> None:
-        """Write LINES.json (registration.calibration's format) for the finished lines."""
+        """Write LINES.json (registration.lens.gamma_from_lines's format) for the finished lines."""
         inp = self.app.inputs
         with self.state.lock:
             lines = [np.asarray(ln, float) for ln in self.state.lines if len(ln) >= 3]
         if inp is None:
             return
-        obj = calibration.lines_to_json(lines, inp.frame_size) if lines else None
+        obj = lines_file.lines_to_json(lines, inp.frame_size) if lines else None
         if obj is None:
             self.app.project.lines_path.unlink(missing_ok=True)
             return
@@ -402,7 +409,7 @@ class CalibrateView(View):
             g = self.state.gamma
         if inp is None or not lines:
             return None
-        s = calibration.straightness(lines, distortion.HarrisModel(g, *inp.frame_size))
+        s = straightness.straightness(lines, radial.HarrisModel(g, *inp.frame_size))
         return [float(v) for v in s.per_line], float(s.overall)
 
     def update_lines_text(self) -> None:
@@ -434,9 +441,9 @@ class CalibrateView(View):
         def job(progress) -> None:
             self.panel.estimate_md.content = "Estimating γ ..."
             if auto:
-                est = calibration.estimate_gamma_auto(inp.frame(k))
+                est = gamma_from_lines.estimate_gamma_auto(inp.frame(k))
             else:
-                est = calibration.estimate_gamma_from_lines(lines, *inp.frame_size)
+                est = gamma_from_lines.estimate_gamma_from_lines(lines, *inp.frame_size)
             self.last_estimate = est
             self.panel.show_estimate(est, "automatically" if auto else "from lines", est.gamma)
             self.set_gamma(float(est.gamma), client)
@@ -456,7 +463,7 @@ class CalibrateView(View):
         def job(progress) -> None:
             self.panel.estimate_md.content = "Estimating γ from the frames' motion ..."
             progress(0, None, "choosing how many frames apart")
-            est = motion_gamma.estimate_gamma_from_flight(
+            est = gamma_from_motion.estimate_gamma_from_flight(
                 inp.frame,
                 inp.n_frames,
                 progress=lambda done, total: progress(done, total, "frame pairs matched"),
@@ -501,8 +508,8 @@ class CalibrateView(View):
         """Corrected frame ``k`` (RGB) at full size or with its longer side ≤ ``max_side``."""
         img = self.app.inputs.frame(k) if max_side is None else self.app.inputs.preview(k, max_side)
         h, w = img.shape[:2]
-        corrected, _ = distortion.undistort_image(
-            img, distortion.HarrisModel(gamma, w, h), canvas="same"
+        corrected, _ = correction.undistort_image(
+            img, radial.HarrisModel(gamma, w, h), canvas="same"
         )
         return scene2d.to_rgb(corrected)
 
@@ -536,7 +543,7 @@ class CalibrateView(View):
 
     def _draw(self, gamma: float) -> None:
         w, h = self.app.inputs.frame_size
-        model = distortion.HarrisModel(gamma, w, h)
+        model = radial.HarrisModel(gamma, w, h)
         self.scene.draw_grid(bool(self.panel.grid_box.value))
         with self.state.lock:
             lines = [list(ln) for ln in self.state.lines]

@@ -385,7 +385,7 @@ class EvaluateView(View):
         return rows
 
     def points_csv(self) -> str:
-        """Confirmed marks as POINTS.csv (``registration.evaluation.read_points_csv``); pending
+        """Confirmed marks as POINTS.csv (``registration.evaluation.points.read_points_csv``); pending
         proposals follow as ``#`` comment lines, which the reader ignores."""
         buf = io.StringIO()
         w = csv.writer(buf, lineterminator="\n")
@@ -428,7 +428,7 @@ class EvaluateView(View):
     def propose_next(self, client=None) -> bool:
         """Propose the current point in the next frame, pending until confirmed.
 
-        By normalised cross-correlation (``registration.evaluation.propose_point``); where that
+        By normalised cross-correlation (``registration.evaluation.points.propose_point``); where that
         finds nothing, from the registration result (frame k -> base -> frame k+1, local stage).
         """
         inp = self.app.inputs

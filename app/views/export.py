@@ -1,9 +1,9 @@
-"""Export of the registration result from the Sequence view (``registration.export``).
+"""Export of the registration result from the Sequence view (``registration.gis.export``).
 
 The analyst ticks formats (GeoTIFF or cloud-optimised GeoTIFF frames, PNG frames with world
 files, the mosaic, the registered video, QGIS ``.points``, transforms JSON, GeoJSON or GeoPackage
 of control points, footprints and the evaluation marks) and presses *Export*: one call of
-:func:`registration.export.export_result` runs as the app's job, with its progress, time left
+:func:`registration.gis.export.export_result` runs as the app's job, with its progress, time left
 and Cancel in the header. Files go to the project's ``exports/`` folder; files that exist are
 never replaced without asking (a dialog offers to overwrite them or to write into a new numbered
 folder ``exports-2``, ``exports-3``, ...). Written files are listed and can be downloaded (one
@@ -35,7 +35,7 @@ FORMAT_LABELS = {
     "geojson": "GeoJSON",
     "gpkg": "GeoPackage",
 }
-"""Format (``registration.export.FORMATS``) -> checkbox label, in the panel's order."""
+"""Format (``registration.gis.export.FORMATS``) -> checkbox label, in the panel's order."""
 DEFAULT_FORMATS = ("mp4", "transforms")
 EXPORT_DIR = "exports"
 log = logging.getLogger(__name__)
@@ -53,7 +53,7 @@ class ExportPanel:
     """Widgets of the export (built inside the Sequence view's "Export" folder)."""
 
     def __init__(self, gui) -> None:
-        from registration.export import FORMATS
+        from registration.gis import FORMATS
 
         self.intro = gui.add_markdown("")
         self.formats = {
@@ -129,7 +129,7 @@ class Exporter:
 
     def refresh(self) -> None:
         """Availability of formats (georeference, a result) and the target folder."""
-        from registration.export import MAP_FORMATS
+        from registration.gis import MAP_FORMATS
 
         with self.state.lock:
             r = self.state.result
@@ -153,7 +153,7 @@ class Exporter:
 
     # ------------------------------------------------------------------ exporting
     def options(self, force: bool = False):
-        from registration.export import ExportOptions
+        from registration.gis import ExportOptions
 
         p = self.panel
         return ExportOptions(
@@ -166,7 +166,7 @@ class Exporter:
         )
 
     def marks(self):
-        """The confirmed evaluation marks as ``registration.evaluation.PointMarks`` (None when
+        """The confirmed evaluation marks as ``registration.evaluation.points.PointMarks`` (None when
         there are none or they are not wanted)."""
         from registration.evaluation import PointMarks
 
@@ -181,7 +181,7 @@ class Exporter:
 
     def target(self, result, formats, marks, folder: Path) -> list[Path]:
         """The files of ``formats`` that already exist in ``folder``."""
-        from registration.export import planned_files, resolve_formats
+        from registration.gis import planned_files, resolve_formats
 
         planned = copy.copy(result)
         planned.georef = self.georef()
@@ -272,8 +272,8 @@ class Exporter:
         return self.request(client, formats=formats, answer=answer)
 
     def start(self, result, formats, marks, folder: Path, force: bool, client) -> bool:
-        from registration import io as rio
-        from registration.export import export_result
+        from registration.gis import export_result
+        from registration.io import frames as io_frames
 
         options = self.options(force)
         inp = self.app.inputs
@@ -284,7 +284,7 @@ class Exporter:
             progress(0, None, "starting")
             try:
                 # Its own decoder: the export reads every frame in order, the views seek.
-                frames = rio.open_frames(inp.frames_path) if inp is not None else None
+                frames = io_frames.open_frames(inp.frames_path) if inp is not None else None
                 summary = export_result(
                     result,
                     folder,

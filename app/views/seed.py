@@ -47,7 +47,8 @@ from app.views.seed_ui import (
     magnifier_crop,
     magnifier_side,
 )
-from registration import distortion, global_registration
+from registration import global_registration
+from registration.lens import correction, radial
 
 
 class SeedView(ControlPointActions, View):
@@ -213,7 +214,7 @@ class SeedView(ControlPointActions, View):
         """Frame clicks are corrected pixels (stored raw); map clicks base pixels."""
         xy = np.asarray(xy, float)
         with self.state.lock:
-            model = distortion.HarrisModel(self.state.gamma, *self.app.inputs.frame_size)
+            model = radial.HarrisModel(self.state.gamma, *self.app.inputs.frame_size)
         if plane == "frame":
             raw = model.raw_from_corrected(xy[None])[0]
             if not np.isfinite(raw).all():
@@ -326,7 +327,7 @@ class SeedView(ControlPointActions, View):
         xy = np.asarray(xy, float)
         if plane == "frame":
             with self.state.lock:
-                model = distortion.HarrisModel(self.state.gamma, *self.app.inputs.frame_size)
+                model = radial.HarrisModel(self.state.gamma, *self.app.inputs.frame_size)
             raw = model.raw_from_corrected(xy[None])[0]
             if not np.isfinite(raw).all():
                 return
@@ -339,7 +340,7 @@ class SeedView(ControlPointActions, View):
         """``{pair: (frame point in corrected px or None, map point or None)}``."""
         with self.state.lock:
             st = self.state
-            model = distortion.HarrisModel(st.gamma, *st.frame_size)
+            model = radial.HarrisModel(st.gamma, *st.frame_size)
             raw = {1: (st.seed_frame, st.seed_base), 2: (st.seed2_frame, st.seed2_base)}
         out = {}
         for i, (f, b) in raw.items():
@@ -515,8 +516,8 @@ class SeedView(ControlPointActions, View):
     def corrected_preview(self, k: int, gamma: float, max_side: int | None = None) -> np.ndarray:
         img = self.app.inputs.preview(k, max_side or self.app.display_max)
         h, w = img.shape[:2]
-        corrected, _ = distortion.undistort_image(
-            img, distortion.HarrisModel(gamma, w, h), canvas="same"
+        corrected, _ = correction.undistort_image(
+            img, radial.HarrisModel(gamma, w, h), canvas="same"
         )
         return scene2d.to_rgb(corrected)
 
@@ -560,7 +561,7 @@ class SeedView(ControlPointActions, View):
             self.scene.draw_manual_pending(
                 None
                 if self.manual_frame is None
-                else distortion.HarrisModel(
+                else radial.HarrisModel(
                     self.state.gamma, *self.app.inputs.frame_size
                 ).corrected_from_raw(np.array([self.manual_frame]))[0]
             )
@@ -631,9 +632,9 @@ class SeedView(ControlPointActions, View):
 
     def draw_mid(self) -> None:
         """The reference frame warped into the map by the fine model, blended over the map."""
-        from registration import viz
         from registration.coords import rescale
-        from registration.warp import warp_image
+        from registration.geometry import warp_image
+        from registration.render import viz
 
         if "base" not in self.scene.planes or self.app.inputs is None:
             return
@@ -652,7 +653,7 @@ class SeedView(ControlPointActions, View):
             hp, wp = base_rgb.shape[:2]
             fx = inp.base_size[0] / wp
             model = fine.base_from_corrected
-            harris = distortion.HarrisModel(g, *inp.frame_size)
+            harris = radial.HarrisModel(g, *inp.frame_size)
 
             def raw_from_preview(xy):
                 return harris.raw_from_corrected(model.inverse(rescale(xy, fx)))

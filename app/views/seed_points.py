@@ -13,7 +13,8 @@ import numpy as np
 
 from app import controlpoints, scene2d
 from app.controlpoints import Edits
-from registration import distortion, global_registration
+from registration import global_registration
+from registration.lens import radial
 
 
 class ControlPointActions:
@@ -35,7 +36,7 @@ class ControlPointActions:
             self.request_overlays()
             return
         auto = ref.fine_auto
-        harris = distortion.HarrisModel(gamma, *inp.frame_size)
+        harris = radial.HarrisModel(gamma, *inp.frame_size)
         table = controlpoints.table_from_points(
             auto.src,
             auto.dst,

@@ -12,7 +12,7 @@ from app.security import escape_md
 from app.state import TRANSFORMS
 from app.views.base import GAP_PX, Scene
 from app.views.cptable import ControlPointPanel
-from registration import config as rconfig
+from registration.run import config
 
 INLIER = (40, 230, 60)
 OUTLIER = (240, 50, 50)
@@ -66,9 +66,7 @@ class SeedPanel:
             format="png",
         )
         with gui.add_folder("Run settings", expand_by_default=False):
-            self.preset = gui.add_dropdown(
-                "Preset", tuple(rconfig.PRESETS), initial_value="default"
-            )
+            self.preset = gui.add_dropdown("Preset", tuple(config.PRESETS), initial_value="default")
             self.transform = gui.add_dropdown(
                 "Transform", tuple(TRANSFORMS), initial_value="polyprojective 2"
             )

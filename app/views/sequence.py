@@ -40,7 +40,7 @@ from app.views.sequence_ui import (
     SequenceScene,
     excursion_flags,
 )
-from registration import pipeline
+from registration.run import pipeline
 
 log = logging.getLogger(__name__)
 
@@ -423,7 +423,7 @@ class SequenceView(View):
     # ---------------------------------------------------------------- control points
     def control_point_table(self, k: int):
         """The read-only table of frame ``k``'s control points from the result, or None."""
-        import registration.result as rresult
+        from registration.run import records
 
         r = self.result()
         if r is None or not r.is_ok(k):
@@ -433,7 +433,7 @@ class SequenceView(View):
             return None
         src, dst, kept, _ = cps
         source = None
-        path = rresult.frame_record_path(r.out_dir, k, ".npz")
+        path = records.frame_record_path(r.out_dir, k, ".npz")
         try:
             with np.load(path) as z:
                 source = z["source"] if "source" in z.files else None
@@ -540,8 +540,8 @@ class SequenceView(View):
         Only the footprint is rendered, from a preview of the frame of about its size there
         (decoded ahead by the read-ahead), so a new frame costs a small warp."""
         from registration.coords import rescale
+        from registration.geometry import warp_image
         from registration.render import render_registered
-        from registration.warp import warp_image
 
         r = self.result()
         if r is None or not r.is_ok(k):
@@ -600,7 +600,7 @@ class SequenceView(View):
         return max(need, 512)
 
     def render(self, full: bool = False, rev: int | None = None) -> None:
-        from registration import viz
+        from registration.render import viz
 
         inp = self.app.inputs
         if inp is None or "base" not in self.scene.planes:
@@ -687,7 +687,7 @@ class SequenceView(View):
         self.scene.draw_vectors((start, start + scale * t.residual_xy[ok], cols[ok]))
 
     def _draw_field(self, k: int) -> None:
-        from registration import viz
+        from registration.render import viz
 
         r = self.result()
         fld = r.field(k) if (r is not None and r.is_ok(k) and self.panel.show_field.value) else None

@@ -27,7 +27,7 @@ PLOT_TITLE = "Per-frame residual RMS (px): hover for values, click a frame to sh
 
 
 def excursion_flags(values: np.ndarray) -> np.ndarray:
-    """Frames ``registration.evaluation.find_excursions`` flags as sudden excursions (bool (N,))."""
+    """Frames ``registration.evaluation.report.find_excursions`` flags as sudden excursions (bool (N,))."""
     flags = np.zeros(len(values), bool)
     finite = np.isfinite(values)
     if finite.sum() < 3:

@@ -11,11 +11,12 @@
 * :func:`demo_sequence` builds (once) and returns the cached demo sequence.
 """
 
-from registration.synth.basemap import rebase
 from registration.synth.config import SimConfig
 from registration.synth.demo import DEMO_CONFIG, demo_dir, demo_sequence
 from registration.synth.profiles import PROFILES, Profile, motion_stats
-from registration.synth.sequence import SimTruth, load_truth, simulate
+from registration.synth.rebase import rebase
+from registration.synth.sequence import simulate
+from registration.synth.truth import SimTruth, load_truth
 
 __all__ = [
     "DEMO_CONFIG",

@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from registration.coords import as_points
-from registration.distortion import HarrisModel, TwoTermHarrisModel
+from registration.lens import HarrisModel, TwoTermHarrisModel
 
 # Fixed-point tolerances: far below the 1e-4 px the truth must reach.
 _RAW_TOL_PX = 1e-7
@@ -298,7 +298,7 @@ class SequenceGeometry:
         exact solution every ``step`` px and is then iterated ``iterations`` times per pixel (each
         iteration shrinks the height error ~10x; the tests check the map against the truth).
         """
-        from registration.warp import pixel_grid, source_map_from_function
+        from registration.geometry import pixel_grid, source_map_from_function
 
         w, h = self.width, self.height
         hmap = source_map_from_function(

@@ -20,7 +20,8 @@ from pathlib import Path
 
 from registration.synth.config import SimConfig
 from registration.synth.render import RENDER_VERSION
-from registration.synth.sequence import TRUTH_VERSION, Progress, simulate
+from registration.synth.sequence import Progress, simulate
+from registration.synth.truth import TRUTH_VERSION
 
 DEMO_NAME = "demo-v1"
 MARKER = "COMPLETE.json"

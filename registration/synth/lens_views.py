@@ -1,5 +1,5 @@
 """Raw frames that see a scene through a lens from two places (beyond the paper): the test
-material of γ from motion (:mod:`registration.motion_gamma`) on real photographs, whose scene is
+material of γ from motion (:mod:`registration.lens.gamma_from_motion`) on real photographs, whose scene is
 exactly flat, so the matches between the two views obey one homography through the right lens."""
 
 from __future__ import annotations
@@ -7,10 +7,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from registration.distortion import RadialModel
-from registration.warp import remap
-
-__all__ = ["lens_pair"]
+from registration.geometry import remap
+from registration.lens import RadialModel
 
 
 def lens_pair(

@@ -91,7 +91,7 @@ def _stale_staging(out: Path) -> list[Path]:
 
 def is_simulator_output(out: Path) -> bool:
     """True when ``out/truth.json`` is a simulator truth file."""
-    from registration.synth.sequence import TRUTH_FORMAT
+    from registration.synth.truth import TRUTH_FORMAT
 
     try:
         return json.loads((out / TRUTH_NAME).read_text()).get("format") == TRUTH_FORMAT

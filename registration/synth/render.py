@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from registration import warp
+from registration.geometry import warp
 from registration.synth import city as citymod
 from registration.synth.camera import SequenceGeometry
 from registration.synth.config import SimConfig

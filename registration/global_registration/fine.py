@@ -1,0 +1,394 @@
+"""Global registration to the base map (paper section 4).
+
+Inter-sensor (4.3), for the reference frame against the base map:
+  coarse: :mod:`registration.global_registration.coarse` (SIFT at 1/4 scale, heading and scale estimated from the
+  seed or without one, location gating, RANSAC projective);
+  fine: the coarse model rescaled to a full-scale polyprojective start, a grid of templates matched
+  by normalised cross-correlation, REQCON (:func:`fine_register_reference`).
+  The reference frame warped into base coordinates is the "mid base image".
+
+Intra-sensor (4.4), for every other frame against the joint base (mid base image plus the
+previously registered frame): coarse projective at 1/4 scale, gated by where the previous frame's
+model predicts each keypoint, then the fine polyprojective from gridded SIFT (paper) or templates
+(default preset), REQCON (:func:`register_intra`).
+
+All models here are ``base_from_corrected``: corrected-frame pixels to base pixels.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from registration.geometry import (
+    Affine,
+    FitResult,
+    PolyProjective,
+    Projective,
+    ReqconConfig,
+    Similarity,
+    Translation,
+    hull_coverage,
+    quantized,
+    reqcon,
+    simplest_supported,
+)
+from registration.global_registration.coarse import seed_gaps
+from registration.global_registration.coarse_records import (
+    CoarseResult,
+    frame_view,
+)
+from registration.global_registration.intra_points import (
+    template_points,
+)
+from registration.lens import Camera, as_camera
+from registration.matching import (
+    ControlPoints,
+    FrameFlow,
+    TemplateConfig,
+    grey,
+)
+
+
+@dataclass(frozen=True)
+class FineConfig:
+    """Fine polyprojective step of the inter-sensor registration (paper 4.3.2).
+
+    Attributes:
+        degree: polyprojective degree n (paper: 2, i.e. 17 coefficients).
+        template: template grid and normalised cross-correlation (paper: 75x75 px every 50 px,
+            20x20 search neighbourhood).
+        reqcon: REQCON settings (paper: drop the worst 5 % until the mean error < 2 px,
+            Nelder-Mead).
+        check_support: beyond the paper: keep the projective part where the kept control
+            points do not support the degree-``degree`` terms over the frame
+            (:func:`registration.robust.supported_by_points`); the paper always keeps the
+            polyprojective.
+        click_refit_px: beyond the paper (0 = off, the paper): where the fitted model puts a
+            clicked frame point farther than this from its clicked map point (base px), the
+            step is run again from the coarse model moved through the click, and that fit is
+            kept when it passes within this distance of the click. Where the images hold two
+            planes (roofs displaced by parallax between two dates, and the ground), the first
+            fit follows the one with more texture; the analyst's click says which one the
+            traffic is on. A fit the images do not support near the click is never kept, so a
+            careless click cannot drag a right registration.
+    """
+
+    degree: int = 2
+    template: TemplateConfig = field(default_factory=TemplateConfig)
+    reqcon: ReqconConfig = field(default_factory=ReqconConfig)
+    check_support: bool = False
+    click_refit_px: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not (self.click_refit_px >= 0 and math.isfinite(self.click_refit_px)):
+            raise ValueError(
+                f"FineConfig.click_refit_px must be a finite distance >= 0, got "
+                f"{self.click_refit_px!r}"
+            )
+
+
+@dataclass
+class FineResult:
+    """Outcome of a fine polyprojective step.
+
+    ``src`` are corrected-frame pixels, ``dst`` base pixels (N, 2); ``kept`` marks the points
+    REQCON kept; ``residuals`` (N,) are the final model's errors in base pixels for every point.
+    """
+
+    success: bool
+    reason: str
+    base_from_corrected: PolyProjective | None
+    src: NDArray[np.float64]
+    dst: NDArray[np.float64]
+    kept: NDArray[np.bool_]
+    residuals: NDArray[np.float64]
+    iterations: int
+    time_s: float = 0.0
+    source: NDArray[np.int_] | None = None
+    model_kind: str = "polyprojective"
+    model_reason: str = ""
+    sigma_px: float = float("nan")
+    # The frame's dense flow against the mid base image when its control points came from it
+    # (IntraConfig.control_points == "flow"), for the local stage to reuse; not written out.
+    flow: FrameFlow | None = None
+
+    @classmethod
+    def failed(cls, reason: str) -> FineResult:
+        """A failed step with ``reason`` and no points."""
+        z = np.zeros((0, 2))
+        return cls(False, reason, None, z, z, np.zeros(0, bool), np.zeros(0), 0)
+
+    @property
+    def residual_rms_px(self) -> float:
+        r = self.residuals[self.kept]
+        return float(np.sqrt(np.mean(r**2))) if len(r) else float("nan")
+
+    def __bool__(self) -> bool:
+        return self.success
+
+
+def _fit_fine(
+    cps: ControlPoints,
+    initial: Projective | PolyProjective,
+    degree: int,
+    reqcon_cfg,
+    t0: float,
+    domain: NDArray | None = None,
+    check_support: bool | Literal["sparse"] = False,
+    probes: NDArray | None = None,
+    noise_scale: NDArray | None = None,
+) -> FineResult:
+    """REQCON on the control points from ``initial``; with ``check_support``, the projective is
+    kept where the points do not support the polyprojective (:func:`_fall_back_if_unsupported`);
+    ``"sparse"``: only where the kept points span less of ``probes`` than
+    :data:`FINE_MIN_COVERAGE` asks of a polyprojective. ``noise_scale``: the points' relative
+    measurement noise (:func:`registration.geometry.reqcon.reqcon`).
+    """
+    n = len(cps.src)
+    start = (
+        initial
+        if isinstance(initial, PolyProjective)
+        else PolyProjective.from_projective(initial, degree)
+    )
+    empty = FineResult(
+        success=False,
+        reason="",
+        base_from_corrected=None,
+        src=cps.src,
+        dst=cps.dst,
+        kept=np.zeros(n, bool),
+        residuals=np.full(n, np.nan),
+        iterations=0,
+        source=getattr(cps, "source", None),
+    )
+    if n < 3 * start.min_samples and check_support and isinstance(initial, Projective):
+        # Too few points for REQCON on the polyprojective: the coarse model stays, said so.
+        empty.success = True
+        empty.base_from_corrected = PolyProjective.from_projective(initial, degree)
+        empty.residuals = np.asarray(initial.residuals(cps.src, cps.dst), float)
+        empty.model_kind = "coarse"
+        empty.model_reason = (
+            f"only {n} control points matched (REQCON on a degree-{degree} polyprojective "
+            f"needs {3 * start.min_samples}): the coarse model is kept"
+        )
+        empty.time_s = time.perf_counter() - t0
+        return empty
+    if n < start.min_samples:
+        empty.reason = (
+            f"fine step: only {n} control points, a degree-{degree} polyprojective needs "
+            f"at least {start.min_samples}"
+        )
+        empty.time_s = time.perf_counter() - t0
+        return empty
+    fit: FitResult = reqcon(
+        cps.src, cps.dst, start, reqcon_cfg, domain=domain, noise_scale=noise_scale
+    )
+    result = FineResult(
+        success=bool(fit),
+        reason="" if fit else f"fine step: REQCON failed: {fit.reason}",
+        base_from_corrected=fit.model if fit else None,
+        src=cps.src,
+        dst=cps.dst,
+        kept=np.asarray(fit.inliers, bool),
+        residuals=np.asarray(fit.residuals, float),
+        iterations=int(fit.iterations),
+        source=getattr(cps, "source", None),
+        sigma_px=float(fit.sigma_px),
+    )
+    if check_support == "sparse" and fit and probes is not None:
+        coverage = hull_coverage(cps.src[result.kept], probes)
+        check_support = coverage < FINE_MIN_COVERAGE["polyprojective"]
+    if fit and check_support and degree > 1 and domain is not None:
+        _fall_back_if_unsupported(result, degree, domain, probes)
+    if result.success:
+        # The model as recorded (reproducible runs, models.quantized) and its residuals.
+        result.base_from_corrected = quantized(result.base_from_corrected)
+        result.residuals = np.asarray(result.base_from_corrected.residuals(cps.src, cps.dst))
+    result.time_s = time.perf_counter() - t0
+    return result
+
+
+# Models the fine step may fall back to, simplest first (all expressed as polyprojectives).
+_FALLBACKS = (("similarity", Similarity), ("affine", Affine), ("projective", Projective))
+
+
+# Share of the frame the kept control points must span for the fine step to consider a model:
+# beyond the points, cross-validation cannot check a model's extra terms, and a
+# polyprojective's curvature explodes there (on SRIF pairs whose overlap covers part of image
+# 1, its corners went thousands of pixels off while cross-validation within the overlap
+# preferred it). The affine's two extra terms (shear, unequal scales) need points over 30 % of
+# the frame: fitted to points clustered in a small part of it they follow what the points there
+# share (buildings leaning differently between dates, another orthorectification) and carry it
+# to the far corners, where a similarity stays closer (200 real SRIF pairs, one click: 171 -> 176
+# under 10 px; at 50 %, 178, but a simulated frame half off its map lost 0.2 px median).
+FINE_MIN_COVERAGE = {"affine": 0.3, "projective": 0.5, "polyprojective": 0.8}
+
+
+def _fall_back_if_unsupported(
+    result: FineResult, degree: int, domain: NDArray, probes: NDArray | None
+) -> None:
+    """Keep the model (similarity, affine, projective or the polyprojective) that predicts
+    held-out parts of the kept control points best (spatial cross-validation,
+    :func:`registration.geometry.model_choice.simplest_supported`): points covering only part of the frame (a
+    map with no-data areas, another date with changed buildings) let a richer model's extra
+    terms extrapolate wildly elsewhere, which would make the fine step worse than the coarse
+    one."""
+    src, dst = result.src[result.kept], result.dst[result.kept]
+    poly = result.base_from_corrected
+    fits = []
+    for name, cls in _FALLBACKS:
+        if cls is Projective:
+            m = Projective.estimate(src, dst, initial=poly.projective_part(), optimizer="lm")
+            dlt = Projective.estimate(src, dst) if not m else None
+            if dlt:
+                # The polyprojective's projective part can be a start from which the fit folds
+                # (its extra terms carried some of the perspective): then the projective was no
+                # candidate, and a 25°-oblique photo kept a similarity 40 px off.
+                m = Projective.estimate(src, dst, initial=dlt, optimizer="lm")
+        else:
+            m = cls.estimate(src, dst)
+        if m:
+            fits.append((name, m))
+    fits.append(("polyprojective", poly))
+    kind, model = simplest_supported(
+        fits, src, dst, domain=domain, probes=probes, min_coverage=FINE_MIN_COVERAGE
+    )
+    result.model_kind = kind
+    if kind == "polyprojective":
+        result.model_reason = (
+            f"the degree-{degree} polyprojective predicts held-out parts of the {len(src)} kept "
+            "control points better than the simpler models"
+        )
+        return
+    proj = model if kind == "projective" else model.as_projective()
+    result.base_from_corrected = PolyProjective.from_projective(
+        proj, degree, poly.src_norm, poly.dst_norm
+    )
+    result.model_reason = (
+        f"the {kind} predicts held-out parts of the {len(src)} kept control points at least as "
+        "well as the richer models, whose extra terms the points do not determine"
+    )
+
+
+def fine_register_reference(
+    frame_raw: NDArray,
+    base: NDArray,
+    camera: Camera | float,
+    coarse: CoarseResult,
+    cfg: FineConfig,
+    *,
+    match_in: str,
+    base_valid: NDArray | None = None,
+) -> FineResult:
+    """Fine inter-sensor registration of the reference frame (paper 4.3.2).
+
+    The template grid of the corrected frame is matched in the base map around where the coarse
+    projective puts it (never where ``base_valid``, ``(Hb, Wb)`` bool, marks no data); REQCON
+    fits the polyprojective starting from the coarse model. With ``cfg.check_support`` the
+    projective is kept where the points do not support the polyprojective
+    (``FineResult.model_kind`` and ``model_reason`` say which and why). With
+    ``cfg.click_refit_px``, a fit that misses the coarse step's clicks is run again through them
+    (:class:`FineConfig`). ``camera``: the frame's :class:`registration.lens.camera.Camera` (or its
+    Harris γ); ``match_in``: where control points are found (``PipelineConfig.match_in``).
+    """
+    if not coarse:
+        raise ValueError("fine_register_reference needs a successful coarse result")
+    camera = as_camera(camera, frame_raw)
+
+    def fit(start):
+        return _fine_against_base(frame_raw, base, camera, start, cfg, match_in, base_valid)
+
+    fine = fit(coarse.base_from_corrected)
+    if cfg.click_refit_px and coarse.seeds:
+        fine = _refit_through_clicks(fine, coarse, fit, camera, cfg.click_refit_px)
+    return fine
+
+
+def _refit_through_clicks(fine, coarse, fit, camera: Camera, limit_px: float) -> FineResult:
+    """``fine``, or the fit started from the coarse model moved through the clicks when
+    ``fine`` misses them by more than ``limit_px`` and that fit passes within it
+    (``FineConfig.click_refit_px``). ``fit``: start model -> FineResult."""
+
+    def miss(model) -> float:
+        return float(np.hypot(*seed_gaps(model, coarse.seeds, camera.lens).T).max())
+
+    was = miss(fine.base_from_corrected if fine else coarse.base_from_corrected)
+    if not was > limit_px:
+        return fine
+    # The coarse model moved by its own mean miss at the clicks: the template search (+-10 px)
+    # then reaches the plane through the click and no longer the one the first fit followed.
+    moved = Translation(seed_gaps(coarse.base_from_corrected, coarse.seeds, camera.lens).mean(0))
+    again = fit(moved.compose(coarse.base_from_corrected))
+    if not again:
+        why = f"the fit started there failed: {again.reason}"
+    elif again.model_kind == "coarse":
+        why = "too few control points match there"
+    else:
+        now = miss(again.base_from_corrected)
+        if now <= limit_px and now < was:
+            again.model_reason = (
+                f"refitted through the click: the first fit passed {was:.1f} px from it, this "
+                f"one {now:.1f} px ({int(again.kept.sum())} control points); {again.model_reason}"
+            )
+            again.time_s += fine.time_s
+            return again
+        why = f"the fit started there settled {now:.1f} px from it"
+    fine.time_s += again.time_s
+    if fine:
+        fine.model_reason = (
+            f"passes {was:.1f} px from the click, not refitted through it ({why}); "
+            f"{fine.model_reason}"
+        )
+    return fine
+
+
+def register_anchor(
+    frame_raw: NDArray,
+    base: NDArray,
+    camera: Camera,
+    start,
+    cfg: FineConfig,
+    *,
+    match_in: str,
+    base_valid: NDArray | None = None,
+) -> FineResult:
+    """Re-anchor a frame to the base map (beyond the paper; ``IntraConfig.reanchor_coverage``):
+    the inter-sensor fine step of the reference frame (templates against the base map, REQCON),
+    started from ``start``, the frame's intra-sensor ``base_from_corrected`` (no click needed:
+    it is accurate to a few pixels)."""
+    return _fine_against_base(frame_raw, base, camera, start, cfg, match_in, base_valid)
+
+
+# How a template's matching error grows with the radial correction's stretch (see below).
+STRETCH_NOISE_POWER = 2.0
+
+
+def _fine_against_base(frame_raw, base, camera, model, cfg: FineConfig, match_in, base_valid):
+    """Template control points of the frame in the base map around ``model``, then REQCON."""
+    t0 = time.perf_counter()
+    camera = as_camera(camera, frame_raw)
+    view = frame_view(frame_raw, camera, match_in)
+    cps = template_points(view, grey.to_grey(base), model, cfg.template, ref_valid=base_valid)
+    # A template where the radial correction stretched the frame s times matches with about
+    # s^2 times the error (the reference frame of a simulated gamma 0.7 lens, against truth:
+    # median 0.19, 0.39, 0.79, 0.92 px at s ~ 1.15, 1.5, 1.95, 2.5): REQCON must not drop
+    # those as outliers of the centre's templates.
+    noise = camera.stretch(cps.src) ** STRETCH_NOISE_POWER if len(cps.src) else None
+    # The probes of robust.hull_coverage: how much of the frame the control points span.
+    return _fit_fine(
+        cps, model, cfg.degree, cfg.reqcon, t0, frame_domain(frame_raw, camera), cfg.check_support,
+        camera.cell_centres(10), noise,
+    )  # fmt: skip
+
+
+def frame_domain(frame_raw: NDArray, camera: Camera | float, n: int = 9) -> NDArray[np.float64]:
+    """An ``n`` x ``n`` grid over the whole raw frame in corrected pixels: where a frame's global
+    model must stay defined (no pole of the polyprojective inside the frame). ``camera``: the
+    frame's :class:`registration.lens.camera.Camera` (or its Harris γ)."""
+    return as_camera(camera, frame_raw).grid(n, n)

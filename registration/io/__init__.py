@@ -1,0 +1,45 @@
+"""Files in and out (no registration logic): images and their limits, frame sources (video, folders,
+globs), text inputs and file identities, and the one atomic writer every output goes through.
+"""
+
+from registration.io.atomic import (
+    encode_npz,
+    temp_path_beside,
+    write_bytes_atomic,
+    write_image_atomic,
+    write_json_atomic,
+    write_npz_atomic,
+)
+from registration.io.files import SAMPLE_BYTES, file_fingerprint, file_sha256, read_text_file
+from registration.io.frames import VIDEO_BACKWARD_BLOCK, FrameReadError, FrameSource, open_frames
+from registration.io.images import (
+    MAX_FRAME_PIXELS,
+    MIN_IMAGE_SIDE,
+    decode_image_file,
+    image_header_size,
+    incomplete_image,
+    read_image,
+)
+
+__all__ = [
+    "FrameReadError",
+    "FrameSource",
+    "MAX_FRAME_PIXELS",
+    "MIN_IMAGE_SIDE",
+    "SAMPLE_BYTES",
+    "VIDEO_BACKWARD_BLOCK",
+    "decode_image_file",
+    "encode_npz",
+    "file_fingerprint",
+    "file_sha256",
+    "image_header_size",
+    "incomplete_image",
+    "open_frames",
+    "read_image",
+    "read_text_file",
+    "temp_path_beside",
+    "write_bytes_atomic",
+    "write_image_atomic",
+    "write_json_atomic",
+    "write_npz_atomic",
+]

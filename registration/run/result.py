@@ -1,0 +1,317 @@
+"""Registration result folders: the writer (:class:`ResultWriter`), the reader
+(:class:`RegistrationResult`) and the mapping interface they share with the simulator's truth.
+
+The interface (fixed by ``conventions.md``)::
+
+    result.n_frames                               # int
+    result.frame_to_base(k, xy, stage="local")    # (N,2) raw pixels of frame k -> (N,2) base px
+    result.base_to_frame(k, xy, stage="local")    # (N,2) base pixels -> (N,2) raw pixels of k
+
+``stage`` is ``"global"`` or ``"local"``. NaN for points of failed frames or outside what the
+result covers; never raises for a valid ``k``.
+
+For a georeferenced base (``result.json`` key ``base_georef``) the same in map coordinates::
+
+    result.frame_to_map(k, xy, stage="local", to_crs=None)     # raw px -> map (base's CRS)
+    result.map_to_frame(k, xy, stage="local", from_crs=None)   # map -> raw px
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from registration.coords import as_points
+from registration.gis import GeoReference
+from registration.lens import Camera
+
+try:
+    import fcntl
+except ImportError:  # not POSIX: no lock (documented in README "Reliability")
+    fcntl = None
+from registration.mapping import _check_stage
+from registration.run.identity import _base_difference, _frames_difference, base_identity
+from registration.run.records import (
+    MID_BASE,
+    RESULT_JSON,
+    _damaged,
+    _expects_npz,
+    _first_line,
+    _read_meta,
+    frame_record_path,
+    read_record,
+)
+
+
+class RegistrationResult:
+    """A result folder written by :func:`registration.run.pipeline.register_sequence`.
+
+    Layout of ``OUT``:
+
+    * ``result.json``: ``n_frames``, ``gamma``, ``frame_size`` [W, H], ``base_size`` [W, H],
+      ``base_path``, ``frames_source``, ``reference_frame``, ``seed``, ``preset``, ``config`` and
+      ``inputs``, the identity of the frames and base map the run was made from (compared when a
+      run resumes, see :class:`ResultWriter`), plus extra keys of other stages.
+    * ``frames/KKKKKK.json``: one record per finished frame: ``status`` ("ok" or "failed"),
+      ``reason``, ``stats``, the global ``model`` (``base_from_corrected``, a polyprojective),
+      ``npz_bytes`` and ``npz_sha256`` (of the frame's ``.npz``; None without one) and
+      ``input_sha256`` (of the frame's image file). Written last for a frame, atomically: its
+      presence means the frame is done. The reference frame's record also holds ``lens_k2``,
+      the lens's fourth-order term beyond Harris every frame was registered with (0 = Harris,
+      :mod:`registration.lens.k2`; :attr:`camera` carries it), and ``stats["lens"]``, its
+      estimate.
+    * ``frames/KKKKKK.npz``: the frame's control points (``src`` corrected px, ``dst`` base px,
+      ``kept``, ``residuals``) and its local displacement field (``field_*`` arrays).
+    * ``mid_base.png``, ``mid_base_valid.png``: the reference frame in base pixels and its mask.
+    * ``.lock``: held by the process writing the folder.
+
+    Frames without a record (a run still going or interrupted) have status ``"pending"``; frames
+    whose record or arrays are unreadable (truncated, missing ``.npz``) have status ``"damaged"``
+    (``register --resume`` redoes them). Both map to NaN like failed frames.
+    """
+
+    def __init__(self, out_dir: str | Path) -> None:
+        self.out_dir = Path(out_dir)
+        meta_path = self.out_dir / RESULT_JSON
+        if not meta_path.is_file():
+            raise FileNotFoundError(f"not a registration result (no result.json): {self.out_dir}")
+        meta = _read_meta(self.out_dir)
+        self.meta = meta
+        try:
+            self.gamma = float(meta["gamma"])
+            self.frame_size = tuple(int(v) for v in meta["frame_size"])
+            self.base_size = tuple(int(v) for v in meta["base_size"])
+            self.reference_frame = int(meta["reference_frame"])
+            n = int(meta["n_frames"])
+            # The frames' camera (its k2 comes with the reference frame's record, reload()).
+            self.camera = Camera(self.gamma, *self.frame_size)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(
+                f"corrupt result.json in {self.out_dir}: bad or missing {exc}"
+            ) from None
+        if n < 1 or len(self.frame_size) != 2 or len(self.base_size) != 2:
+            raise ValueError(f"corrupt result.json in {self.out_dir}: bad n_frames or sizes")
+        self.config = meta.get("config", {})
+        self.preset = meta.get("preset")
+        self.mid_base_path = self.out_dir / MID_BASE
+        # The base map's georeference (None for a plain image base): base px <-> map.
+        self.georef = GeoReference.from_dict(meta.get("base_georef"))
+        self._models: dict[int, object] = {}
+        self._arrays: dict[int, dict] = {}
+        self.reload()
+
+    @property
+    def n_frames(self) -> int:
+        return int(self.meta["n_frames"])
+
+    def reload(self) -> None:
+        """Re-read the per-frame records (a run may still be writing them)."""
+        self.records: list[dict] = [read_record(self.out_dir, k) for k in range(self.n_frames)]
+        self._models.clear()
+        self._arrays.clear()
+        # The lens beyond Harris that the reference frame's registration found (0 = Harris).
+        ref = self.reference_frame
+        k2 = self.records[ref].get("lens_k2", 0.0) if 0 <= ref < self.n_frames else 0.0
+        try:
+            self.camera = self.camera.with_k2(float(k2))
+        except (TypeError, ValueError):
+            raise ValueError(
+                f"corrupt record {self.reference_frame:06d}.json in {self.out_dir}: bad "
+                f"lens_k2 {k2!r}"
+            ) from None
+
+    @property
+    def lens(self):
+        """The frames' radial lens model (:attr:`Camera.lens`): raw <-> corrected pixels."""
+        return self.camera.lens
+
+    # -- per-frame data -------------------------------------------------------------------
+    def _check_k(self, k: int) -> int:
+        k = int(k)
+        if not 0 <= k < self.n_frames:
+            raise IndexError(f"frame {k} out of range: the result has {self.n_frames} frames")
+        return k
+
+    def status(self, k: int) -> str:
+        """ "ok", "failed", "pending" or "damaged"."""
+        return str(self.records[self._check_k(k)].get("status"))
+
+    def is_ok(self, k: int) -> bool:
+        return self.records[self._check_k(k)].get("status") == "ok"
+
+    def _damage(self, k: int, reason: str) -> None:
+        self.records[k] = _damaged(reason)
+        self._models.pop(k, None)
+        self._arrays[k] = {}
+
+    def model(self, k: int):
+        """The frame's global ``base_from_corrected`` model, or None when it failed."""
+        k = self._check_k(k)
+        if not self.is_ok(k):
+            return None
+        if k not in self._models:
+            from registration.geometry import model_from_dict
+
+            try:
+                self._models[k] = model_from_dict(self.records[k]["model"])
+            except (KeyError, TypeError, ValueError) as exc:
+                self._damage(k, f"damaged record {k:06d}.json: bad model ({_first_line(exc)})")
+                return None
+        return self._models[k]
+
+    def _npz(self, k: int) -> dict:
+        k = self._check_k(k)
+        if k not in self._arrays:
+            path = frame_record_path(self.out_dir, k, ".npz")
+            arrays: dict = {}
+            rec = self.records[k]
+            if _expects_npz(rec) or ("npz_bytes" not in rec and path.is_file()):
+                try:
+                    with np.load(path) as z:
+                        arrays = {name: z[name] for name in z.files}
+                except Exception as exc:  # BadZipFile, EOFError, OSError, ValueError, zlib.error
+                    self._damage(k, f"damaged arrays {path.name}: {_first_line(exc)}")
+                    return {}
+            self._arrays[k] = arrays
+        return self._arrays[k]
+
+    def inputs_difference(self, frames, base: NDArray) -> str:
+        """ "" when this result was made from ``frames`` (:class:`registration.io.frames.FrameSource`)
+        and ``base``; otherwise one line saying what differs (as ``register --resume`` would).
+        For a viewer that must not show another input's result as this one's."""
+        old = self.meta.get("inputs")
+        if not old:
+            return "the result has no record of its inputs (written by an older aerialreg)"
+        identity = getattr(frames, "identity", None)
+        return _frames_difference(
+            old.get("frames"), identity() if identity else None, self.records, frames
+        ) or _base_difference(old.get("base"), base_identity(base))
+
+    def _usable(self, k: int, stage: str) -> bool:
+        """Whether frame ``k`` maps at ``stage``; reading its model and arrays may find them
+        damaged, which marks the frame so."""
+        if not self.is_ok(k) or self.model(k) is None:
+            return False
+        if stage == "local":
+            self._npz(k)
+        return self.is_ok(k)
+
+    def control_points(self, k: int):
+        """``(src, dst, kept, residuals)`` of the frame's fine step, or None."""
+        a = self._npz(k)
+        if "src" not in a:
+            return None
+        return a["src"], a["dst"], a["kept"].astype(bool), a["residuals"]
+
+    def field(self, k: int):
+        """The frame's local :class:`registration.geometry.displacement_field.DisplacementField`, or None."""
+        a = self._npz(k)
+        if "field_vectors" not in a:
+            return None
+        from registration.geometry import DisplacementField
+
+        return DisplacementField.from_arrays(
+            {
+                name[len("field_") :]: a[name]
+                for name in a
+                if name.startswith("field_") and not name.startswith("field_stats_")
+            }
+        )
+
+    def field_stats(self, k: int) -> dict[str, NDArray] | None:
+        """Per-cell arrays of the local stage (status codes, matches, kept, residuals), or None."""
+        a = self._npz(k)
+        out = {n[len("field_stats_") :]: a[n] for n in a if n.startswith("field_stats_")}
+        return out or None
+
+    # -- the fixed interface --------------------------------------------------------------
+    def _inside_frame(self, xy: NDArray) -> NDArray[np.bool_]:
+        w, h = self.frame_size
+        with np.errstate(invalid="ignore"):
+            return (
+                (xy[:, 0] >= -0.5)
+                & (xy[:, 0] <= w - 0.5)
+                & (xy[:, 1] >= -0.5)
+                & (xy[:, 1] <= h - 0.5)
+            )
+
+    def _global_frame_to_base(self, k: int, xy: NDArray) -> NDArray:
+        out = self.model(k).apply(self.lens.corrected_from_raw(xy))
+        out[~self._inside_frame(xy)] = np.nan
+        return out
+
+    def _global_base_to_frame(self, k: int, xy: NDArray) -> NDArray:
+        raw = self.lens.raw_from_corrected(self.model(k).inverse(xy))
+        raw[~self._inside_frame(raw)] = np.nan
+        return raw
+
+    def frame_to_base(self, k: int, xy: ArrayLike, stage: str = "local") -> NDArray[np.float64]:
+        """``(N, 2)`` raw pixels of frame ``k`` -> ``(N, 2)`` base pixels (NaN where unknown)."""
+        pts = as_points(xy, "xy")
+        k = self._check_k(k)
+        _check_stage(stage)
+        if not self._usable(k, stage):
+            return np.full_like(pts, np.nan)
+        field = self.field(k) if stage == "local" else None
+        if field is None:
+            return self._global_frame_to_base(k, pts)
+        from registration.geometry import local_frame_to_base
+
+        return local_frame_to_base(lambda q: self._global_frame_to_base(k, q), field, pts)
+
+    def base_to_frame(self, k: int, xy: ArrayLike, stage: str = "local") -> NDArray[np.float64]:
+        """``(N, 2)`` base pixels -> ``(N, 2)`` raw pixels of frame ``k`` (NaN where unknown)."""
+        pts = as_points(xy, "xy")
+        k = self._check_k(k)
+        _check_stage(stage)
+        if not self._usable(k, stage):
+            return np.full_like(pts, np.nan)
+        field = self.field(k) if stage == "local" else None
+        if field is None:
+            return self._global_base_to_frame(k, pts)
+        from registration.geometry import local_base_to_frame
+
+        return local_base_to_frame(lambda b: self._global_base_to_frame(k, b), field, pts)
+
+    # -- map coordinates (georeferenced base) --------------------------------------------------
+    def _require_georef(self):
+        if self.georef is None:
+            raise ValueError(
+                f"the base map of {self.out_dir} is not georeferenced: no map coordinates "
+                "(register with a GeoTIFF or a world-file base, or export with --georef)"
+            )
+        return self.georef
+
+    def frame_to_map(
+        self, k: int, xy: ArrayLike, stage: str = "local", *, to_crs=None
+    ) -> NDArray[np.float64]:
+        """``(N, 2)`` raw pixels of frame ``k`` -> ``(N, 2)`` map coordinates in the base's CRS
+        (``to_crs``: in that CRS instead, e.g. ``"EPSG:4326"`` gives (longitude, latitude)).
+        NaN where :meth:`frame_to_base` is NaN.
+
+        Raises:
+            ValueError: the base map is not georeferenced.
+        """
+        georef = self._require_georef()
+        out = georef.map_from_base(self.frame_to_base(k, xy, stage))
+        return out if to_crs is None else georef.to_crs(out, to_crs)
+
+    def map_to_frame(
+        self, k: int, xy: ArrayLike, stage: str = "local", *, from_crs=None
+    ) -> NDArray[np.float64]:
+        """``(N, 2)`` map coordinates (the base's CRS, or ``from_crs``) -> ``(N, 2)`` raw pixels
+        of frame ``k``; NaN where :meth:`base_to_frame` is NaN.
+
+        Raises:
+            ValueError: the base map is not georeferenced.
+        """
+        georef = self._require_georef()
+        pts = as_points(xy, "xy") if from_crs is None else georef.from_crs(xy, from_crs)
+        return self.base_to_frame(k, georef.base_from_map(pts), stage)
+
+
+def load_result(out_dir: str | Path) -> RegistrationResult:
+    """Open a result folder (see :class:`RegistrationResult`)."""
+    return RegistrationResult(out_dir)

@@ -1,0 +1,154 @@
+"""Writing a result folder frame by frame and atomically, under its lock, resumable."""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from registration.io import (
+    encode_npz,
+    file_sha256,
+    read_image,
+    write_bytes_atomic,
+    write_image_atomic,
+    write_json_atomic,
+)
+
+try:
+    import fcntl
+except ImportError:  # not POSIX: no lock (documented in README "Reliability")
+    fcntl = None
+from registration.run.identity import _resume_problem
+from registration.run.records import (
+    MID_BASE,
+    MID_BASE_VALID,
+    RESULT_JSON,
+    _read_meta,
+    frame_record_path,
+    verify_record,
+)
+from registration.run.result_folder import ResultLock, check_out_dir, remove_result
+
+log = logging.getLogger(__name__)
+
+
+class ResultWriter:
+    """Writes a result folder frame by frame, atomically, holding its lock.
+
+    Use::
+
+        with ResultWriter.create(out_dir, meta, frames=frames, resume=..., force=...) as w:
+            if not w.done(k):
+                w.write_frame(k, record, arrays)
+
+    ``meta`` is :func:`make_metadata`'s. Every file is written to a temporary name and moved
+    into place; a frame's arrays before its record, so a record means a complete frame.
+    """
+
+    def __init__(self, out_dir: Path, lock: ResultLock, frames=None) -> None:
+        self.out_dir = out_dir
+        self._lock = lock
+        self._frames = frames
+        meta = _read_meta(out_dir)
+        self.n_frames = int(meta["n_frames"])
+        self._status = [verify_record(out_dir, k)["status"] for k in range(self.n_frames)]
+
+    @classmethod
+    def create(
+        cls,
+        out_dir: str | Path,
+        meta: dict,
+        *,
+        frames=None,
+        resume: bool = False,
+        force: bool = False,
+    ) -> ResultWriter:
+        """Open ``out_dir`` for writing and take its lock.
+
+        * a missing or empty folder: a new result (``result.json`` = ``meta``);
+        * a result folder: ``resume`` continues it if it was made from the same inputs and
+          configuration; ``force`` deletes it (:func:`remove_result`) and starts over;
+        * anything else (a file, a folder holding other files): refused.
+
+        Raises:
+            ValueError: one line naming the folder and what to do (another process writes it:
+                :class:`ResultBusy`; it holds another run; it is not a result folder).
+        """
+        out_dir = Path(out_dir)
+        check_out_dir(out_dir, resume=resume, force=force)  # before anything is written
+        out_dir.mkdir(parents=True, exist_ok=True)
+        lock = ResultLock(out_dir).acquire()
+        try:
+            state = check_out_dir(out_dir, resume=resume, force=force)  # now no one else writes
+            if state in ("result", "damaged") and force:
+                log.info("--force: removing the result in %s", out_dir)
+                remove_result(out_dir)
+                state = "empty"
+            if state == "result":
+                problem = _resume_problem(out_dir, _read_meta(out_dir), meta, frames)
+                if problem:
+                    raise ValueError(
+                        f"cannot resume {out_dir}: {problem}; use another --out or --force to "
+                        "start over"
+                    )
+            else:
+                (out_dir / "frames").mkdir(exist_ok=True)
+                write_json_atomic(out_dir / RESULT_JSON, meta)
+            return cls(out_dir, lock, frames)
+        except BaseException:
+            lock.release()
+            raise
+
+    def __enter__(self) -> ResultWriter:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Release the lock (the folder stays as written)."""
+        self._lock.release()
+
+    # -- frames ---------------------------------------------------------------------------
+    def done(self, k: int) -> bool:
+        """Frame ``k`` has a complete record ("ok" or "failed"); pending and damaged frames
+        are (re)done."""
+        return self._status[k] in ("ok", "failed")
+
+    def is_damaged(self, k: int) -> bool:
+        return self._status[k] == "damaged"
+
+    def write_frame(self, k: int, record: dict, arrays: dict[str, NDArray] | None = None) -> None:
+        """Write frame ``k``'s arrays (if any), then its record, each atomically."""
+        rec = {"k": int(k), **record, "npz_bytes": None}
+        if arrays:
+            data = encode_npz(**arrays)
+            write_bytes_atomic(frame_record_path(self.out_dir, k, ".npz"), data)
+            rec["npz_bytes"] = len(data)
+            rec["npz_sha256"] = hashlib.sha256(data).hexdigest()
+        path = self._frames.path(k) if hasattr(self._frames, "path") else None
+        if path is not None:
+            try:
+                rec["input_sha256"] = file_sha256(path)
+            except OSError:
+                pass
+        write_json_atomic(frame_record_path(self.out_dir, k, ".json"), rec)
+        self._status[k] = rec.get("status", "failed")
+
+    # -- the mid base image -----------------------------------------------------------------
+    def write_mid_base(self, mid: NDArray, valid: NDArray[np.bool_]) -> None:
+        write_image_atomic(self.out_dir / MID_BASE, mid)
+        write_image_atomic(self.out_dir / MID_BASE_VALID, valid.astype(np.uint8) * 255)
+
+    def read_mid_base(self) -> tuple[NDArray, NDArray[np.bool_]] | None:
+        """``(mid, valid)`` as written, or None when either file is missing or unreadable."""
+        try:
+            mid = read_image(self.out_dir / MID_BASE)
+            valid = read_image(self.out_dir / MID_BASE_VALID, grey=True) > 127
+        except (OSError, ValueError):
+            return None
+        return mid, valid
