@@ -17,7 +17,7 @@ file access from the browser is limited to allowed folders and sizes. Concretely
   viser would otherwise hold the whole file in memory before the app could look at it.
 
 viser hooks (viser 1.1.1, pinned ``<1.2`` in pyproject.toml; each is small and tested in
-tests/test_security.py, because an upgrade may move them):
+tests/app/test_security.py, because an upgrade may move them):
 
 1. viser builds its websocket server inside ``ViserServer.__init__`` by calling
    ``websockets.asyncio.server.serve(..., process_request=viser_http_server)``; :func:`make_server`

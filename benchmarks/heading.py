@@ -1,6 +1,6 @@
 """Inter-sensor registration of the reference frame at any heading and map resolution: one
 simulated frame against its base map turned by 0-330° and resampled to 0.5x, 1x and 2x
-(``registration.synth.rebase``; the truth stays exact), registered with one click 2 px off the
+(``registration.synth.rebasing``; the truth stays exact), registered with one click 2 px off the
 true position and with no click, against plain OpenCV (full-frame SIFT + FLANN + MAGSAC on the
 radially corrected frame) in the same run.
 

@@ -19,6 +19,15 @@ def shared_data(*parts: str) -> Path:
     return path
 
 
+def pytest_collection_modifyitems(config, items) -> None:
+    # End-to-end and real-browser tests live in their own folders and carry their marker, so a
+    # developer can leave them out (``-m "not e2e and not browser"``) or run one folder alone.
+    for item in items:
+        folder = item.path.parent.name
+        if folder in ("e2e", "browser"):
+            item.add_marker(folder)
+
+
 def pytest_report_header(config) -> str:
     # The accuracy limits are measured with one OpenCV build (SIFT's keypoints differ between
     # builds): say which one ran.

@@ -37,7 +37,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 
 # Test files of the end-to-end layer: whole-sequence runs against the simulator's truth.
-E2E = ["tests/test_accuracy.py", "tests/test_reference_frame.py", "tests/test_pipeline.py"]
+E2E = ["tests/e2e/test_accuracy.py", "tests/e2e/test_reference_frame.py", "tests/run/test_pipeline.py"]
 
 
 @dataclass(frozen=True)
@@ -71,7 +71,7 @@ MUTATIONS: list[Mutation] = [
                 1,
             )
         ],  # fmt: skip
-        ["tests/test_global_registration.py", *E2E, "tests/test_export.py"],
+        ["tests/global_registration/test_global_registration.py", *E2E, "tests/gis/test_export.py"],
     ),
     _m(
         "seed_gate_open",
@@ -85,18 +85,18 @@ MUTATIONS: list[Mutation] = [
             )
         ],  # fmt: skip
         [
-            "tests/test_heading.py",
-            "tests/test_coarse.py",
-            "tests/test_global_registration.py",
+            "tests/global_registration/test_heading.py",
+            "tests/global_registration/test_coarse.py",
+            "tests/global_registration/test_global_registration.py",
             *E2E,
         ],  # fmt: skip
     ),
     _m(
         "frames_before_reference_dropped",
         "frames before the reference frame never processed",
-        "registration/run/chunk_plan.py",
+        "registration/run/chunks.py",
         [("        *range(reference_frame - 1, -1, -1),\n", "", 1)],
-        [*E2E, "tests/test_export.py"],
+        [*E2E, "tests/gis/test_export.py"],
     ),
     _m(
         "evaluation_reference_is_frame_0",
@@ -104,16 +104,21 @@ MUTATIONS: list[Mutation] = [
         "registration/evaluation/truth.py",
         [
             ("ref = int(result.reference_frame)", "ref = 0", 2),
-            ("ref = int(result.reference_frame)", "ref = 0", 1, "registration/evaluation/points.py"),
+            (
+                "ref = int(result.reference_frame)",
+                "ref = 0",
+                1,
+                "registration/evaluation/points.py",
+            ),
         ],  # fmt: skip
-        ["tests/test_evaluation.py", *E2E],
+        ["tests/evaluation/test_evaluation.py", *E2E],
     ),
     _m(
         "harris_ignores_centre",
         "`HarrisModel` ignores a given distortion centre",
         "registration/lens/radial.py",
         [("        if self.center is None:\n", "        if True:\n", 1)],
-        ["tests/test_distortion.py", "tests/test_calibration.py", "tests/test_cli_distortion.py"],
+        ["tests/lens/test_distortion.py", "tests/lens/test_calibration.py", "tests/cli/test_cli_distortion.py"],
     ),
     _m(
         "overlay_base_only",
@@ -121,10 +126,10 @@ MUTATIONS: list[Mutation] = [
         "registration/render/video.py",
         [("overlay(image, mid, mask=mask)", "overlay(mid, mid, mask=mask)", 1)],
         [
-            "tests/test_render.py",
-            "tests/test_render_content.py",
-            "tests/test_reference_frame.py",
-            "tests/test_export.py",
+            "tests/render/test_render.py",
+            "tests/render/test_render_content.py",
+            "tests/e2e/test_reference_frame.py",
+            "tests/gis/test_export.py",
         ],  # fmt: skip
     ),
     _m(
@@ -138,7 +143,7 @@ MUTATIONS: list[Mutation] = [
                 1,
             )
         ],  # fmt: skip
-        ["tests/test_render.py", "tests/test_render_content.py"],
+        ["tests/render/test_render.py", "tests/render/test_render_content.py"],
     ),
     _m(
         "previous_frame_fallback_disabled",
@@ -151,7 +156,7 @@ MUTATIONS: list[Mutation] = [
                 1,
             )
         ],  # fmt: skip
-        ["tests/test_global_registration.py", "tests/test_templates.py", *E2E],
+        ["tests/global_registration/test_global_registration.py", "tests/matching/test_templates.py", *E2E],
     ),
     _m(
         "paper_preset_is_default",
@@ -164,14 +169,14 @@ MUTATIONS: list[Mutation] = [
                 1,
             )
         ],  # fmt: skip
-        ["tests/test_config.py", *E2E],
+        ["tests/run/test_config.py", *E2E],
     ),
     _m(
         "dither_disabled",
         "dithered NCC disabled (no re-correlation at the sub-pixel estimate)",
         "registration/matching/ncc_peaks.py",
         [("    for _ in range(config.dither_iterations):\n", "    for _ in range(0):\n", 1)],
-        ["tests/test_templates.py", "tests/test_global_registration.py"],
+        ["tests/matching/test_templates.py", "tests/global_registration/test_global_registration.py"],
         tags=("real-image",),
     ),
     # -- controls: bugs the issue found caught; they must stay caught ------------------------
@@ -186,14 +191,14 @@ MUTATIONS: list[Mutation] = [
                 1,
             )
         ],  # fmt: skip
-        ["tests/test_distortion.py"],
+        ["tests/lens/test_distortion.py"],
     ),
     _m(
         "result_ignores_field",
         "the local stage of a result ignores its displacement field (field zeroed)",
         "registration/run/result.py",
         [('field = self.field(k) if stage == "local" else None', "field = None", 2)],
-        ["tests/test_result.py", *E2E],
+        ["tests/run/test_result.py", *E2E],
     ),
     # -- the new modules ---------------------------------------------------------------------
     _m(
@@ -201,7 +206,7 @@ MUTATIONS: list[Mutation] = [
         "one-seed heading estimate off by 90°",
         "registration/global_registration/heading.py",
         [("        float(peak_heading),\n", "        float((peak_heading + 90.0) % 360.0),\n", 1)],
-        ["tests/test_heading.py", "tests/test_coarse.py"],
+        ["tests/global_registration/test_heading.py", "tests/global_registration/test_coarse.py"],
         tags=("real-image",),
     ),
     _m(
@@ -209,7 +214,7 @@ MUTATIONS: list[Mutation] = [
         "coarse step without guided matching",
         "registration/global_registration/coarse_fit.py",
         [("    if config.guided and len(fk):\n", "    if False and len(fk):\n", 1)],
-        ["tests/test_coarse.py", "tests/test_heading.py", *E2E],
+        ["tests/global_registration/test_coarse.py", "tests/global_registration/test_heading.py", *E2E],
     ),
     _m(
         "correlation_on_intensity",
@@ -227,31 +232,31 @@ MUTATIONS: list[Mutation] = [
                 1,
             ),
         ],  # fmt: skip
-        ["tests/test_coarse.py", *E2E],
+        ["tests/global_registration/test_coarse.py", *E2E],
     ),
     _m(
         "model_choice_richest",
         "spatial cross-validation always keeps the richest model",
         "registration/geometry/model_choice.py",
         [("        if err < (1.0 - margin) * best_err:\n", "        if True:\n", 1)],
-        ["tests/test_robust.py", "tests/test_model_choice.py", "tests/test_coarse.py", *E2E],
+        ["tests/geometry/test_robust.py", "tests/geometry/test_model_choice.py", "tests/global_registration/test_coarse.py", *E2E],
     ),
     _m(
         "reqcon_outlier_rule_never_stops",
         "REQCON's outlier rule never stops: drops 5 % per round like the paper's rule",
-        "registration/geometry/reqcon.py",
+        "registration/geometry/reqcon_fit.py",
         [
             ("            if n_out == 0:\n", "            if False:\n", 1),
             ("            n_drop = min(n_drop, n_out)\n", "", 1),
         ],  # fmt: skip
-        ["tests/test_robust.py", "tests/test_model_choice.py", *E2E],
+        ["tests/geometry/test_robust.py", "tests/geometry/test_model_choice.py", *E2E],
     ),
     _m(
         "reqcon_never_drops",
         "REQCON never drops a point",
-        "registration/geometry/reqcon.py",
+        "registration/geometry/reqcon_fit.py",
         [("        kept[worst] = False\n", "        pass\n", 1)],
-        ["tests/test_robust.py", *E2E],
+        ["tests/geometry/test_robust.py", *E2E],
     ),
     _m(
         "intra_gate_open",
@@ -264,7 +269,7 @@ MUTATIONS: list[Mutation] = [
                 1,
             )
         ],  # fmt: skip
-        ["tests/test_global_registration.py", *E2E],
+        ["tests/global_registration/test_global_registration.py", *E2E],
     ),
     _m(
         "structure_anchor_ignored",
@@ -277,7 +282,7 @@ MUTATIONS: list[Mutation] = [
                 1,
             )
         ],  # fmt: skip
-        ["tests/test_templates.py"],
+        ["tests/matching/test_templates.py"],
         tags=("real-image",),
     ),
     _m(
@@ -305,10 +310,10 @@ MUTATIONS: list[Mutation] = [
             )
         ],  # fmt: skip
         [
-            "tests/test_warp.py",
-            "tests/test_distortion.py",
-            "tests/test_templates.py",
-            "tests/test_render.py",
+            "tests/geometry/test_warp.py",
+            "tests/lens/test_distortion.py",
+            "tests/matching/test_templates.py",
+            "tests/render/test_render.py",
         ],  # fmt: skip
     ),
     _m(
@@ -322,7 +327,7 @@ MUTATIONS: list[Mutation] = [
                 1,
             )
         ],  # fmt: skip
-        ["tests/test_warp.py", "tests/test_render.py", "tests/test_templates.py"],
+        ["tests/geometry/test_warp.py", "tests/render/test_render.py", "tests/matching/test_templates.py"],
     ),
     _m(
         "atomic_write_in_place",
@@ -336,14 +341,14 @@ MUTATIONS: list[Mutation] = [
             ),
             ("        os.replace(tmp, p)\n", "        os.unlink(tmp)\n", 1),
         ],  # fmt: skip
-        ["tests/test_io.py", "tests/test_bad_input.py"],
+        ["tests/io/test_io.py", "tests/cli/test_bad_input.py"],
     ),
     _m(
         "result_nan_outside_frame_lost",
         "`frame_to_base` maps points outside the frame instead of NaN",
         "registration/run/result.py",
         [("        out[~self._inside_frame(xy)] = np.nan\n", "", 1)],
-        ["tests/test_result.py", *E2E],
+        ["tests/run/test_result.py", *E2E],
     ),
 ]
 

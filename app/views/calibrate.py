@@ -25,9 +25,9 @@ from registration.lens import (
     correction,
     gamma_from_lines,
     gamma_from_motion,
+    line_straightness,
     lines_file,
     radial,
-    straightness,
 )
 
 LINE_COLOURS = np.array(
@@ -409,7 +409,7 @@ class CalibrateView(View):
             g = self.state.gamma
         if inp is None or not lines:
             return None
-        s = straightness.straightness(lines, radial.HarrisModel(g, *inp.frame_size))
+        s = line_straightness.straightness(lines, radial.HarrisModel(g, *inp.frame_size))
         return [float(v) for v in s.per_line], float(s.overall)
 
     def update_lines_text(self) -> None:

@@ -27,10 +27,10 @@ from registration.geometry.model_choice import (
 )
 from registration.geometry.models import model_from_dict, scale_at_frame_centre
 from registration.geometry.optimisers import levenberg_marquardt
-from registration.geometry.ransac import RansacConfig, adaptive_max_iterations, ransac
+from registration.geometry.ransac_fit import RansacConfig, adaptive_max_iterations, ransac
 from registration.geometry.rational import PolyProjective, Projective
 from registration.geometry.rational_fit import MIN_DENOMINATOR, n_polyprojective_params
-from registration.geometry.reqcon import ReqconConfig, reqcon
+from registration.geometry.reqcon_fit import ReqconConfig, reqcon
 from registration.geometry.warp import (
     INTERPOLATIONS,
     PreparedMap,

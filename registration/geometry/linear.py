@@ -38,6 +38,10 @@ class Translation:
 
     params: Array = field(default_factory=lambda: np.zeros(2))
     min_samples: ClassVar[int] = 1
+    # A projective composed with a translation is taken as the exact projective product
+    # (:meth:`registration.geometry.rational.Projective.compose`); the other linear models give
+    # a Chain there.
+    composes_as_projective: ClassVar[bool] = True
 
     def __post_init__(self) -> None:
         p = np.array(self.params, dtype=np.float64).reshape(-1)

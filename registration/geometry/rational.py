@@ -291,10 +291,9 @@ class Projective(_RationalModel):
         return Projective((hi / hi[2, 2]).reshape(-1)[:8], self.dst_norm, self.src_norm)
 
     def compose(self, other: Any) -> Any:
-        """The model of ``self(other(x))``: Projective for a Projective/Translation, else a Chain."""
-        from registration.geometry.linear import Translation  # models builds on this module
-
-        if isinstance(other, Translation):
+        """The model of ``self(other(x))``: Projective for a Projective or a model that composes
+        as one (``composes_as_projective``: a Translation), else a Chain."""
+        if getattr(other, "composes_as_projective", False):
             other = other.as_projective()
         if isinstance(other, Projective):
             h = self.matrix @ other.matrix
@@ -468,7 +467,7 @@ class PolyProjective(_RationalModel):
     ``J = (n+1)(n+2)/2``: 17 params for ``n = 2``, 29 for ``n = 3``.
 
     Use :meth:`of_degree` to get a class whose ``min_samples`` and default degree suit a degree
-    other than 2 (for :func:`registration.geometry.ransac.ransac`, which takes a model class).
+    other than 2 (for :func:`registration.geometry.ransac_fit.ransac`, which takes a model class).
     """
 
     degree: int = 2  # type: ignore[assignment]

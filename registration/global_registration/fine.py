@@ -148,7 +148,7 @@ def _fit_fine(
     kept where the points do not support the polyprojective (:func:`_fall_back_if_unsupported`);
     ``"sparse"``: only where the kept points span less of ``probes`` than
     :data:`FINE_MIN_COVERAGE` asks of a polyprojective. ``noise_scale``: the points' relative
-    measurement noise (:func:`registration.geometry.reqcon.reqcon`).
+    measurement noise (:func:`registration.geometry.reqcon_fit.reqcon`).
     """
     n = len(cps.src)
     start = (

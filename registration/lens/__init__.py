@@ -37,6 +37,7 @@ from registration.lens.gamma_from_motion import (
     pair_matches,
 )
 from registration.lens.k2 import LensConfig, estimate_k2
+from registration.lens.line_straightness import straightness
 from registration.lens.lines_file import lines_to_json, load_lines, parse_lines, save_lines
 from registration.lens.radial import (
     HARRIS_GAMMA_MIN,
@@ -51,7 +52,6 @@ from registration.lens.radial import (
     harris_gamma_range,
 )
 from registration.lens.straight_edges import straight_edge_chart
-from registration.lens.straightness import straightness
 
 __all__ = [
     "CANVASES",

@@ -28,6 +28,7 @@ from registration.lens.gamma_from_lines import (
     estimate_gamma_from_lines,
     line_groups,
 )
+from registration.lens.line_straightness import Straightness, _PackedLines, straightness
 from registration.lens.lines_file import as_polylines
 from registration.lens.radial import (
     DivisionModel,
@@ -36,7 +37,6 @@ from registration.lens.radial import (
     TwoTermHarrisModel,
     harris_gamma_limit,
 )
-from registration.lens.straightness import Straightness, _PackedLines, straightness
 
 # The lines locate the centre when its standard uncertainty is at most this fraction of the
 # normalising radius (half the diagonal), measured on at least MIN_CENTER_GROUPS independent

@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from registration.lens.line_straightness import _PackedLines
 from registration.lens.lines_file import (
     as_polylines,
     degenerate_reason,
@@ -50,7 +51,6 @@ from registration.lens.straight_edges import (
     detect_pieces,
     link_collinear,
 )
-from registration.lens.straightness import _PackedLines
 
 log = logging.getLogger(__name__)
 

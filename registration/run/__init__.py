@@ -4,7 +4,7 @@ folder (records, identity, lock, reader, writer).
 """
 
 from registration.run.anchoring import ANCHOR_STAGE, render_anchor
-from registration.run.chunk_plan import (
+from registration.run.chunks import (
     ChunkContext,
     ChunkJob,
     chunk_plan,

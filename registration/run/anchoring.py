@@ -66,7 +66,7 @@ class Anchoring:
     """Re-anchoring of long flights (``IntraConfig.reanchor_coverage``, beyond the paper)."""
 
     def __init__(self, ctx, joint: JointBase):
-        """``ctx``: the run's :class:`registration.run.chunk_plan.ChunkContext`."""
+        """``ctx``: the run's :class:`registration.run.chunks.ChunkContext`."""
         self.ctx, self.joint = ctx, joint
         self.base, self.base_valid, self.camera = ctx.base, ctx.base_valid, ctx.camera
         self.config = ctx.config

@@ -62,7 +62,7 @@ class PipelineConfig:
             ``random_seed + k``.
         chunk_frames: beyond the paper: split the frames after the reference frame, and the
             frames before it, into chunks of at most this many consecutive frames that are
-            registered independently of each other (:func:`registration.run.chunk_plan.chunk_plan`),
+            registered independently of each other (:func:`registration.run.chunks.chunk_plan`),
             so that they can run in parallel (``registration.run.dask_executor``). A chunk's first
             frame has no registered predecessor (unless it follows the reference frame) and
             each chunk sees only its own anchors. 0 = one chunk (the paper's chain). The result

@@ -1,6 +1,6 @@
 """Scale-out on Dask (``aerialreg register --workers N`` / ``--scheduler ADDRESS``).
 
-The chunks of a run (:func:`registration.run.chunk_plan.chunk_plan`) are independent, so each runs as
+The chunks of a run (:func:`registration.run.chunks.chunk_plan`) are independent, so each runs as
 one task on a ``dask.distributed`` cluster: a :class:`distributed.LocalCluster` of N
 single-threaded worker processes on this machine, or an existing cluster reached through its
 scheduler. The process that calls :func:`registration.run.pipeline.register_sequence` (the driver)
@@ -34,7 +34,7 @@ import uuid
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
-from registration.run.chunk_plan import ChunkContext, ChunkJob, FrameOutput
+from registration.run.chunks import ChunkContext, ChunkJob, FrameOutput
 from registration.run.intra_frames import run_chunk
 
 log = logging.getLogger(__name__)
@@ -178,7 +178,7 @@ def check_workers(client) -> None:
 
 class DaskExecutor:
     """Runs chunk jobs on a ``distributed.Client`` (see the module docstring); a
-    :class:`registration.run.chunk_plan.ChunkExecutor`.
+    :class:`registration.run.chunks.ChunkExecutor`.
 
     Frames arrive as their workers finish them, in any order. Closing the iterator (or setting
     ``cancel``) tells the workers to stop after the frame in progress and cancels the chunks not

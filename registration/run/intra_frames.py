@@ -35,7 +35,7 @@ from registration.io import FrameSource
 from registration.lens import Camera
 from registration.local import LocalConfig, frame_field
 from registration.run.anchoring import Anchoring, render_anchor
-from registration.run.chunk_plan import (
+from registration.run.chunks import (
     Chunk,
     ChunkContext,
     ChunkJob,

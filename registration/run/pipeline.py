@@ -39,7 +39,7 @@ from registration.lens import Camera, check_harris_gamma
 from registration.local import reference_field
 from registration.render import render_to_base
 from registration.run.anchoring import ANCHOR_STAGE, anchor_box, footprint, render_anchor
-from registration.run.chunk_plan import ChunkContext, ChunkExecutor, chunk_jobs, processing_order
+from registration.run.chunks import ChunkContext, ChunkExecutor, chunk_jobs, processing_order
 from registration.run.config import PipelineConfig, config_from_dict
 from registration.run.identity import make_metadata
 from registration.run.intra_frames import SerialExecutor, failed_record, read_frame

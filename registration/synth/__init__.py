@@ -14,7 +14,7 @@
 from registration.synth.config import SimConfig
 from registration.synth.demo import DEMO_CONFIG, demo_dir, demo_sequence
 from registration.synth.profiles import PROFILES, Profile, motion_stats
-from registration.synth.rebase import rebase
+from registration.synth.rebasing import rebase
 from registration.synth.sequence import simulate
 from registration.synth.truth import SimTruth, load_truth
 

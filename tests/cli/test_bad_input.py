@@ -32,7 +32,7 @@ from registration.io import MAX_FRAME_PIXELS, open_frames, read_image
 from registration.run import ResultLock, get_preset, register_sequence
 from registration.synth import SimConfig, load_truth, simulate
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 N = 6
 SIZE = (480, 360)
 PROGRESS = re.compile(r"^[\w ]+: \d+/\d+ \(\d+%\)")

@@ -3,7 +3,7 @@ frames before it backwards from it, each with its registered neighbour nearer th
 the previous frame), evaluated against that reference frame, and rendered.
 
 Limits are ``measured x 1.3`` on the session's sequence (tests/conftest.py: 640x480, 6 frames,
-simulator seed 1, reference frame 3); see tests/test_accuracy.py for how to re-measure.
+simulator seed 1, reference frame 3); see tests/e2e/test_accuracy.py for how to re-measure.
 """
 
 from __future__ import annotations

@@ -36,7 +36,7 @@ from app.project import Project  # noqa: E402
 from app.security import make_server  # noqa: E402
 from app.server import App  # noqa: E402
 from registration.lens import HarrisModel  # noqa: E402
-from tests.test_app import small_seq  # noqa: E402,F401  (session fixture: 4 frames 640x480)
+from tests.app.test_app import small_seq  # noqa: E402,F401  (session fixture: 4 frames 640x480)
 
 VIEWPORT = {"width": 1280, "height": 800}
 WIDE = {"width": 1440, "height": 900}
@@ -444,8 +444,8 @@ def test_seed_click_drag_and_disable_worst(browser, live_app, small_seq):  # noq
 
 @pytest.fixture(scope="module")
 def turned_seq(small_seq, tmp_path_factory):  # noqa: F811
-    """The small sequence over its map turned by 90° (``registration.synth.rebase``)."""
-    from registration.synth.rebase import rebase
+    """The small sequence over its map turned by 90° (``registration.synth.rebasing``)."""
+    from registration.synth.rebasing import rebase
 
     return rebase(small_seq, tmp_path_factory.mktemp("turned") / "seq", 90.0, 1.0)
 
@@ -456,7 +456,7 @@ def test_one_click_on_a_turned_map_shows_heading_and_second_pair_fixes_it(
 ):
     from app import calls
     from registration.synth import load_truth
-    from tests.test_app import angle_gap, heading_shown, true_heading
+    from tests.app.test_app import angle_gap, heading_shown, true_heading
 
     truth = load_truth(turned_seq)
     server = make_server("127.0.0.1", 0, verbose=False)

@@ -1,4 +1,4 @@
-"""Tests for registration.geometry.ransac: RANSAC and REQCON with outliers injected at named indices."""
+"""Tests for registration.geometry.ransac_fit: RANSAC and REQCON with outliers injected at named indices."""
 
 from __future__ import annotations
 

@@ -19,7 +19,7 @@ from registration.matching import (
     to_grey,
 )
 from registration.run import CHANGE_LOG_RATIO
-from tests.test_features import (
+from tests.matching.test_features import (
     bent_warp,
     coarse_model,
     fourier_shift,

@@ -18,7 +18,7 @@ import pytest
 viser = pytest.importorskip("viser")
 
 from registration.gis import GeoReference  # noqa: E402
-from tests.test_app import small_seq  # noqa: E402,F401  (session fixture)
+from tests.app.test_app import small_seq  # noqa: E402,F401  (session fixture)
 
 TRANSFORM = (0.5, 0.0, 300000.0, 0.0, -0.5, 3700000.0)  # 0.5 m pixels, UTM 43N
 CRS = "EPSG:32643"

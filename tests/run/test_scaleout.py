@@ -37,7 +37,7 @@ from registration.synth import PROFILES, SimConfig, load_truth, simulate
 
 distributed = pytest.importorskip("distributed", reason="needs dask[distributed] (test extra)")
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 W, H, N, REF, CHUNK = 480, 360, 12, 6, 4
 
 

@@ -757,8 +757,8 @@ def test_flow_correspondences_are_read_through_the_warps_lattice():
     0.095 px at 0.6-0.85 of the half-diagonal, 0.249 px beyond (the model itself read at the
     sample: 0.130 and 0.345 px)."""
     from registration.lens import Camera
-    from tests.test_features import texture as aerial_texture
-    from tests.test_features import warp_into
+    from tests.matching.test_features import texture as aerial_texture
+    from tests.matching.test_features import warp_into
 
     w, h = 320, 240
     camera = Camera(0.6, w, h)

@@ -18,7 +18,7 @@ from registration.matching import TemplateConfig
 from registration.run import PRESETS, PipelineConfig, config_from_dict, config_to_dict, get_preset
 from registration.run.config import _dataclass_in
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def test_paper_preset_holds_the_papers_numbers():

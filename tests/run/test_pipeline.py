@@ -32,7 +32,7 @@ def sim(sim_seq) -> Path:
 
 @pytest.fixture
 def result(default_result):
-    """The default preset on it, reference frame 0 (its accuracy: tests/test_accuracy.py)."""
+    """The default preset on it, reference frame 0 (its accuracy: tests/e2e/test_accuracy.py)."""
     return default_result
 
 
@@ -160,7 +160,7 @@ def test_paper_preset_on_a_short_sequence(sim, paper_result):
     for k in range(PAPER_FRAMES):
         err = np.linalg.norm(res.frame_to_base(k, q, "global") - truth.frame_to_base(k, q), axis=1)
         # The paper's Table 2 reports 2.6 px after the global stage (limits per stage, measured:
-        # tests/test_accuracy.py).
+        # tests/e2e/test_accuracy.py).
         assert np.median(err) < 3.0
 
 
@@ -177,7 +177,7 @@ def test_intra_frames_follow_motion_beyond_the_prediction_gate(sim, tmp_path):
     gate = 12.0
     assert min(moves) > 1.5 * gate, moves  # measured 22-39 px at 640x480
     cfg = get_preset("default")
-    # The SIFT coarse step's gate (the fast path, tests/test_fast_coarse.py, has none).
+    # The SIFT coarse step's gate (the fast path, tests/global_registration/test_fast_coarse.py, has none).
     intra = replace(cfg.intra, prediction_gate_px=gate, fast_coarse=False)
     cfg = replace(cfg, run_local=False, intra=intra)
     frames = tmp_path / "frames"

@@ -19,7 +19,7 @@ import pytest
 import registration
 from registration.synth import SimConfig, load_truth, simulate
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 N_FRAMES = 7
 REF = 3
 

@@ -24,7 +24,7 @@ from registration.io import (
 )
 from registration.run.result_folder import _TEMP
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 # Two payloads the child alternates between; every byte says which one it belongs to, so a file
 # mixing them, or cut short, is recognised.

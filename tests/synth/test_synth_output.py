@@ -145,7 +145,7 @@ def test_sigkill_mid_render_keeps_the_old_run_and_next_run_cleans_up(tmp_path):
     simulate(out, SimConfig(**TINY, n_frames=3, seed=1))
     before = _snapshot(out)
     code = "import sys; from app.cli import main; sys.exit(main(sys.argv[1:]))"
-    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
     proc = subprocess.Popen(
         [
             sys.executable,

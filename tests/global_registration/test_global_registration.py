@@ -2,7 +2,7 @@
 calls it, registration.global_registration's fine and intra-sensor steps), against the
 simulator's exact truth on the session's sequence (tests/conftest.py: 640x480, seed 1).
 
-Limits are ``measured x 1.3`` (measured figure beside each); see tests/test_accuracy.py for
+Limits are ``measured x 1.3`` (measured figure beside each); see tests/e2e/test_accuracy.py for
 the end-to-end ones.
 """
 
