@@ -37,7 +37,11 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 
 # Test files of the end-to-end layer: whole-sequence runs against the simulator's truth.
-E2E = ["tests/e2e/test_accuracy.py", "tests/e2e/test_reference_frame.py", "tests/run/test_pipeline.py"]
+E2E = [
+    "tests/e2e/test_accuracy.py",
+    "tests/e2e/test_reference_frame.py",
+    "tests/run/test_pipeline.py",
+]
 
 
 @dataclass(frozen=True)
@@ -118,7 +122,11 @@ MUTATIONS: list[Mutation] = [
         "`HarrisModel` ignores a given distortion centre",
         "registration/lens/radial.py",
         [("        if self.center is None:\n", "        if True:\n", 1)],
-        ["tests/lens/test_distortion.py", "tests/lens/test_calibration.py", "tests/cli/test_cli_distortion.py"],
+        [
+            "tests/lens/test_distortion.py",
+            "tests/lens/test_calibration.py",
+            "tests/cli/test_cli_distortion.py",
+        ],
     ),
     _m(
         "overlay_base_only",
@@ -156,7 +164,11 @@ MUTATIONS: list[Mutation] = [
                 1,
             )
         ],  # fmt: skip
-        ["tests/global_registration/test_global_registration.py", "tests/matching/test_templates.py", *E2E],
+        [
+            "tests/global_registration/test_global_registration.py",
+            "tests/matching/test_templates.py",
+            *E2E,
+        ],
     ),
     _m(
         "paper_preset_is_default",
@@ -176,7 +188,10 @@ MUTATIONS: list[Mutation] = [
         "dithered NCC disabled (no re-correlation at the sub-pixel estimate)",
         "registration/matching/ncc_peaks.py",
         [("    for _ in range(config.dither_iterations):\n", "    for _ in range(0):\n", 1)],
-        ["tests/matching/test_templates.py", "tests/global_registration/test_global_registration.py"],
+        [
+            "tests/matching/test_templates.py",
+            "tests/global_registration/test_global_registration.py",
+        ],
         tags=("real-image",),
     ),
     # -- controls: bugs the issue found caught; they must stay caught ------------------------
@@ -214,7 +229,11 @@ MUTATIONS: list[Mutation] = [
         "coarse step without guided matching",
         "registration/global_registration/coarse_fit.py",
         [("    if config.guided and len(fk):\n", "    if False and len(fk):\n", 1)],
-        ["tests/global_registration/test_coarse.py", "tests/global_registration/test_heading.py", *E2E],
+        [
+            "tests/global_registration/test_coarse.py",
+            "tests/global_registration/test_heading.py",
+            *E2E,
+        ],
     ),
     _m(
         "correlation_on_intensity",
@@ -239,7 +258,12 @@ MUTATIONS: list[Mutation] = [
         "spatial cross-validation always keeps the richest model",
         "registration/geometry/model_choice.py",
         [("        if err < (1.0 - margin) * best_err:\n", "        if True:\n", 1)],
-        ["tests/geometry/test_robust.py", "tests/geometry/test_model_choice.py", "tests/global_registration/test_coarse.py", *E2E],
+        [
+            "tests/geometry/test_robust.py",
+            "tests/geometry/test_model_choice.py",
+            "tests/global_registration/test_coarse.py",
+            *E2E,
+        ],
     ),
     _m(
         "reqcon_outlier_rule_never_stops",
@@ -327,7 +351,11 @@ MUTATIONS: list[Mutation] = [
                 1,
             )
         ],  # fmt: skip
-        ["tests/geometry/test_warp.py", "tests/render/test_render.py", "tests/matching/test_templates.py"],
+        [
+            "tests/geometry/test_warp.py",
+            "tests/render/test_render.py",
+            "tests/matching/test_templates.py",
+        ],
     ),
     _m(
         "atomic_write_in_place",
