@@ -54,7 +54,7 @@ from registration.gis.vector import (
     write_points_files,
 )
 from registration.io import (
-    temp_path_beside,
+    atomic_path,
     write_bytes_atomic,
     write_image_atomic,
     write_json_atomic,
@@ -189,17 +189,11 @@ def write_geotiff(
     if num_threads:
         profile["num_threads"] = int(num_threads)
     use_mask = mask is not None and not np.all(mask)
-    tmp = temp_path_beside(path)
-    try:
-        with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True):
-            with rasterio.open(tmp, "w", **profile) as ds:
-                ds.write(bands)
-                if use_mask:
-                    ds.write_mask(np.asarray(mask, bool).astype(np.uint8) * 255)
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    with atomic_path(path) as tmp, rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True):
+        with rasterio.open(tmp, "w", **profile) as ds:
+            ds.write(bands)
+            if use_mask:
+                ds.write_mask(np.asarray(mask, bool).astype(np.uint8) * 255)
     return path
 
 

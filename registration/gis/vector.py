@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 
 from registration.coords import frame_outline
 from registration.gis.georef import GeoReference, parse_crs
-from registration.io import temp_path_beside, write_bytes_atomic
+from registration.io import atomic_path, write_bytes_atomic
 
 QGIS_POINTS_HEADER = "mapX,mapY,sourceX,sourceY,enable,dX,dY,residual"
 # Where an intra-sensor frame's control point was matched (``source`` of the fine step).
@@ -186,33 +186,28 @@ def write_geopackage(path: str | os.PathLike, layers: list[Layer], crs_wkt: str 
     crs = parse_crs(crs_wkt) if crs_wkt else None
     epsg = crs.to_epsg() if crs is not None else None
     srs_id = -1 if crs is None else (epsg if epsg is not None else 100000)
-    tmp = temp_path_beside(path)
-    tmp.unlink()
-    con = sqlite3.connect(tmp)
-    try:
-        _gpkg_schema(con)
-        if crs is not None and srs_id != 4326:
-            con.execute(
-                "INSERT INTO gpkg_spatial_ref_sys VALUES (?, ?, ?, ?, ?, ?)",
-                (
-                    crs.name,
-                    srs_id,
-                    "EPSG" if epsg is not None else "NONE",
-                    epsg if epsg is not None else srs_id,
-                    crs.to_wkt(WktVersion.WKT1_GDAL),
-                    "",
-                ),
-            )
-        for layer in layers:
-            _gpkg_layer(con, layer, srs_id)
-        con.commit()
-    finally:
-        con.close()
-    try:
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    with atomic_path(path) as tmp:
+        tmp.unlink()  # SQLite makes the database file itself
+        con = sqlite3.connect(tmp)
+        try:
+            _gpkg_schema(con)
+            if crs is not None and srs_id != 4326:
+                con.execute(
+                    "INSERT INTO gpkg_spatial_ref_sys VALUES (?, ?, ?, ?, ?, ?)",
+                    (
+                        crs.name,
+                        srs_id,
+                        "EPSG" if epsg is not None else "NONE",
+                        epsg if epsg is not None else srs_id,
+                        crs.to_wkt(WktVersion.WKT1_GDAL),
+                        "",
+                    ),
+                )
+            for layer in layers:
+                _gpkg_layer(con, layer, srs_id)
+            con.commit()
+        finally:
+            con.close()
     return path
 
 

@@ -3,8 +3,8 @@ globs), text inputs and file identities, and the one atomic writer every output 
 """
 
 from registration.io.atomic import (
+    atomic_path,
     encode_npz,
-    temp_path_beside,
     write_bytes_atomic,
     write_image_atomic,
     write_json_atomic,
@@ -37,7 +37,7 @@ __all__ = [
     "open_frames",
     "read_image",
     "read_text_file",
-    "temp_path_beside",
+    "atomic_path",
     "write_bytes_atomic",
     "write_image_atomic",
     "write_json_atomic",

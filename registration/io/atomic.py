@@ -7,6 +7,9 @@ from __future__ import annotations
 import json
 import os
 import tempfile
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import cv2
@@ -14,33 +17,54 @@ import numpy as np
 from numpy.typing import NDArray
 
 
-def temp_path_beside(path: str | os.PathLike) -> Path:
-    """A new empty temporary file in ``path``'s folder with its suffix (for writers that need a
-    file name, e.g. GDAL): write it, then ``os.replace`` it onto ``path``."""
+def _file_mode() -> int:
+    """The permissions a new file gets from the process's umask (``0o666 & ~umask``), as any
+    ``open(..., "w")`` would; ``mkstemp`` alone gives 0600."""
+    status = Path("/proc/self/status")
+    if status.is_file():  # Linux: read without changing it (os.umask is process-wide)
+        for line in status.read_text().splitlines():
+            if line.startswith("Umask:"):
+                return 0o666 & ~int(line.split()[1], 8)
+    with _UMASK_LOCK:
+        mask = os.umask(0)
+        os.umask(mask)
+    return 0o666 & ~mask
+
+
+_UMASK_LOCK = threading.Lock()
+
+
+@contextmanager
+def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+    """The one way this project writes a file: a temporary file beside ``path`` for the caller to
+    write (by name, so GDAL, ffmpeg, SQLite and ``cv2.imwrite`` can use it too), which on leaving
+    the block is flushed to disk (fsync), given the permissions the umask gives and renamed onto
+    ``path`` (readers see the old file or the new one, never a part); on an exception it is
+    removed and ``path`` is left as it was.
+
+    The temporary name is ``.NAME.XXXXXXXX.tmp`` plus ``path``'s suffix (writers that pick their
+    format by the suffix need it); result folders recognise it as their own.
+    """
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=p.parent, prefix=f".{p.stem}.", suffix=p.suffix)
+    fd, name = tempfile.mkstemp(dir=p.parent, prefix=f".{p.name}.", suffix=".tmp" + p.suffix)
     os.close(fd)
-    return Path(tmp)
+    tmp = Path(name)
+    try:
+        yield tmp
+        os.chmod(tmp, _file_mode())
+        with open(tmp, "rb+") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp, p)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:
-    """Write ``data`` to ``path`` so that readers see the old file or the new one, never a part."""
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=p.parent, prefix=f".{p.name}.", suffix=".tmp")
-    try:
-        if hasattr(os, "fchmod"):
-            os.fchmod(fd, 0o644)  # mkstemp's 0600 would hide results from other users
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, p)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    """Write ``data`` to ``path`` so that readers see the old file or the new one, never a part
+    (:func:`atomic_path`)."""
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
 
 
 def write_json_atomic(path: str | os.PathLike, obj: object) -> None:

@@ -5,7 +5,6 @@ written as mp4.
 from __future__ import annotations
 
 import os
-import tempfile
 from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
@@ -14,7 +13,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from registration.io import read_image, write_image_atomic
+from registration.io import atomic_path, read_image, write_image_atomic
 from registration.render.figures import _bgr, field_component_images, overlay
 from registration.render.frames import footprint, render_registered
 
@@ -46,47 +45,42 @@ def write_video(
     import imageio.v2 as imageio
 
     out = Path(out_mp4)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=out.parent, prefix=f".{out.stem}.", suffix=".tmp.mp4")
-    os.close(fd)
     writer = None
     size = None
     n = 0
-    try:
-        for item in frames:
-            img = read_image(item) if isinstance(item, (str, os.PathLike)) else _bgr(item)
-            if img.dtype != np.uint8:
-                raise ValueError(f"video frames must be uint8, got {img.dtype}")
-            h, w = img.shape[:2]
-            if size is None:
-                size = (w, h)
-                writer = imageio.get_writer(
-                    tmp,
-                    format="FFMPEG",
-                    mode="I",
-                    fps=fps,
-                    codec="libx264",
-                    pixelformat="yuv420p",
-                    macro_block_size=1,
-                    quality=quality,
-                )
-            elif (w, h) != size:
-                raise ValueError(f"video frame {n} is {w}x{h}, the first was {size[0]}x{size[1]}")
-            pad_w, pad_h = w % 2, h % 2
-            if pad_w or pad_h:
-                img = cv2.copyMakeBorder(img, 0, pad_h, 0, pad_w, cv2.BORDER_CONSTANT, value=0)
-            writer.append_data(cv2.cvtColor(img, cv2.COLOR_BGR2RGB))
-            n += 1
-        if writer is None:
-            raise ValueError(f"no frames to write to {out}")
-        writer.close()
-        writer = None
-        os.replace(tmp, out)
-    finally:
-        if writer is not None:
-            writer.close()
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+    with atomic_path(out) as tmp:
+        try:
+            for item in frames:
+                img = read_image(item) if isinstance(item, (str, os.PathLike)) else _bgr(item)
+                if img.dtype != np.uint8:
+                    raise ValueError(f"video frames must be uint8, got {img.dtype}")
+                h, w = img.shape[:2]
+                if size is None:
+                    size = (w, h)
+                    writer = imageio.get_writer(
+                        tmp,
+                        format="FFMPEG",
+                        mode="I",
+                        fps=fps,
+                        codec="libx264",
+                        pixelformat="yuv420p",
+                        macro_block_size=1,
+                        quality=quality,
+                    )
+                elif (w, h) != size:
+                    raise ValueError(
+                        f"video frame {n} is {w}x{h}, the first was {size[0]}x{size[1]}"
+                    )
+                pad_w, pad_h = w % 2, h % 2
+                if pad_w or pad_h:
+                    img = cv2.copyMakeBorder(img, 0, pad_h, 0, pad_w, cv2.BORDER_CONSTANT, value=0)
+                writer.append_data(cv2.cvtColor(img, cv2.COLOR_BGR2RGB))
+                n += 1
+            if writer is None:
+                raise ValueError(f"no frames to write to {out}")
+        finally:
+            if writer is not None:
+                writer.close()
     return out
 
 

@@ -18,7 +18,8 @@ from registration.run.records import MID_BASE, MID_BASE_VALID, RESULT_JSON, _rea
 
 LOCK_NAME = ".lock"
 # What a result folder may hold; only these are ever deleted (``--force``).
-_TEMP = re.compile(r"^\..+\.tmp$")
+# io.atomic_path's temporary files: .NAME.XXXXXXXX.tmp, plus NAME's suffix where it has one.
+_TEMP = re.compile(r"^\..+\.tmp(\.[A-Za-z0-9]+)?$")
 _OWN = {
     ".": re.compile(
         "^(" + "|".join(map(re.escape, (RESULT_JSON, MID_BASE, MID_BASE_VALID))) + ")$"

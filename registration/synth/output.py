@@ -29,17 +29,11 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from registration.io import write_bytes_atomic
+
 OWNED = ("frames", "base.png", "truth.json", "sequence.mp4")
 STAGING_PREFIX = ".simulate-"
 TRUTH_NAME = "truth.json"
-
-
-def write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` atomically (temporary name in the same folder, then rename)."""
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    with open(tmp, "wb") as fh:
-        fh.write(data)
-    os.replace(tmp, path)
 
 
 def encode_png(rgb: NDArray[np.uint8], name: str = "image") -> bytes:
@@ -54,7 +48,7 @@ def encode_png(rgb: NDArray[np.uint8], name: str = "image") -> bytes:
 def write_png(path: Path, rgb: NDArray[np.uint8]) -> str:
     """Write an RGB (or grey) uint8 image as PNG, atomically; returns the file's SHA-256."""
     data = encode_png(rgb, str(path))
-    write_bytes(path, data)
+    write_bytes_atomic(path, data)
     return hashlib.sha256(data).hexdigest()
 
 
@@ -163,4 +157,4 @@ class Staging:
                 os.replace(target, trash / name)
             if (self.dir / name).exists():
                 os.replace(self.dir / name, target)
-        write_bytes(out / TRUTH_NAME, (json.dumps(truth, indent=1) + "\n").encode())
+        write_bytes_atomic(out / TRUTH_NAME, (json.dumps(truth, indent=1) + "\n").encode())

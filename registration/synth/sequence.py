@@ -25,12 +25,14 @@ from __future__ import annotations
 
 import dataclasses
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from registration.io import atomic_path
 from registration.synth import city as citymod
 from registration.synth.basemap import base_map_info, warp_base
 from registration.synth.camera import SequenceGeometry
@@ -59,16 +61,15 @@ def _as_rgb(image, name: str) -> NDArray[np.uint8]:
     return np.ascontiguousarray(arr[..., :3])
 
 
-class _VideoWriter:
-    """H.264 video of the frames, cropped to even size, written to a temporary file first."""
+@contextmanager
+def _video_writer(path: Path, fps: float) -> Iterator[Callable[[NDArray[np.uint8]], None]]:
+    """H.264 video of the frames, cropped to even size, written through
+    :func:`registration.io.atomic_path`: yields the function that appends a frame."""
+    import imageio.v2 as imageio
 
-    def __init__(self, path: Path, fps: float):
-        import imageio.v2 as imageio
-
-        self.path = path
-        self.tmp = path.with_name(f".tmp{os.getpid()}.{path.name}")
-        self.writer = imageio.get_writer(
-            str(self.tmp),
+    with atomic_path(path) as tmp:
+        writer = imageio.get_writer(
+            str(tmp),
             format="FFMPEG",
             fps=fps,
             codec="libx264",
@@ -78,20 +79,12 @@ class _VideoWriter:
             pixelformat="yuv420p",
             ffmpeg_log_level="error",
         )
-
-    def append(self, rgb: NDArray[np.uint8]) -> None:
-        h, w = rgb.shape[:2]
-        self.writer.append_data(np.ascontiguousarray(rgb[: h - h % 2, : w - w % 2]))
-
-    def close(self) -> None:
-        self.writer.close()
-        os.replace(self.tmp, self.path)
-
-    def abort(self) -> None:
         try:
-            self.writer.close()
+            yield lambda rgb: writer.append_data(
+                np.ascontiguousarray(rgb[: rgb.shape[0] // 2 * 2, : rgb.shape[1] // 2 * 2])
+            )
         finally:
-            Path(self.tmp).unlink(missing_ok=True)
+            writer.close()
 
 
 # ------------------------------------------------------------------------------------------
@@ -229,22 +222,20 @@ def simulate(
         if progress:
             progress(1, total)
         renderer = FrameRenderer(geom, scene_img, cfg, layout)
-        writer = _VideoWriter(stage.dir / "sequence.mp4", cfg.fps) if cfg.video else None
-        try:
+        with ExitStack() as stack:
+            video = (
+                stack.enter_context(_video_writer(stage.dir / "sequence.mp4", cfg.fps))
+                if cfg.video
+                else None
+            )
             for k in range(cfg.n_frames):
                 frame = renderer.render(k)
                 rel = f"frames/{k:06d}.png"
                 files[rel] = write_png(stage.dir / rel, frame)
-                if writer:
-                    writer.append(frame)
+                if video:
+                    video(frame)
                 if progress:
                     progress(k + 2, total)
-        except BaseException:
-            if writer:
-                writer.abort()
-            raise
-        if writer:
-            writer.close()
         truth["files"] = files
         stage.commit(truth)
     if progress:

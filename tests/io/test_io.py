@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from registration.io import (
+    atomic_path,
     read_image,
     write_bytes_atomic,
     write_image_atomic,
@@ -105,3 +106,34 @@ def test_failed_write_keeps_the_old_file(tmp_path):
         write_json_atomic(target, {"v": object()})
     assert json.loads(target.read_text()) == {"v": 1}
     assert [p.name for p in tmp_path.iterdir()] == ["keep.json"]
+
+
+def test_written_files_get_the_permissions_the_umask_gives(tmp_path):
+    """Every writer goes through ``atomic_path``: a new file is 0666 minus the umask, as an
+    ordinary ``open(..., "w")`` gives (mkstemp alone would give 0600), also under umask 027."""
+    code = (
+        "import os, sys; os.umask(0o027)\n"
+        "from registration.io import write_bytes_atomic, atomic_path\n"
+        "write_bytes_atomic(sys.argv[1] + '/a.bin', b'x')\n"
+        "with atomic_path(sys.argv[1] + '/b.tif') as tmp:\n"
+        "    assert tmp.name.startswith('.b.tif.') and tmp.name.endswith('.tmp.tif')\n"
+        "    tmp.write_bytes(b'y')\n"
+    )
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    subprocess.run([sys.executable, "-c", code, str(tmp_path)], env=env, check=True)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.bin", "b.tif"]
+    for name in ("a.bin", "b.tif"):
+        assert (tmp_path / name).stat().st_mode & 0o777 == 0o640, name
+    write_bytes_atomic(tmp_path / "c.bin", b"z")  # this process's umask
+    mask = os.umask(0)
+    os.umask(mask)
+    assert (tmp_path / "c.bin").stat().st_mode & 0o777 == 0o666 & ~mask
+
+
+def test_atomic_path_removes_its_file_when_the_writer_fails(tmp_path):
+    (tmp_path / "v.mp4").write_bytes(b"old")
+    with pytest.raises(RuntimeError), atomic_path(tmp_path / "v.mp4") as tmp:
+        tmp.write_bytes(b"half")
+        raise RuntimeError("encoder died")
+    assert [p.name for p in tmp_path.iterdir()] == ["v.mp4"]
+    assert (tmp_path / "v.mp4").read_bytes() == b"old"

@@ -126,13 +126,13 @@ def test_kill_during_commit_leaves_no_truth_beside_other_frames(tmp_path, monkey
 
 def test_truth_is_the_last_file_written(tmp_path, monkeypatch):
     order = []
-    real = outmod.write_bytes
+    real = outmod.write_bytes_atomic
 
     def record(path, data):
         order.append(Path(path).name)
         return real(path, data)
 
-    monkeypatch.setattr(outmod, "write_bytes", record)
+    monkeypatch.setattr(outmod, "write_bytes_atomic", record)
     simulate(tmp_path, SimConfig(**TINY, n_frames=3))
     assert order[-1] == "truth.json" and order.count("truth.json") == 1
     assert order[:-1] == ["base.png", "000000.png", "000001.png", "000002.png"]
