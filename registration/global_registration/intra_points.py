@@ -66,16 +66,18 @@ def points_to_corrected(cps: ControlPoints, view) -> ControlPoints:
 def gridded_points(view, frame_sift, model, joint, prev, cfg) -> ControlPoints:
     """Gridded-SIFT control points against the mid base image and the previous frame (paper
     4.4), ``src`` corrected px."""
-    if joint.mid_sift is None:
-        joint.mid_sift = sift.detect_sift(
+    mid_sift = joint.derived.get(
+        "mid_sift",
+        lambda: sift.detect_sift(
             joint.mid_grey, cfg.gridded.sift, mask=joint.mid_valid.astype(np.uint8)
-        )
+        ),
+    )
     refs_fine = [
         gridded_sift.Reference(
             joint.mid_grey,
             lambda xy: model.apply(view.to_corrected(xy)),
             lambda b: view.from_corrected(model.inverse(b)),
-            joint.mid_sift,
+            mid_sift,
         )
     ]
     if prev is not None:

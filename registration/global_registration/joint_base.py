@@ -27,49 +27,57 @@ from registration.matching import (
 from registration.matching import grey as matching_grey
 
 
+class DerivedCache:
+    """What is computed from the mid base image once and shared by every frame (its coarse and
+    full-scale SIFT, the local stage's keypoints and flow reference), dropped together when the
+    image changes (:func:`add_to_mid_base`).
+
+    Thread-safe: the local stages of several frames run at once (:mod:`registration.run.prefetch`);
+    the first to ask for a value makes it, the others wait for it.
+    """
+
+    def __init__(self) -> None:
+        self._values: dict[str, object] = {}
+        self._lock = threading.RLock()
+
+    def get(self, name: str, make: Callable[[], object]) -> object:
+        """The value ``name``, made by ``make()`` the first time it is asked for."""
+        with self._lock:
+            if name not in self._values:
+                self._values[name] = make()
+            return self._values[name]
+
+    def clear(self) -> None:
+        with self._lock:
+            self._values.clear()
+
+
 @dataclass
 class JointBase:
-    """What intra-sensor registration matches a frame against (paper 4.4).
+    """What intra-sensor registration matches a frame against (paper 4.4): the mid base image
+    and the previously registered frame, with the base map for what neither covers.
 
     Attributes:
         mid_grey: the mid base image, grey, in base pixels (Hb, Wb); 0 where ``mid_valid`` is
             False.
         mid_valid: (Hb, Wb) bool, where the mid base image has content.
-        mid_coarse: coarse SIFT of the mid base image, when first needed (:func:`mid_coarse`).
         mid_image: the mid base image as rendered (colour), for writing it out.
         base_grey, base_valid: the base map (grey) and its content mask, searched by the
             templates that neither the mid base image nor the previous frame can take
             (``IntraConfig.base_fallback``).
-        mid_sift: full-scale SIFT of the mid base image (gridded-SIFT control points), lazily.
         previous: the previously registered frame, or None.
         previous_index: that frame's index in the sequence.
-        local_keypoints: the mid base image's keypoints for the local stage (paper preset), once.
-        flow_reference: the mid base image prepared for the flow local stage, once.
+        derived: what is computed from the mid base image (:class:`DerivedCache`).
     """
 
     mid_grey: NDArray[np.uint8]
     mid_valid: NDArray[np.bool_]
-    mid_coarse: CoarseFeatures | None = None
     mid_image: NDArray[np.uint8] | None = None
     base_grey: NDArray[np.uint8] | None = None
     base_valid: NDArray[np.bool_] | None = None
-    mid_sift: Keypoints | None = None
     previous: PreviousFrame | None = None
     previous_index: int | None = None
-    local_keypoints: object | None = None
-    flow_reference: object | None = None
-    _prepare_lock: threading.Lock = field(
-        default_factory=threading.Lock, init=False, repr=False, compare=False
-    )
-
-    def prepared(self, name: str, make: Callable[[], object]) -> object:
-        """The member ``name`` (``local_keypoints`` or ``flow_reference``), made by ``make()``
-        the first time it is asked for. Local stages of several frames run at once
-        (:mod:`registration.run.prefetch`): the first to ask makes it, the others wait for it."""
-        with self._prepare_lock:
-            if getattr(self, name) is None:
-                setattr(self, name, make())
-            return getattr(self, name)
+    derived: DerivedCache = field(default_factory=DerivedCache, repr=False, compare=False)
 
 
 @dataclass
@@ -111,9 +119,9 @@ def make_joint_base(mid_base: NDArray, mid_valid: NDArray[np.bool_]) -> JointBas
 
 def mid_coarse(joint: JointBase, cfg: CoarseConfig) -> CoarseFeatures:
     """The mid base image's coarse SIFT (computed when first needed, after each change)."""
-    if joint.mid_coarse is None:
-        joint.mid_coarse = coarse_features(joint.mid_grey, cfg, mask=joint.mid_valid)
-    return joint.mid_coarse
+    return joint.derived.get(
+        "mid_coarse", lambda: coarse_features(joint.mid_grey, cfg, mask=joint.mid_valid)
+    )
 
 
 def add_to_mid_base(joint: JointBase, image: NDArray, valid: NDArray[np.bool_], box) -> None:
@@ -130,7 +138,7 @@ def add_to_mid_base(joint: JointBase, image: NDArray, valid: NDArray[np.bool_], 
     if joint.mid_image is not None:
         joint.mid_image[y0:y1, x0:x1][hole] = image[hole]
     joint.mid_valid[y0:y1, x0:x1] |= hole
-    joint.mid_coarse = joint.mid_sift = joint.local_keypoints = joint.flow_reference = None
+    joint.derived.clear()
 
 
 def mid_coverage(joint: JointBase, camera: Camera, model) -> float:

@@ -247,7 +247,7 @@ def frame_field(frame, camera: Camera, model, joint, config: LocalConfig, flow=N
     reference = joint.mid_grey[y0:y1, x0:x1]
     both = valid & joint.mid_valid[y0:y1, x0:x1]
     # The mid base image is the reference of every frame: detect its keypoints once.
-    keypoints = joint.prepared(
+    keypoints = joint.derived.get(
         "local_keypoints", lambda: detect_keypoints(joint.mid_grey, config, mask=joint.mid_valid)
     )
     return estimate_field(

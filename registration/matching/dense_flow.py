@@ -110,8 +110,8 @@ def prepare_flow_reference(
 
 def joint_flow_reference(joint, width: int, config: FlowSettings) -> FlowReference:
     """The flow reference of the joint base's mid base image for ``width`` px wide frames,
-    prepared once and kept in ``joint.flow_reference`` (``JointBase.prepared``)."""
-    return joint.prepared(
+    prepared once and kept in ``joint.derived`` (``JointBase.derived``)."""
+    return joint.derived.get(
         "flow_reference",
         lambda: prepare_flow_reference(joint.mid_grey, joint.mid_valid, flow_scale(width, config)),
     )

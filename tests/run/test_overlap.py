@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from registration.global_registration import JointBase
+from registration.global_registration import JointBase, add_to_mid_base
 from registration.io import FrameReadError, open_frames
 from registration.run import FramesAhead, LocalAhead, intra_frames
 from registration.synth import SimConfig, simulate
@@ -150,7 +150,7 @@ def test_overlapped_run_starts_the_next_local_stage_while_one_runs(
     _assert_same(Path(default_result.out_dir), Path(overlapped.out_dir))
 
 
-def test_joint_base_prepares_a_member_once_for_concurrent_callers():
+def test_joint_base_derives_a_value_once_for_concurrent_callers_and_drops_it_on_change():
     joint = JointBase(np.zeros((8, 8), np.uint8), np.ones((8, 8), bool))
     calls: list[int] = []
 
@@ -160,8 +160,16 @@ def test_joint_base_prepares_a_member_once_for_concurrent_callers():
         return object()
 
     with ThreadPoolExecutor(2) as pool:
-        got = list(pool.map(lambda _: joint.prepared("flow_reference", make), range(2)))
-    assert calls == [1] and got[0] is got[1] is joint.flow_reference
+        got = list(pool.map(lambda _: joint.derived.get("flow_reference", make), range(2)))
+    assert calls == [1] and got[0] is got[1] is joint.derived.get("flow_reference", make)
+    # A re-anchored frame over content already there changes nothing: the value stays.
+    patch = np.full((2, 2), 9, np.uint8)
+    add_to_mid_base(joint, patch, np.ones((2, 2), bool), (0, 0, 2, 2))
+    assert joint.derived.get("flow_reference", make) is got[0] and calls == [1]
+    # One that fills empty pixels changes the mid base image: every derived value is made anew.
+    joint.mid_valid[:2, :2] = False
+    add_to_mid_base(joint, patch, np.ones((2, 2), bool), (0, 0, 2, 2))
+    assert joint.derived.get("flow_reference", make) is not got[0] and calls == [1, 1]
 
 
 @pytest.fixture(scope="module")
