@@ -10,12 +10,23 @@ Pure library: no GUI, no printing. Conventions (fixed, see ``conventions.md`` of
 * raw frame = as recorded (lens-distorted); corrected frame = after the Harris correction;
   base = the orthorectified base map, in whose pixels registered output lives.
 
-Stage modules: ``distortion`` (section 3), ``models`` and ``robust`` (geometric models, RANSAC,
-REQCON), ``features`` (control points), ``global_registration`` (section 4), ``local`` (section 5),
-``evaluation`` (section 6), ``synth`` (ground-truth simulator), ``result`` (result folders),
-``warp`` (the one remap primitive), ``config`` (presets), ``georef`` (map coordinates of a
-georeferenced base), ``export`` and ``gis_vector`` (GeoTIFF, mosaic, video, QGIS and GeoJSON /
-GeoPackage files).
+Packages, by the paper's stages and the layers beneath them (each names its part of the paper
+and its public API in its ``__init__``; lower layers never import higher ones):
+
+* ``io``: files in and out (images and their limits, frame sources, the atomic writer);
+* ``geometry``: the model protocol, projective and polyprojective (eq. 5), RANSAC, REQCON, the
+  displacement field and ``warp``, the one remap primitive;
+* ``matching``: SIFT, gridded SIFT, template grids by NCC, dense DIS flow;
+* ``lens`` (section 3): the Harris model, the camera, γ from straight lines and from motion;
+* ``render``: frames in base pixels, the field's components (Fig. 5), overlays (Fig. 6), videos;
+* ``global_registration`` (section 4) and ``local`` (section 5): the paper's two stages;
+* ``gis``: base maps and their georeference, GIS exports;
+* ``synth``: the helicopter simulator with exact truth;
+* ``run`` (Fig. 3): presets, the whole sequence, re-anchoring, Dask, the result folder;
+* ``evaluation`` (section 6): Table 2, errors against the truth, consistency from the images.
+
+``coords`` (point arrays) and ``mapping`` (the interface a result and the truth share) sit
+beside them.
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
-"""Accuracy of a registration (paper section 6): the paper's Table 2, per-frame error statistics
-and "sudden excursions".
+"""The paper's Table 2 (section 6) and what the evaluation measures: its settings, the table and how
+it is built from motions.
 
 Two sources of ground points:
 

@@ -1,6 +1,6 @@
 """What every geometric model shares: the protocol, the falsy estimation failure, input
-checks, the coordinate normalisation, the optimisers (our Levenberg-Marquardt, Nelder-Mead),
-parameter quantisation, and the inverse and chain wrappers.
+checks, the coordinate normalisation, parameter quantisation, and the inverse and chain
+wrappers. The optimisers are in :mod:`registration.geometry.optimisers`.
 
 The models themselves are in :mod:`registration.geometry.rational` (projective, polyprojective) and
 :mod:`registration.geometry.models` (translation, similarity, affine; the public entry point, which

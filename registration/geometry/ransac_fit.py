@@ -1,4 +1,5 @@
-"""Robust model fitting: RANSAC (paper 4.3.1) and REQCON (paper 4.3.2, 4.4).
+"""RANSAC (paper 4.3.1): the best model of a class in the presence of false matches, with an
+adaptive trial count, batched scoring and a refinement of the winner.
 
 Both are generic over the :class:`registration.geometry.estimation.GeometricModel` protocol: a model class
 with ``min_samples`` and ``estimate(src, dst, *, initial, optimizer)`` returning a model or a

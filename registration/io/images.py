@@ -1,4 +1,6 @@
-"""Reading frames and images, and writing files atomically. The only disk access of the pipeline.
+"""Reading images: frames and maps as BGR uint8, with their size checked from the file's header
+before decoding (limits below) and truncated files recognised (OpenCV decodes some into grey
+images without an error).
 
 A frame source is a video file (read with imageio/ffmpeg frame by frame, never the whole video
 in memory), a directory of images (sorted by name), or a glob pattern. Frames are BGR uint8.

@@ -1,8 +1,6 @@
-"""The local stage's data and settings (paper section 5): :class:`LocalConfig`, the per-cell
-status codes, :class:`DisplacementField` (the grid of vectors, its sampling and serialisation),
-:class:`FieldStats` and the node lattice (:func:`grid_nodes`). See :mod:`registration.local`
-for the stage itself.
-"""
+"""The local stage's settings and per-cell results (paper section 5): :class:`LocalConfig`, the
+per-cell status codes, :class:`FieldStats` and :class:`KeypointSet`. The field itself is
+:class:`registration.geometry.DisplacementField`; the stage is :mod:`registration.local.refine`."""
 
 from __future__ import annotations
 

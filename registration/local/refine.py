@@ -26,10 +26,11 @@ motion of similar support (two motions, we cannot tell which is the ground) or (
 disagrees with the median of its neighbours by more than a tolerance (a cell dominated by a
 column of cars that all move alike). Rejected cells are filled from their neighbours.
 
-This module is the stage's entry point (:func:`estimate_field`, the reference and per-frame
-fields, applying and inverting a field) and re-exports the rest: the data and settings in
-:mod:`registration.local.config`, the matching, per-cell consensus and spline fit in
-:mod:`registration.local.consensus`, and the DIS flow samples in :mod:`registration.matching.dense_flow`.
+This module is the stage's entry point (:func:`estimate_field`, the reference frame's and each
+frame's field); the settings are in :mod:`registration.local.config`, the matching and per-cell
+consensus in :mod:`registration.local.consensus`, the spline fit in :mod:`registration.local.spline`,
+the DIS flow samples in :mod:`registration.matching.dense_flow`, and the field with its
+application and inversion in :mod:`registration.geometry.displacement_field`.
 """
 
 from __future__ import annotations

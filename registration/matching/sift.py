@@ -1,6 +1,5 @@
-"""Control points (paper sections 4.3.1, 4.3.2 and 4.4): grey conversion and subsampling, SIFT
-keypoints with ratio-test matching, location gating around the single seed correspondence, the
-template grid matched by normalised cross-correlation, and gridded SIFT matched window by window.
+"""SIFT keypoints with ratio-test matching (paper sections 4.3.1 and 4.4): detection (with an
+optional mask), descriptors, and matches by FLANN or brute force with Lowe's ratio test.
 
 Every function takes and returns points as ``(N, 2)`` float64 ``(x, y)`` arrays with pixel centres
 at integer coordinates (``conventions.md``). Transforms are plain callables ``(N, 2) -> (N, 2)``

@@ -1,6 +1,5 @@
-"""Registered outputs (paper sections 5 and 6): frames rendered into base-map pixels, cropped to
-the sequence's footprint, an mp4 of them, the displacement field's components as images (paper
-Fig. 5) and semi-transparent overlays of a frame over the reference (paper Fig. 6).
+"""Frames rendered into base-map pixels (paper sections 5 and 6): through the global model and the
+local field, cropped to what a frame or the sequence covers, and a frame's footprint on the map.
 
 Pure functions return arrays (BGR uint8, like cv2); the ``write_*`` functions write files
 atomically (temporary file + ``os.replace``), so a reader never sees half a file.

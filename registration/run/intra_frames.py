@@ -1,5 +1,7 @@
-"""Chunks of a sequence and the registration of each frame in them (paper 4.4 and 5, beyond the
-paper's single chain).
+"""Registering the intra-sensor frames of one chunk (paper 4.4 and 5): each frame's global stage
+against the joint base, then its local field, the frame's record written as soon as it is done;
+re-anchoring where a frame leaves the mid base image (:mod:`registration.run.anchoring`). The
+order and chunks are planned in :mod:`registration.run.chunks`.
 
 Processing order: the reference frame, then the frames after it in order, then the frames before
 it backwards, so that the "previous" frame (paper 4.4) is always the registered neighbour nearer

@@ -1,5 +1,6 @@
-"""Registration result folders: the writer (:class:`ResultWriter`), the reader
-(:class:`RegistrationResult`) and the mapping interface they share with the simulator's truth.
+"""Reading a registration result folder (:class:`RegistrationResult`, ``registration.load``): the
+mapping interface it shares with the simulator's truth, and the records, models, fields and
+control points of each frame. The folder is written by :mod:`registration.run.writer`.
 
 The interface (fixed by ``conventions.md``)::
 
