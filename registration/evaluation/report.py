@@ -239,7 +239,7 @@ def _status(result: Any, k: int) -> str:
     records = getattr(result, "records", None)
     if records is not None:
         try:
-            return str(records[k].get("status", "ok"))
+            return records[k].status
         except (IndexError, AttributeError, TypeError):
             return "ok"
     return "ok"

@@ -269,14 +269,14 @@ def transforms_document(result, georef: GeoReference | None, stage: str = "local
     frames = []
     for k in range(result.n_frames):
         rec = result.records[k]
-        entry: dict[str, Any] = {"frame": k, "status": rec.get("status")}
-        if rec.get("status") != "ok":
-            entry["reason"] = rec.get("reason", "")
+        entry: dict[str, Any] = {"frame": k, "status": rec.status}
+        if not rec.ok:
+            entry["reason"] = rec.reason
             frames.append(entry)
             continue
         base = result.frame_to_base(k, grid, stage)
         hom, err = _homography(grid, base)
-        entry["model"] = rec["model"]
+        entry["model"] = rec.model
         entry["corners_raw"] = corners.tolist()
         entry["corners_base"] = _json_points(result.frame_to_base(k, corners, stage))
         entry["base_from_raw_homography"] = None if hom is None else hom.tolist()

@@ -118,7 +118,7 @@ def write_registered_sequence(
     """
     out = Path(out_dir) if out_dir is not None else Path(result.out_dir) / "registered"
     n = int(result.n_frames)
-    ok = [k for k in range(n) if result.records[k].get("status") == "ok"]
+    ok = [k for k in range(n) if result.is_ok(k)]
     fns = [(lambda q, k=k: result.frame_to_base(k, q, "global")) for k in ok]
     x0, y0, w, h = footprint(fns, tuple(result.frame_size), tuple(result.base_size), pad=2)
     if w == 0 or h == 0:

@@ -37,6 +37,7 @@ from registration.run.pipeline import (
 )
 from registration.run.prefetch import FramesAhead, LocalAhead
 from registration.run.records import (
+    FrameRecord,
     frame_arrays,
     frame_record_path,
     frame_stats,
@@ -48,6 +49,7 @@ from registration.run.result_folder import ResultLock, check_out_dir
 from registration.run.writer import ResultWriter
 
 __all__ = [
+    "FrameRecord",
     "ANCHOR_STAGE",
     "CHANGE_LOG_RATIO",
     "ChunkContext",

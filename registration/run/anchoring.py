@@ -28,6 +28,7 @@ from registration.global_registration import (
 from registration.lens import Camera
 from registration.local import reference_field
 from registration.render import render_to_base
+from registration.run.records import FrameRecord
 from registration.run.records import frame_arrays as _frame_arrays
 from registration.run.records import frame_stats as _stats
 
@@ -96,22 +97,20 @@ class Anchoring:
             frame, self.base, self.camera, intra, self.config.fine,
             match_in=self.config.match_in, base_valid=self.base_valid,
         )  # fmt: skip
-        stats = record.setdefault("stats", {})
-        stats["mid_coverage"] = round(coverage, 3)
+        coverage = round(coverage, 3)
         if not fine:
-            stats["anchor"] = f"not re-anchored: {fine.reason}"
-            return record, arrays, state, False
+            why = f"not re-anchored: {fine.reason}"
+            return record.with_stats(mid_coverage=coverage, anchor=why), arrays, state, False
         shift = median_gap(fine.base_from_corrected, intra, self.camera)
         if not shift <= cfg.reanchor_max_shift_px:
-            stats["anchor"] = f"not re-anchored: the map fit is {shift:.1f} px from the frame's"
-            return record, arrays, state, False
-        times = dict(stats.get("time_s", {}))
+            why = f"not re-anchored: the map fit is {shift:.1f} px from the frame's"
+            return record.with_stats(mid_coverage=coverage, anchor=why), arrays, state, False
+        intra_stats = record.stats
+        times = dict(intra_stats.get("time_s", {}))
         record, arrays, state = self.anchor(frame, fine, NoCoarse(), times, t0)
-        record["stats"].update(mid_coverage=round(coverage, 3), anchor_shift_px=round(shift, 3))
         # How the intra-sensor step that the anchor confirmed found the frame.
-        for key in ("coarse_path", "fast_path_reason"):
-            if key in stats:
-                record["stats"][key] = stats[key]
+        found = {k: intra_stats[k] for k in ("coarse_path", "fast_path_reason") if k in intra_stats}
+        record = record.with_stats(mid_coverage=coverage, anchor_shift_px=round(shift, 3), **found)
         return record, arrays, state, True
 
     def anchor(self, frame, fine: FineResult, coarse, times: dict, t0: float):
@@ -130,8 +129,10 @@ class Anchoring:
                 self.joint, frame, self.camera, model, field_, self.config.intra.anchor_fill_radius
             )
         times["anchor"] = round(time.perf_counter() - t0, 4)
-        record = {"status": "ok", "reason": "", "stage": ANCHOR_STAGE,
-                  "stats": _stats(coarse, fine, times, field_stats), "model": model.to_dict()}  # fmt: skip
+        record = FrameRecord(
+            "ok", stage=ANCHOR_STAGE, stats=_stats(coarse, fine, times, field_stats),
+            model=model.to_dict(),
+        )  # fmt: skip
         state = previous_frame_state(
             frame, self.camera, model, self.config.intra, match_in=self.config.match_in
         )

@@ -25,11 +25,12 @@ from registration.lens import Camera
 from registration.matching import grey
 from registration.run.anchoring import ANCHOR_STAGE
 from registration.run.config import PipelineConfig
+from registration.run.records import FrameRecord
 from registration.run.result import RegistrationResult
 from registration.run.writer import ResultWriter
 
 # What a chunk gives for each frame: ``(k, record, arrays)``, as ResultWriter.write_frame takes.
-FrameOutput = tuple[int, dict, "dict[str, NDArray] | None"]
+FrameOutput = tuple[int, FrameRecord, "dict[str, NDArray] | None"]
 
 
 def processing_order(n_frames: int, reference_frame: int) -> list[int]:
@@ -182,12 +183,11 @@ def chunk_jobs(writer: ResultWriter, n_frames: int, ref: int, config) -> list[Ch
             result = result or RegistrationResult(writer.out_dir)
             for k in done_ks:
                 rec = result.records[k]
-                ok = rec.get("status") == "ok"
-                anchor = ok and rec.get("stage") == ANCHOR_STAGE
+                anchor = rec.ok and rec.stage == ANCHOR_STAGE
                 done[k] = DoneFrame(
-                    ok,
+                    rec.ok,
                     anchor,
-                    rec.get("model") if ok else None,
+                    rec.model if rec.ok else None,
                     result.field(k) if anchor else None,
                 )
         jobs.append(ChunkJob(chunk, done))

@@ -133,7 +133,7 @@ def _frames_difference(old: dict | None, new: dict | None, records: list[dict], 
         if o.get("sample_sha256") != n.get("sample_sha256"):
             return _differs(label, "content of its first or last 64 KB")
         if o.get("mtime_ns") != n.get("mtime_ns") and n["size"] > 2 * SAMPLE_BYTES:
-            want = records[k].get("input_sha256") if k < len(records) else None
+            want = records[k].input_sha256 if k < len(records) else None
             if want and path is not None and file_sha256(path) != want:
                 return _differs(label, "content changed since it was registered")
     return ""

@@ -46,6 +46,7 @@ from registration.run.chunks import (
 )
 from registration.run.config import PipelineConfig
 from registration.run.prefetch import FramesAhead, LocalAhead
+from registration.run.records import FrameRecord
 from registration.run.records import frame_arrays as _frame_arrays
 from registration.run.records import frame_stats as _stats
 
@@ -131,7 +132,7 @@ def run_chunk(context: ChunkContext, job: ChunkJob) -> Iterator[FrameOutput]:
                 # frame takes the last good one as its previous frame).
                 models[k] = None
                 yield from finish_pending()
-                yield k, failed_record(problem), None
+                yield k, FrameRecord.failed(problem), None
                 continue
             prev = _predecessor(k, job.chunk, models, ctx.reference_frame)
             _set_previous(joint, ctx, prev, models)
@@ -159,8 +160,9 @@ def run_chunk(context: ChunkContext, job: ChunkJob) -> Iterator[FrameOutput]:
             models[k] = state.base_from_corrected if state is not None else None
             if state is not None:
                 joint.previous, joint.previous_index = state, k
-            if "time_s" in record.get("stats", {}):
-                record["stats"]["time_s"].setdefault("read", round(t_read, 4))
+            times = record.stats.get("time_s")
+            if times is not None and "read" not in times:
+                record = record.with_stats(time_s={**times, "read": round(t_read, 4)})
             yield k, record, arrays
         yield from finish_pending()
     finally:
@@ -212,10 +214,10 @@ def _register_start(frame, k: int, ctx: ChunkContext, joint: JointBase, anchorin
     if state is not None:
         record, arrays, state, anchored = anchoring.maybe(frame, k, record, arrays, state)
         confirmed = anchored is not False
-        record.setdefault("stats", {})["chunk_start"] = "anchored" if anchored else "mid base image"
+        record = record.with_stats(chunk_start="anchored" if anchored else "mid base image")
         if confirmed:
             return record, arrays, state
-    first_reason = record.get("reason") or record.get("stats", {}).get("anchor", "")
+    first_reason = record.reason or record.stats.get("anchor", "")
     t0 = time.perf_counter()
     cfg = ctx.config
     coarse = coarse_register(frame, ctx.base, ctx.camera, None, cfg.coarse, match_in=cfg.match_in,
@@ -227,14 +229,16 @@ def _register_start(frame, k: int, ctx: ChunkContext, joint: JointBase, anchorin
         fine = FineResult.failed(coarse.reason)
     if not fine:
         if state is not None:  # the intra-sensor result stands, unconfirmed (as in a chain)
-            record["stats"]["chunk_start"] = f"unconfirmed: base map: {fine.reason}"
-            return record, arrays, state
+            return (
+                record.with_stats(chunk_start=f"unconfirmed: base map: {fine.reason}"),
+                arrays,
+                state,
+            )
         reason = f"no predecessor: mid base image: {first_reason}; base map: {fine.reason}"
-        return failed_record(reason), None, None
+        return FrameRecord.failed(reason), None, None
     times = {"coarse": coarse.time_s, "fine": fine.time_s}
     record, arrays, state = anchoring.anchor(frame, fine, coarse, times, t0)
-    record["stats"]["chunk_start"] = "base map"
-    return record, arrays, state
+    return record.with_stats(chunk_start="base map"), arrays, state
 
 
 def read_frame(frames: FrameSource, k: int) -> tuple[NDArray | None, str]:
@@ -249,11 +253,6 @@ def read_frame(frames: FrameSource, k: int) -> tuple[NDArray | None, str]:
         fw, fh = frames.size
         return None, f"frame {k} is {w}x{h} pixels but the reference frame is {fw}x{fh}"
     return frame, ""
-
-
-def failed_record(reason: str) -> dict:
-    """The record of a frame that could not be registered, with the reason."""
-    return {"status": "failed", "reason": reason, "stats": {}, "model": None}
 
 
 # --------------------------------------------------------------------------------------------
@@ -285,13 +284,12 @@ class _Global:
         times["total"] = times.pop("global") + times.get("local", 0.0)
         if read is not None:
             times["read"] = read
-        record = {
-            "status": "ok",
-            "reason": "",
-            "stage": "intra-sensor",
-            "stats": _stats(self.coarse, self.fine, times, field_stats),
-            "model": self.fine.base_from_corrected.to_dict(),
-        }
+        record = FrameRecord(
+            "ok",
+            stage="intra-sensor",
+            stats=_stats(self.coarse, self.fine, times, field_stats),
+            model=self.fine.base_from_corrected.to_dict(),
+        )
         return record, _frame_arrays(self.fine, field, field_stats), self.state
 
 
@@ -304,11 +302,11 @@ def _register_global(frame, k, camera: Camera, joint: JointBase, config: Pipelin
         )  # fmt: skip
     except np.linalg.LinAlgError as exc:
         reason = f"degenerate fit: {exc}"
-        return _Global({"status": "failed", "reason": reason, "stats": {}, "model": None})
+        return _Global(FrameRecord.failed(reason))
     times = {"coarse": coarse.time_s, "fine": fine.time_s}
     if not fine:
         stats = _stats(coarse, fine, times) if coarse else {"time_s": times}
-        record = {"status": "failed", "reason": fine.reason, "stats": stats, "model": None}
+        record = FrameRecord.failed(fine.reason, stats)
         return _Global(record, _frame_arrays(fine, None) if len(fine.src) else None)
     times["global"] = time.perf_counter() - t0
     return _Global(coarse=coarse, fine=fine, state=state, times=times)

@@ -42,8 +42,8 @@ from registration.run.anchoring import ANCHOR_STAGE, anchor_box, footprint, rend
 from registration.run.chunks import ChunkContext, ChunkExecutor, chunk_jobs, processing_order
 from registration.run.config import PipelineConfig, config_from_dict
 from registration.run.identity import make_metadata
-from registration.run.intra_frames import SerialExecutor, failed_record, read_frame
-from registration.run.records import MID_BASE
+from registration.run.intra_frames import SerialExecutor, read_frame
+from registration.run.records import MID_BASE, FrameRecord
 from registration.run.records import frame_arrays as _frame_arrays
 from registration.run.records import frame_stats as _stats
 from registration.run.result import RegistrationResult
@@ -224,7 +224,7 @@ def _reference_step(
         rec = RegistrationResult(out_dir)
         if not rec.is_ok(ref):
             raise RegistrationFailed(
-                f"the reference frame {ref} failed before: {rec.records[ref].get('reason')}"
+                f"the reference frame {ref} failed before: {rec.records[ref].reason}"
             )
         # Resuming: the mid base image is rendered again from the record, exactly as the
         # uninterrupted run rendered it (each chunk adds its own anchors, run_chunk).
@@ -232,7 +232,7 @@ def _reference_step(
         mid, valid = render_to_base(frame, camera, rec.model(ref), (0, 0, wb, hb), rec.field(ref))
         if writer.read_mid_base() is None:
             writer.write_mid_base(mid, valid)
-        return mid, valid, rec.records[ref]["model"], camera
+        return mid, valid, rec.records[ref].model, camera
 
     t0 = time.perf_counter()
     if reference is not None:
@@ -258,7 +258,7 @@ def _reference_step(
         times["lens"] = time.perf_counter() - t1
     times["total"] = time.perf_counter() - t0
     if not fine:
-        writer.write_frame(ref, failed_record(fine.reason))
+        writer.write_frame(ref, FrameRecord.failed(fine.reason))
         raise RegistrationFailed(
             f"the reference frame {ref} could not be registered to the base map: {fine.reason}"
         )
@@ -273,18 +273,14 @@ def _reference_step(
     # frame's local stage aligns to it, so its accuracy is theirs.
     mid, valid = render_to_base(frame, camera, model, (0, 0, wb, hb), field_)
     writer.write_mid_base(mid, valid)
-    record = {
-        "status": "ok",
-        "reason": "",
-        "stage": "inter-sensor",
-        "stats": _stats(coarse, fine, times, field_stats),
-        "model": model.to_dict(),
-        "lens_k2": camera.k2,
-    }
+    stats = _stats(coarse, fine, times, field_stats)
     if lens is not None:
-        record["stats"]["lens"] = lens.to_dict()
+        stats["lens"] = lens.to_dict()
+    record = FrameRecord(
+        "ok", stage="inter-sensor", stats=stats, model=model.to_dict(), lens_k2=camera.k2
+    )
     writer.write_frame(ref, record, _frame_arrays(fine, field_, field_stats))
-    return mid, valid, record["model"], camera
+    return mid, valid, record.model, camera
 
 
 def _at_base_resolution(config: PipelineConfig, camera: Camera, model) -> PipelineConfig:
@@ -311,9 +307,7 @@ def _write_mosaic(writer: ResultWriter, ctx: ChunkContext) -> None:
         return
     result = RegistrationResult(writer.out_dir)
     order = processing_order(result.n_frames, ctx.reference_frame)[1:]
-    anchors = [
-        k for k in order if result.is_ok(k) and result.records[k].get("stage") == ANCHOR_STAGE
-    ]
+    anchors = [k for k in order if result.is_ok(k) and result.records[k].stage == ANCHOR_STAGE]
     if not anchors:
         return
     joint = make_joint_base(ctx.mid.copy(), ctx.mid_valid.copy())

@@ -5,6 +5,7 @@ verification, arrays and statistics.
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -14,12 +15,6 @@ from registration.io import (
     file_sha256,
     read_text_file,
 )
-
-try:
-    import fcntl
-except ImportError:  # not POSIX: no lock (documented in README "Reliability")
-    fcntl = None
-
 
 FORMAT = "aerialreg-result"
 VERSION = 1
@@ -35,44 +30,139 @@ def frame_record_path(out_dir: Path, k: int, suffix: str) -> Path:
 # --------------------------------------------------------------------------------------------
 # Records
 
+STATUSES = ("ok", "failed", "pending", "damaged")
+
+
+@dataclass(frozen=True)
+class FrameRecord:
+    """What a result folder says about one frame (``frames/KKKKKK.json``), read and written only
+    through :meth:`from_json` and :meth:`to_json`.
+
+    Attributes:
+        status: ``"ok"`` or ``"failed"`` (written); ``"pending"`` (no record yet) or
+            ``"damaged"`` (unreadable record or arrays) when read.
+        reason: why it failed or is damaged (``""`` when ok).
+        stage: how an ok frame was registered: ``"inter-sensor"`` (the reference frame),
+            ``"intra-sensor"`` or ``"inter-sensor anchor"`` (re-anchored to the map); None
+            otherwise.
+        stats: counts, residuals (px) and times (s) of its steps (:func:`frame_stats`); built
+            before the record and not changed after.
+        model: its global model ``base_from_corrected`` as a dict
+            (:func:`registration.geometry.model_from_dict`); None unless ok.
+        lens_k2: the fourth-order lens term the reference frame's registration found (the
+            reference frame's record only).
+        k: the frame's index (set when written).
+        npz_bytes, npz_sha256: size and SHA-256 of its arrays file (None: it has none).
+        input_sha256: SHA-256 of its input image (frames read from image files).
+        legacy_arrays: a record written before ``npz_bytes`` existed: its arrays file is read
+            when there is one.
+    """
+
+    status: str
+    reason: str = ""
+    stage: str | None = None
+    stats: dict = field(default_factory=dict)
+    model: dict | None = None
+    lens_k2: float | None = None
+    k: int | None = None
+    npz_bytes: int | None = None
+    npz_sha256: str | None = None
+    input_sha256: str | None = None
+    legacy_arrays: bool = False
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
+
+    @property
+    def done(self) -> bool:
+        """A complete record ("ok" or "failed"); pending and damaged frames are (re)done."""
+        return self.status in ("ok", "failed")
+
+    def may_have_arrays(self, npz: Path) -> bool:
+        """Whether its arrays file ``npz`` is to be read."""
+        return self.npz_bytes is not None or (self.legacy_arrays and npz.is_file())
+
+    def with_stats(self, **updates) -> FrameRecord:
+        """The record with ``stats`` extended (or entries replaced) by ``updates``."""
+        return replace(self, stats={**self.stats, **updates})
+
+    @classmethod
+    def failed(cls, reason: str, stats: dict | None = None) -> FrameRecord:
+        """The record of a frame that could not be registered, with the reason."""
+        return cls("failed", reason, stats=dict(stats or {}))
+
+    def to_json(self) -> dict:
+        """The record as written (key order as in every result folder so far)."""
+        out: dict = {"k": self.k, "status": self.status, "reason": self.reason}
+        if self.stage is not None:
+            out["stage"] = self.stage
+        out["stats"] = self.stats
+        out["model"] = self.model
+        if self.lens_k2 is not None:
+            out["lens_k2"] = self.lens_k2
+        out["npz_bytes"] = self.npz_bytes
+        for name in ("npz_sha256", "input_sha256"):
+            if getattr(self, name) is not None:
+                out[name] = getattr(self, name)
+        return out
+
+    @classmethod
+    def from_json(cls, obj: object) -> FrameRecord:
+        """A written record; ValueError naming what is wrong with it."""
+        if not isinstance(obj, dict) or obj.get("status") not in ("ok", "failed"):
+            raise ValueError("no valid status")
+        stats, model = obj.get("stats", {}), obj.get("model")
+        if not isinstance(stats, dict):
+            raise ValueError("stats is not an object")
+        if obj["status"] == "ok" and not isinstance(model, dict):
+            raise ValueError("an ok record without its model")
+        k = obj.get("k")
+        return cls(
+            status=obj["status"],
+            reason=str(obj.get("reason", "")),
+            stage=obj.get("stage"),
+            stats=stats,
+            model=model,
+            lens_k2=obj.get("lens_k2"),
+            k=None if k is None else int(k),
+            npz_bytes=obj.get("npz_bytes"),
+            npz_sha256=obj.get("npz_sha256"),
+            input_sha256=obj.get("input_sha256"),
+            legacy_arrays="npz_bytes" not in obj,
+        )
+
 
 def _first_line(exc: BaseException) -> str:
     text = str(exc).strip()
     return text.splitlines()[0] if text else type(exc).__name__
 
 
-def _damaged(reason: str) -> dict:
-    return {"status": "damaged", "reason": reason, "stats": {}}
+def damaged_record(reason: str) -> FrameRecord:
+    return FrameRecord("damaged", reason)
 
 
-def _expects_npz(record: dict) -> bool:
-    """Whether a record's ``.npz`` must exist (``npz_bytes`` is its size). Records written
-    before ``npz_bytes`` may or may not have one."""
-    return record.get("npz_bytes") is not None
-
-
-def read_record(out_dir: str | Path, k: int) -> dict:
-    """Frame ``k``'s record: ``{"status": "pending", ...}`` without one, ``"damaged"`` when the
-    record is unreadable or its ``.npz`` is missing or of the wrong size (checked with ``stat``
-    only; a corrupt ``.npz`` of the right size is found when its arrays are read)."""
+def read_record(out_dir: str | Path, k: int) -> FrameRecord:
+    """Frame ``k``'s record: status ``"pending"`` without one, ``"damaged"`` when the record is
+    unreadable or its ``.npz`` is missing or of the wrong size (checked with ``stat`` only; a
+    corrupt ``.npz`` of the right size is found when its arrays are read)."""
     path = frame_record_path(out_dir, k, ".json")
     if not path.is_file():
-        return {"status": "pending", "reason": "not registered yet", "stats": {}}
+        return FrameRecord("pending", "not registered yet")
     try:
-        rec = json.loads(path.read_bytes())
-    except (OSError, ValueError) as exc:  # JSONDecodeError and UnicodeDecodeError are ValueErrors
-        return _damaged(f"damaged record {path.name}: {_first_line(exc)}")
-    if not isinstance(rec, dict) or rec.get("status") not in ("ok", "failed"):
-        return _damaged(f"damaged record {path.name}: no valid status")
-    if _expects_npz(rec):
+        rec = FrameRecord.from_json(json.loads(path.read_bytes()))
+    except (OSError, ValueError, TypeError) as exc:  # JSON and Unicode errors are ValueErrors
+        return damaged_record(f"damaged record {path.name}: {_first_line(exc)}")
+    if rec.npz_bytes is not None:
         npz = path.with_suffix(".npz")
         try:
             size = npz.stat().st_size
         except OSError:
-            return _damaged(f"damaged record {path.name}: {npz.name} is missing")
-        want = rec.get("npz_bytes")
-        if want is not None and size != want:
-            return _damaged(f"damaged record {path.name}: {npz.name} has {size} bytes, not {want}")
+            return damaged_record(f"damaged record {path.name}: {npz.name} is missing")
+        if size != rec.npz_bytes:
+            return damaged_record(
+                f"damaged record {path.name}: {npz.name} has {size} bytes, not {rec.npz_bytes}"
+            )
     return rec
 
 
@@ -82,18 +172,20 @@ def verify_record(out_dir: str | Path, k: int) -> dict:
     when a run resumes, so that it redoes frames whose arrays are corrupt."""
     rec = read_record(out_dir, k)
     path = frame_record_path(out_dir, k, ".npz")
-    if rec.get("status") not in ("ok", "failed") or not (_expects_npz(rec) or path.is_file()):
+    if not rec.done or not (rec.npz_bytes is not None or path.is_file()):
         return rec
     try:
-        if rec.get("npz_sha256"):
-            if file_sha256(path) != rec["npz_sha256"]:
-                return _damaged(f"damaged arrays {path.name}: content differs from its record")
+        if rec.npz_sha256:
+            if file_sha256(path) != rec.npz_sha256:
+                return damaged_record(
+                    f"damaged arrays {path.name}: content differs from its record"
+                )
         else:
             with np.load(path) as z:
                 for name in z.files:
                     z[name]
     except Exception as exc:  # OSError, BadZipFile, EOFError, ValueError, zlib.error
-        return _damaged(f"damaged arrays {path.name}: {_first_line(exc)}")
+        return damaged_record(f"damaged arrays {path.name}: {_first_line(exc)}")
     return rec
 
 

@@ -27,20 +27,15 @@ from numpy.typing import ArrayLike, NDArray
 from registration.coords import as_points
 from registration.gis import GeoReference
 from registration.lens import Camera
-
-try:
-    import fcntl
-except ImportError:  # not POSIX: no lock (documented in README "Reliability")
-    fcntl = None
 from registration.mapping import _check_stage
 from registration.run.identity import _base_difference, _frames_difference, base_identity
 from registration.run.records import (
     MID_BASE,
     RESULT_JSON,
-    _damaged,
-    _expects_npz,
+    FrameRecord,
     _first_line,
     _read_meta,
+    damaged_record,
     frame_record_path,
     read_record,
 )
@@ -109,12 +104,15 @@ class RegistrationResult:
 
     def reload(self) -> None:
         """Re-read the per-frame records (a run may still be writing them)."""
-        self.records: list[dict] = [read_record(self.out_dir, k) for k in range(self.n_frames)]
+        self.records: list[FrameRecord] = [
+            read_record(self.out_dir, k) for k in range(self.n_frames)
+        ]
         self._models.clear()
         self._arrays.clear()
         # The lens beyond Harris that the reference frame's registration found (0 = Harris).
         ref = self.reference_frame
-        k2 = self.records[ref].get("lens_k2", 0.0) if 0 <= ref < self.n_frames else 0.0
+        k2 = self.records[ref].lens_k2 if 0 <= ref < self.n_frames else None
+        k2 = 0.0 if k2 is None else k2
         try:
             self.camera = self.camera.with_k2(float(k2))
         except (TypeError, ValueError):
@@ -137,13 +135,13 @@ class RegistrationResult:
 
     def status(self, k: int) -> str:
         """ "ok", "failed", "pending" or "damaged"."""
-        return str(self.records[self._check_k(k)].get("status"))
+        return self.records[self._check_k(k)].status
 
     def is_ok(self, k: int) -> bool:
-        return self.records[self._check_k(k)].get("status") == "ok"
+        return self.records[self._check_k(k)].ok
 
     def _damage(self, k: int, reason: str) -> None:
-        self.records[k] = _damaged(reason)
+        self.records[k] = damaged_record(reason)
         self._models.pop(k, None)
         self._arrays[k] = {}
 
@@ -156,7 +154,7 @@ class RegistrationResult:
             from registration.geometry import model_from_dict
 
             try:
-                self._models[k] = model_from_dict(self.records[k]["model"])
+                self._models[k] = model_from_dict(self.records[k].model)
             except (KeyError, TypeError, ValueError) as exc:
                 self._damage(k, f"damaged record {k:06d}.json: bad model ({_first_line(exc)})")
                 return None
@@ -167,8 +165,7 @@ class RegistrationResult:
         if k not in self._arrays:
             path = frame_record_path(self.out_dir, k, ".npz")
             arrays: dict = {}
-            rec = self.records[k]
-            if _expects_npz(rec) or ("npz_bytes" not in rec and path.is_file()):
+            if self.records[k].may_have_arrays(path):
                 try:
                     with np.load(path) as z:
                         arrays = {name: z[name] for name in z.files}

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import logging
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +28,7 @@ from registration.run.records import (
     MID_BASE,
     MID_BASE_VALID,
     RESULT_JSON,
+    FrameRecord,
     _read_meta,
     frame_record_path,
     verify_record,
@@ -55,7 +57,7 @@ class ResultWriter:
         self._frames = frames
         meta = _read_meta(out_dir)
         self.n_frames = int(meta["n_frames"])
-        self._status = [verify_record(out_dir, k)["status"] for k in range(self.n_frames)]
+        self._status = [verify_record(out_dir, k).status for k in range(self.n_frames)]
 
     @classmethod
     def create(
@@ -122,22 +124,30 @@ class ResultWriter:
     def is_damaged(self, k: int) -> bool:
         return self._status[k] == "damaged"
 
-    def write_frame(self, k: int, record: dict, arrays: dict[str, NDArray] | None = None) -> None:
+    def write_frame(
+        self, k: int, record: FrameRecord, arrays: dict[str, NDArray] | None = None
+    ) -> None:
         """Write frame ``k``'s arrays (if any), then its record, each atomically."""
-        rec = {"k": int(k), **record, "npz_bytes": None}
+        npz_bytes = npz_sha256 = input_sha256 = None
         if arrays:
             data = encode_npz(**arrays)
             write_bytes_atomic(frame_record_path(self.out_dir, k, ".npz"), data)
-            rec["npz_bytes"] = len(data)
-            rec["npz_sha256"] = hashlib.sha256(data).hexdigest()
+            npz_bytes, npz_sha256 = len(data), hashlib.sha256(data).hexdigest()
         path = self._frames.path(k) if hasattr(self._frames, "path") else None
         if path is not None:
             try:
-                rec["input_sha256"] = file_sha256(path)
+                input_sha256 = file_sha256(path)
             except OSError:
                 pass
-        write_json_atomic(frame_record_path(self.out_dir, k, ".json"), rec)
-        self._status[k] = rec.get("status", "failed")
+        record = replace(
+            record,
+            k=int(k),
+            npz_bytes=npz_bytes,
+            npz_sha256=npz_sha256,
+            input_sha256=input_sha256,
+        )
+        write_json_atomic(frame_record_path(self.out_dir, k, ".json"), record.to_json())
+        self._status[k] = record.status
 
     # -- the mid base image -----------------------------------------------------------------
     def write_mid_base(self, mid: NDArray, valid: NDArray[np.bool_]) -> None:
