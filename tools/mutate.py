@@ -363,11 +363,11 @@ MUTATIONS: list[Mutation] = [
         "registration/io/atomic.py",
         [
             (
-                '        with os.fdopen(fd, "wb") as f:\n',
-                '        os.close(fd)\n        with open(p, "wb") as f:\n',
+                "    with atomic_path(path) as tmp:\n        tmp.write_bytes(data)\n",
+                "    Path(path).parent.mkdir(parents=True, exist_ok=True)\n"
+                "    Path(path).write_bytes(data)\n",
                 1,
             ),
-            ("        os.replace(tmp, p)\n", "        os.unlink(tmp)\n", 1),
         ],  # fmt: skip
         ["tests/io/test_io.py", "tests/cli/test_bad_input.py"],
     ),

@@ -35,19 +35,21 @@ _UMASK_LOCK = threading.Lock()
 
 
 @contextmanager
-def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+def atomic_path(path: str | os.PathLike, *, keep_suffix: bool = False) -> Iterator[Path]:
     """The one way this project writes a file: a temporary file beside ``path`` for the caller to
     write (by name, so GDAL, ffmpeg, SQLite and ``cv2.imwrite`` can use it too), which on leaving
     the block is flushed to disk (fsync), given the permissions the umask gives and renamed onto
     ``path`` (readers see the old file or the new one, never a part); on an exception it is
     removed and ``path`` is left as it was.
 
-    The temporary name is ``.NAME.XXXXXXXX.tmp`` plus ``path``'s suffix (writers that pick their
-    format by the suffix need it); result folders recognise it as their own.
+    The temporary name is ``.NAME.XXXXXXXX.tmp``, which no ``*.json`` or ``*.png`` glob matches
+    and result folders recognise as their own; with ``keep_suffix`` ``path``'s suffix follows
+    (``.NAME.XXXXXXXX.tmp.mp4``) for writers that pick their format by the name (ffmpeg).
     """
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
-    fd, name = tempfile.mkstemp(dir=p.parent, prefix=f".{p.name}.", suffix=".tmp" + p.suffix)
+    suffix = ".tmp" + (p.suffix if keep_suffix else "")
+    fd, name = tempfile.mkstemp(dir=p.parent, prefix=f".{p.name}.", suffix=suffix)
     os.close(fd)
     tmp = Path(name)
     try:

@@ -48,7 +48,7 @@ def write_video(
     writer = None
     size = None
     n = 0
-    with atomic_path(out) as tmp:
+    with atomic_path(out, keep_suffix=True) as tmp:
         try:
             for item in frames:
                 img = read_image(item) if isinstance(item, (str, os.PathLike)) else _bgr(item)

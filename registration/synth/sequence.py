@@ -67,7 +67,7 @@ def _video_writer(path: Path, fps: float) -> Iterator[Callable[[NDArray[np.uint8
     :func:`registration.io.atomic_path`: yields the function that appends a frame."""
     import imageio.v2 as imageio
 
-    with atomic_path(path) as tmp:
+    with atomic_path(path, keep_suffix=True) as tmp:
         writer = imageio.get_writer(
             str(tmp),
             format="FFMPEG",

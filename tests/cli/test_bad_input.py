@@ -287,7 +287,7 @@ def _hold_lock(out: Path) -> subprocess.Popen:
     code = (
         "import sys, time\n"
         "from pathlib import Path\n"
-        "from registration.run.result import ResultLock\n"
+        "from registration.run.result_folder import ResultLock\n"
         "ResultLock(Path(sys.argv[1])).acquire()\n"
         "print('locked', flush=True)\n"
         "time.sleep(120)\n"

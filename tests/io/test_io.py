@@ -116,13 +116,16 @@ def test_written_files_get_the_permissions_the_umask_gives(tmp_path):
         "from registration.io import write_bytes_atomic, atomic_path\n"
         "write_bytes_atomic(sys.argv[1] + '/a.bin', b'x')\n"
         "with atomic_path(sys.argv[1] + '/b.tif') as tmp:\n"
-        "    assert tmp.name.startswith('.b.tif.') and tmp.name.endswith('.tmp.tif')\n"
+        "    assert tmp.name.startswith('.b.tif.') and tmp.name.endswith('.tmp')\n"
         "    tmp.write_bytes(b'y')\n"
+        "with atomic_path(sys.argv[1] + '/c.mp4', keep_suffix=True) as tmp:\n"
+        "    assert tmp.name.endswith('.tmp.mp4')\n"
+        "    tmp.write_bytes(b'z')\n"
     )
     env = dict(os.environ, PYTHONPATH=str(REPO))
     subprocess.run([sys.executable, "-c", code, str(tmp_path)], env=env, check=True)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.bin", "b.tif"]
-    for name in ("a.bin", "b.tif"):
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.bin", "b.tif", "c.mp4"]
+    for name in ("a.bin", "b.tif", "c.mp4"):
         assert (tmp_path / name).stat().st_mode & 0o777 == 0o640, name
     write_bytes_atomic(tmp_path / "c.bin", b"z")  # this process's umask
     mask = os.umask(0)
