@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from registration.coords import image_size
+from registration.errors import ReferenceFrameUnusable, RegistrationFailed
 from registration.geometry import model_from_dict, scale_at_frame_centre
 from registration.global_registration import (
     CoarseResult,
@@ -52,10 +53,6 @@ from registration.run.writer import ResultWriter
 Progress = Callable[[int, int], None]
 
 
-class RegistrationFailed(ValueError):
-    """The reference frame could not be registered, so no frame can be."""
-
-
 def validate_inputs(frames: FrameSource, base: NDArray, gamma, seed, reference_frame) -> None:
     """ValueError naming the problem for a γ, seed or reference frame that cannot work (out of
     range, unreadable, or of another size than the sequence's first readable frame)."""
@@ -69,14 +66,14 @@ def validate_inputs(frames: FrameSource, base: NDArray, gamma, seed, reference_f
     try:
         rw, rh = image_size(frames.get(reference_frame))
     except ValueError as exc:  # FrameReadError
-        raise ValueError(
-            f"cannot read reference frame {reference_frame}: {exc}; choose another "
-            "--reference-frame"
+        raise ReferenceFrameUnusable(
+            f"cannot read reference frame {reference_frame}: {exc}", reference_frame
         ) from None
     if (rw, rh) != (w, h):
-        raise ValueError(
+        raise ReferenceFrameUnusable(
             f"reference frame {reference_frame} is {rw}x{rh} pixels but the sequence's first "
-            f"readable frame is {w}x{h}; choose another --reference-frame"
+            f"readable frame is {w}x{h}",
+            reference_frame,
         )
     seeds = normalise_seeds(seed)
     wb, hb = image_size(base)
@@ -218,13 +215,13 @@ def _reference_step(
     out_dir = writer.out_dir
     frame, problem = read_frame(frames, ref)
     if frame is None:
-        raise ValueError(f"{problem}; choose another --reference-frame")
+        raise ReferenceFrameUnusable(problem, ref)
     wb, hb = image_size(base)
     if writer.done(ref):
         rec = RegistrationResult(out_dir)
         if not rec.is_ok(ref):
             raise RegistrationFailed(
-                f"the reference frame {ref} failed before: {rec.records[ref].reason}"
+                f"the reference frame {ref} failed before: {rec.records[ref].reason}", ref
             )
         # Resuming: the mid base image is rendered again from the record, exactly as the
         # uninterrupted run rendered it (each chunk adds its own anchors, run_chunk).
@@ -260,7 +257,9 @@ def _reference_step(
     if not fine:
         writer.write_frame(ref, FrameRecord.failed(fine.reason))
         raise RegistrationFailed(
-            f"the reference frame {ref} could not be registered to the base map: {fine.reason}"
+            f"the reference frame {ref} could not be registered to the base map: {fine.reason}",
+            ref,
+            remedy="" if coarse else coarse.remedy,
         )
     model = fine.base_from_corrected
     field_, field_stats = None, None

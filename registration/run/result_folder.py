@@ -14,6 +14,13 @@ try:
     import fcntl
 except ImportError:  # not POSIX: no lock (documented in README "Reliability")
     fcntl = None
+from registration.errors import (
+    ForeignFolder,
+    NotAFolder,
+    ResultBusy,
+    ResultDamaged,
+    ResultExists,
+)
 from registration.run.records import MID_BASE, MID_BASE_VALID, RESULT_JSON, _read_meta
 
 LOCK_NAME = ".lock"
@@ -34,10 +41,6 @@ _OWN = {
 
 # --------------------------------------------------------------------------------------------
 # The lock
-
-
-class ResultBusy(ValueError):
-    """Another process is writing the result folder."""
 
 
 class ResultLock:
@@ -62,10 +65,7 @@ class ResultLock:
                     who = f"pid {info['pid']} on {info['host']}"
                 except (ValueError, KeyError, TypeError):
                     who = "pid unknown"
-                raise ResultBusy(
-                    f"{self.path.parent} is being written by another aerialreg process ({who}); "
-                    "wait for it or use another --out"
-                ) from None
+                raise ResultBusy(self.path.parent, who) from None
         os.ftruncate(fd, 0)
         os.write(fd, json.dumps({"pid": os.getpid(), "host": socket.gethostname()}).encode())
         self.fd = fd
@@ -96,7 +96,7 @@ def folder_state(out_dir: Path) -> str:
     if not out_dir.exists():
         return "missing"
     if not out_dir.is_dir():
-        raise ValueError(f"{out_dir} exists and is a file, not a folder; give a folder for --out")
+        raise NotAFolder(out_dir)
     names = [n for n in os.listdir(out_dir) if n != LOCK_NAME and not _TEMP.match(n)]
     if not names:
         return "empty"
@@ -119,21 +119,14 @@ def check_out_dir(out_dir: Path, *, resume: bool = False, force: bool = False) -
     :meth:`ResultWriter.create` refuses whatever the inputs: a file, a folder holding other
     files, a result without ``resume`` or ``force``, a damaged result without ``force``."""
     if resume and force:
-        raise ValueError("--resume and --force exclude each other")
+        raise ValueError("resuming and starting over exclude each other")
     state = folder_state(out_dir)
     if state == "foreign":
-        raise ValueError(_foreign_message(out_dir))
+        raise ForeignFolder(out_dir, _foreign_example(out_dir))
     if state == "damaged" and not force:
-        what = f"cannot resume {out_dir}: it holds" if resume else f"{out_dir} holds"
-        raise ValueError(
-            f"{what} a damaged registration result (result.json missing or corrupt); use "
-            "another --out or --force to start over"
-        )
+        raise ResultDamaged(out_dir, resuming=resume)
     if state == "result" and not (resume or force):
-        raise ValueError(
-            f"{out_dir} already holds a registration result; pass --resume to continue it, "
-            "--force to start over, or choose another folder"
-        )
+        raise ResultExists(out_dir)
     return state
 
 
@@ -175,10 +168,7 @@ def _rmdir_if_empty(path: Path) -> None:
         pass
 
 
-def _foreign_message(out_dir: Path) -> str:
+def _foreign_example(out_dir: Path) -> str:
+    """A name in ``out_dir`` that is not a result folder's (for the message)."""
     names = sorted(n for n in os.listdir(out_dir) if not _own_entry(".", n))
-    names = names or sorted(os.listdir(out_dir))
-    return (
-        f"{out_dir} is not an aerialreg result folder (it holds e.g. {names[0]!r}); give a new "
-        "or empty folder for --out"
-    )
+    return (names or sorted(os.listdir(out_dir)))[0]

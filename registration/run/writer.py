@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from registration.errors import ResumeMismatch
 from registration.io import (
     encode_npz,
     file_sha256,
@@ -87,16 +88,13 @@ class ResultWriter:
         try:
             state = check_out_dir(out_dir, resume=resume, force=force)  # now no one else writes
             if state in ("result", "damaged") and force:
-                log.info("--force: removing the result in %s", out_dir)
+                log.info("starting over: removing the result in %s", out_dir)
                 remove_result(out_dir)
                 state = "empty"
             if state == "result":
                 problem = _resume_problem(out_dir, _read_meta(out_dir), meta, frames)
                 if problem:
-                    raise ValueError(
-                        f"cannot resume {out_dir}: {problem}; use another --out or --force to "
-                        "start over"
-                    )
+                    raise ResumeMismatch(out_dir, problem)
             else:
                 (out_dir / "frames").mkdir(exist_ok=True)
                 write_json_atomic(out_dir / RESULT_JSON, meta)
