@@ -24,10 +24,10 @@ from scipy import optimize
 
 from registration.lens.gamma_from_lines import (
     GammaEstimate,
-    _t_factor,
     estimate_gamma_from_lines,
     line_groups,
 )
+from registration.lens.gamma_pooling import _t_factor
 from registration.lens.line_straightness import Straightness, _PackedLines, straightness
 from registration.lens.lines_file import as_polylines
 from registration.lens.radial import (
