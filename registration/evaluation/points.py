@@ -92,57 +92,12 @@ def read_points_csv(
     ]
     if not rows:
         raise ValueError(f"{name} is empty: expected the header 'point,frame,x,y' and rows")
-    head_no, head_line = rows[0]
-    header = [c.strip().lower() for c in next(csv.reader([head_line]))]
-    missing = [c for c in POINTS_HEADER if c not in header]
-    if missing:
-        if len(missing) == len(POINTS_HEADER):
-            raise ValueError(
-                f"{name} line {head_no}: missing header 'point,frame,x,y' (got {head_line.strip()!r})"
-            )
-        raise ValueError(
-            f"{name} line {head_no}: header lacks column {missing[0]!r} (got {head_line.strip()!r})"
-        )
-    col = {c: header.index(c) for c in POINTS_HEADER}
+    header, col = _points_header(name, *rows[0])
     marks: dict[str, dict[int, tuple[float, float]]] = {}
     where: dict[tuple[str, int], int] = {}
     order: list[str] = []
     for line_no, line in rows[1:]:
-        fields = next(csv.reader([line]))
-        if len(fields) < len(header):
-            raise ValueError(
-                f"{name} line {line_no}: expected {len(header)} fields ({','.join(header)}), "
-                f"got {len(fields)}: {line.strip()!r}"
-            )
-        point = fields[col["point"]].strip()
-        if not point:
-            raise ValueError(f"{name} line {line_no}: empty point name")
-        ftxt = fields[col["frame"]].strip()
-        try:
-            k = int(ftxt)
-        except ValueError:
-            raise ValueError(
-                f"{name} line {line_no}: frame must be an integer, got {ftxt!r}"
-            ) from None
-        if not 0 <= k < n_frames:
-            raise ValueError(
-                f"{name} line {line_no}: frame {k} is not in the result (frames 0..{n_frames - 1})"
-            )
-        xy = []
-        for c in ("x", "y"):
-            t = fields[col[c]].strip()
-            try:
-                v = float(t)
-            except ValueError:
-                v = math.nan
-            if not math.isfinite(v):
-                raise ValueError(f"{name} line {line_no}: {c} must be a finite number, got {t!r}")
-            xy.append(v)
-        x, y = xy
-        if not (-0.5 <= x <= w - 0.5 and -0.5 <= y <= h - 0.5):
-            raise ValueError(
-                f"{name} line {line_no}: ({x:g}, {y:g}) lies outside the {w}x{h} raw frame"
-            )
+        point, k, x, y = _points_row(name, line_no, line, header, col, n_frames, w, h)
         if (point, k) in where:
             raise ValueError(
                 f"{name} line {line_no}: point {point!r} is marked twice in frame {k} "
@@ -163,6 +118,72 @@ def read_points_csv(
                 f"at least {min_frames} are needed"
             )
     return PointMarks(marks, order, str(p))
+
+
+def _points_header(name: str, head_no: int, head_line: str) -> tuple[list[str], dict[str, int]]:
+    """``(header, col)``: the lower-cased column names of the header line ``head_no`` of the
+    file ``name``, and the index of each of ``POINTS_HEADER`` among them (ValueError when one
+    is missing)."""
+    header = [c.strip().lower() for c in next(csv.reader([head_line]))]
+    missing = [c for c in POINTS_HEADER if c not in header]
+    if missing:
+        if len(missing) == len(POINTS_HEADER):
+            raise ValueError(
+                f"{name} line {head_no}: missing header 'point,frame,x,y' (got {head_line.strip()!r})"
+            )
+        raise ValueError(
+            f"{name} line {head_no}: header lacks column {missing[0]!r} (got {head_line.strip()!r})"
+        )
+    return header, {c: header.index(c) for c in POINTS_HEADER}
+
+
+def _points_row(
+    name: str,
+    line_no: int,
+    line: str,
+    header: list[str],
+    col: dict[str, int],
+    n_frames: int,
+    w: int,
+    h: int,
+) -> tuple[str, int, float, float]:
+    """``(point, frame, x, y)`` of the data line ``line_no`` of the file ``name``: a non-empty
+    point name, a frame index in ``0..n_frames - 1`` and a finite position inside the
+    ``w`` x ``h`` raw frame (px); ValueError naming the line and the value."""
+    fields = next(csv.reader([line]))
+    if len(fields) < len(header):
+        raise ValueError(
+            f"{name} line {line_no}: expected {len(header)} fields ({','.join(header)}), "
+            f"got {len(fields)}: {line.strip()!r}"
+        )
+    point = fields[col["point"]].strip()
+    if not point:
+        raise ValueError(f"{name} line {line_no}: empty point name")
+    ftxt = fields[col["frame"]].strip()
+    try:
+        k = int(ftxt)
+    except ValueError:
+        raise ValueError(f"{name} line {line_no}: frame must be an integer, got {ftxt!r}") from None
+    if not 0 <= k < n_frames:
+        raise ValueError(
+            f"{name} line {line_no}: frame {k} is not in the result (frames 0..{n_frames - 1})"
+        )
+    xy = []
+    for c in ("x", "y"):
+        t = fields[col[c]].strip()
+        try:
+            v = float(t)
+        except ValueError:
+            v = math.nan
+        if not math.isfinite(v):
+            raise ValueError(f"{name} line {line_no}: {c} must be a finite number, got {t!r}")
+        xy.append(v)
+    x, y = xy
+    if not (-0.5 <= x <= w - 0.5 and -0.5 <= y <= h - 0.5):
+        raise ValueError(
+            f"{name} line {line_no}: ({x:g}, {y:g}) lies outside the {w}x{h} raw frame"
+        )
+    return point, k, x, y
 
 
 def point_positions(result: Any, marks: PointMarks) -> dict[str, dict[str, dict[int, NDArray]]]:

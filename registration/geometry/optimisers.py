@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.optimize
@@ -71,74 +72,112 @@ def levenberg_marquardt(
     cost = float(r @ r)
     if not math.isfinite(cost):
         return p
-    nfev, nu = 1, 2.0
+    st = _LMState(p, r, cost)
     J = jac(p)
     scale = np.sqrt((J * J).sum(axis=0))
-    lam = None
-    while nfev < max_nfev:
+    while st.nfev < max_nfev:
         scale = np.where(scale > 0, scale, 1.0)
         # The problem in scaled parameters u = scale * p: unit-diagonal normal equations.
         js = J / scale
         a = js.T @ js
-        g = js.T @ r
+        g = js.T @ st.r
         if not (np.isfinite(a).all() and np.isfinite(g).all()):
-            return p  # no usable Jacobian here (the model undefined at a point)
-        if lam is None:
-            lam = max(1e-3 * float(np.max(np.diag(a))), 1e-12)
-        if float(np.max(np.abs(g))) <= tol * math.sqrt(cost):
-            return p  # gradient zero to working precision
+            return st.p  # no usable Jacobian here (the model undefined at a point)
+        if st.lam is None:
+            st.lam = max(1e-3 * float(np.max(np.diag(a))), 1e-12)
+        if float(np.max(np.abs(g))) <= tol * math.sqrt(st.cost):
+            return st.p  # gradient zero to working precision
         # The most the quadratic model can still gain (the undamped step's reduction): the
         # convergence test, which a heavily damped step's small reduction cannot fake.
         u_gn = np.linalg.lstsq(a, -g, rcond=None)[0]
         gain = float(-g @ u_gn)
-        if gain <= tol * cost:
-            return p
-        # The undamped step first: damping turns the step towards the gradient, which can point
-        # into the denominator barrier (a fit ending on it) where the full step clears it.
-        undamped = True
-        while nfev < max_nfev:
-            if undamped:
-                u = u_gn
-            else:
-                try:
-                    u = np.linalg.solve(a + lam * np.eye(n), -g)
-                except np.linalg.LinAlgError:
-                    u = np.full(n, np.nan)
-            if not np.isfinite(u).all():
-                lam, nu, undamped = lam * nu, nu * 2.0, False
-                nfev += 1  # counted as a trial: this loop must end
-                if not lam <= 1e16:  # NaN too
-                    return p
-                continue
-            if float(np.linalg.norm(u)) <= tol * (float(np.linalg.norm(scale * p)) + tol):
-                return p
-            trial = p + u / scale
-            r_trial = fun(trial)
-            nfev += 1
-            c_trial = float(r_trial @ r_trial)
-            predicted = -float(2.0 * (g @ u) + u @ a @ u)
-            actual = cost - c_trial if math.isfinite(c_trial) else -math.inf
-            if predicted > 0 and actual > 0:
-                # Nielsen's update: less damping the better the quadratic model predicted.
-                rho = actual / predicted
-                lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
-                nu = 2.0
-                p, r, cost = trial, r_trial, c_trial
-                if not lam <= 1e16:
-                    # Accepted steps the quadratic model keeps mispredicting (rho ~ 0, gains at
-                    # rounding level: a fit pressed against the denominator barrier) double the
-                    # damping each time: nothing more to gain.
-                    return p
-                break
-            if undamped:
-                undamped = False  # no say on the damping
-                continue
-            lam, nu = lam * nu, min(nu * 2.0, 1e6)
-            if not lam <= 1e16:  # NaN too
-                return p
-        J = jac(p)
+        if gain <= tol * st.cost:
+            return st.p
+        if _step_until_accepted(st, fun, a, g, u_gn, scale, max_nfev, tol):
+            return st.p
+        J = jac(st.p)
         scale = np.maximum(scale, np.sqrt((J * J).sum(axis=0)))
-    return p
+    return st.p
+
+
+@dataclass
+class _LMState:
+    """Where a :func:`levenberg_marquardt` run is: parameters ``p`` ``(n,)``, the residuals
+    ``r`` ``(m,)`` and cost ``r @ r`` there, Marquardt's damping ``lam`` (None until the first
+    Jacobian) and its growth factor ``nu``, and the evaluations of ``fun`` so far."""
+
+    p: Array
+    r: Array
+    cost: float
+    lam: float | None = None
+    nu: float = 2.0
+    nfev: int = 1
+
+
+def _step_until_accepted(
+    st: _LMState,
+    fun: Callable[[Array], Array],
+    a: Array,
+    g: Array,
+    u_gn: Array,
+    scale: Array,
+    max_nfev: int,
+    tol: float,
+) -> bool:
+    """Trial steps from ``st.p`` with one Jacobian, until one lowers the cost.
+
+    ``a`` ``(n, n)`` and ``g`` ``(n,)`` are the normal equations of the problem in the scaled
+    parameters ``u = scale * p`` and ``u_gn`` their undamped solution. The undamped step goes
+    first, then ever more damped ones; an accepted step moves ``st`` and eases the damping by
+    Nielsen's rule. Stops early when ``max_nfev`` evaluations are spent.
+
+    Returns:
+        True when the minimisation is over: a step shorter than ``tol`` relative to the scaled
+        parameters, or the damping beyond 1e16 (NaN too).
+    """
+    n = len(st.p)
+    # The undamped step first: damping turns the step towards the gradient, which can point
+    # into the denominator barrier (a fit ending on it) where the full step clears it.
+    undamped = True
+    while st.nfev < max_nfev:
+        if undamped:
+            u = u_gn
+        else:
+            try:
+                u = np.linalg.solve(a + st.lam * np.eye(n), -g)
+            except np.linalg.LinAlgError:
+                u = np.full(n, np.nan)
+        if not np.isfinite(u).all():
+            st.lam, st.nu, undamped = st.lam * st.nu, st.nu * 2.0, False
+            st.nfev += 1  # counted as a trial: this loop must end
+            if not st.lam <= 1e16:  # NaN too
+                return True
+            continue
+        if float(np.linalg.norm(u)) <= tol * (float(np.linalg.norm(scale * st.p)) + tol):
+            return True
+        trial = st.p + u / scale
+        r_trial = fun(trial)
+        st.nfev += 1
+        c_trial = float(r_trial @ r_trial)
+        predicted = -float(2.0 * (g @ u) + u @ a @ u)
+        actual = st.cost - c_trial if math.isfinite(c_trial) else -math.inf
+        if predicted > 0 and actual > 0:
+            # Nielsen's update: less damping the better the quadratic model predicted.
+            rho = actual / predicted
+            st.lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+            st.nu = 2.0
+            st.p, st.r, st.cost = trial, r_trial, c_trial
+            # Accepted steps the quadratic model keeps mispredicting (rho ~ 0, gains at
+            # rounding level: a fit pressed against the denominator barrier) double the
+            # damping each time: nothing more to gain.
+            return not st.lam <= 1e16
+        if undamped:
+            undamped = False  # no say on the damping
+            continue
+        st.lam, st.nu = st.lam * st.nu, min(st.nu * 2.0, 1e6)
+        if not st.lam <= 1e16:  # NaN too
+            return True
+    return False
 
 
 def _nelder_mead(p0: Array, fun: Callable[[Array], Array]) -> Array:

@@ -247,20 +247,7 @@ def ransac(
     s, d = _pairs(src, dst)
     n = len(s)
     gen = np.random.default_rng(rng)
-    k = config.sample_size
-    min_s = int(model_type.min_samples)
-    if k < min_s:
-        raise ValueError(
-            f"sample_size={k} is below {getattr(model_type, '__name__', model_type)}'s "
-            f"min_samples={min_s}"
-        )
-    min_inliers = max(config.min_inliers, min_s + 1)
-    fs = fd = np.zeros((0, 2))
-    if fixed is not None:
-        fs, fd = _pairs(*fixed)
-        if len(fs) >= k:
-            raise ValueError(f"{len(fs)} fixed pairs leave no room in samples of {k}")
-    k_random = k - len(fs)
+    min_inliers, fs, fd, k_random = _sample_layout(model_type, config, fixed)
     finite = np.isfinite(s).all(axis=1) & np.isfinite(d).all(axis=1)
     idx_all = np.flatnonzero(finite)
     if len(idx_all) < max(k_random, min_inliers):
@@ -290,6 +277,49 @@ def ransac(
             history=tuple(history),
         )
 
+    model, r, inl = _refit_consensus(s, d, model_type, best_model, best_inl, best_count, config)
+    return FitResult(model, inl, r, trial, True, "", tuple(history))
+
+
+def _sample_layout(
+    model_type: Any, config: RansacConfig, fixed: tuple[ArrayLike, ArrayLike] | None
+) -> tuple[int, NDArray, NDArray, int]:
+    """``(min_inliers, fixed_src, fixed_dst, k_random)``: the fewest inliers that count as
+    success (``config.min_inliers``, at least ``min_samples + 1``), the ``(M, 2)`` fixed pairs
+    that join every sample (``(0, 2)`` without), and how many random pairs complete a sample.
+
+    Raises:
+        ValueError: ``sample_size`` below the model's ``min_samples``, or no room left in a
+            sample beside the fixed pairs.
+    """
+    k = config.sample_size
+    min_s = int(model_type.min_samples)
+    if k < min_s:
+        raise ValueError(
+            f"sample_size={k} is below {getattr(model_type, '__name__', model_type)}'s "
+            f"min_samples={min_s}"
+        )
+    min_inliers = max(config.min_inliers, min_s + 1)
+    fs = fd = np.zeros((0, 2))
+    if fixed is not None:
+        fs, fd = _pairs(*fixed)
+        if len(fs) >= k:
+            raise ValueError(f"{len(fs)} fixed pairs leave no room in samples of {k}")
+    return min_inliers, fs, fd, k - len(fs)
+
+
+def _refit_consensus(
+    s: NDArray,
+    d: NDArray,
+    model_type: Any,
+    best_model: Any,
+    best_inl: NDArray[np.bool_],
+    best_count: int,
+    config: RansacConfig,
+) -> tuple[Any, NDArray[np.float64], NDArray[np.bool_]]:
+    """The best sample's model refitted on its ``best_inl`` inliers with ``config.refine``
+    (started from it), and its ``(N,)`` residuals (destination px) and inliers on the ``(N, 2)``
+    pairs ``s`` -> ``d``; the sample's own model when the refit fails or loses consensus."""
     model = best_model
     if config.refine != "none":
         refit = model_type.estimate(
@@ -309,4 +339,4 @@ def ransac(
         model = best_model
         r = _safe_residuals(model, s, d)
         inl = r < config.threshold_px
-    return FitResult(model, inl, r, trial, True, "", tuple(history))
+    return model, r, inl

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 from registration.geometry.fit_result import FitResult, _failed, _pairs, _safe_residuals
 
@@ -119,13 +119,7 @@ def reqcon(
     """
     s, d = _pairs(src, dst)
     n = len(s)
-    model_type = type(initial_model)
-    min_s = int(getattr(initial_model, "min_samples", 1))  # instance: degree-aware
-    guard = max(
-        config.min_points if config.min_points is not None else 3 * min_s,
-        math.ceil(config.min_fraction * n),
-        min_s,
-    )
+    guard = _guard_points(initial_model, n, config)
     kept = np.isfinite(s).all(axis=1) & np.isfinite(d).all(axis=1)
     if kept.sum() < guard:
         return _failed(
@@ -133,17 +127,14 @@ def reqcon(
             f"needs at least {guard} finite point pairs (min_points guard), got {int(kept.sum())}",
             0,
         )
-    scale = np.ones(n) if noise_scale is None else np.asarray(noise_scale, np.float64).ravel()
-    if scale.shape != (n,) or not (scale[kept] > 0).all():
-        raise ValueError(f"reqcon: noise_scale must be ({n},) and positive, got {scale.shape}")
-    scale = scale / float(np.median(scale[kept]))
+    scale = _median_one_scale(noise_scale, kept, n)
     model = initial_model
     history: list[float] = []
     n_valid = int(kept.sum())
     k_sigma = config.outlier_sigmas or math.sqrt(2 * math.log(max(n_valid, 2) / 0.01))
     for it in range(1, config.max_iterations + 1):
         extra = {} if domain is None else {"domain": domain}
-        fit = model_type.estimate(
+        fit = type(initial_model).estimate(
             s[kept], d[kept], initial=model, optimizer=config.optimizer, **extra
         )
         if not fit:
@@ -159,37 +150,108 @@ def reqcon(
         model = fit
         r = _safe_residuals(model, s, d)
         rs = r / scale
-        mean_kept = float(np.mean(r[kept]))
-        sigma = float(np.median(rs[kept])) / _RAYLEIGH_MEDIAN
-        history.append(mean_kept)
-        n_kept = int(kept.sum())
-        n_drop = max(1, math.ceil(config.drop_fraction * n_kept))
-        if mean_kept < config.target_mean_error_px:
-            return FitResult(model, kept.copy(), r, it, True, "", tuple(history), sigma)
-        if config.stop == "outliers":
-            n_out = int(np.count_nonzero(rs[kept] > k_sigma * sigma))
-            if n_out == 0:
-                return FitResult(model, kept.copy(), r, it, True, "", tuple(history), sigma)
-            n_drop = min(n_drop, n_out)
-        if config.stop == "outliers" and n_kept - n_drop < guard:
-            # The guard protects against collapse; reaching it is the answer, not a failure.
-            return FitResult(model, kept.copy(), r, it, True, "", tuple(history), sigma)
-        if n_kept - n_drop < guard:
-            return _failed(
-                n,
-                f"mean error {mean_kept:.3g} px of {n_kept} kept points is still above "
-                f"{config.target_mean_error_px} px, and dropping {n_drop} more would go below "
-                f"the guard of {guard} points",
-                it,
-                model,
-                inliers=kept.copy(),
-                residuals=r,
-                history=tuple(history),
-            )
-        kept_idx = np.flatnonzero(kept)
-        # Stable sort so that ties drop deterministically (lowest index kept).
-        worst = kept_idx[np.argsort(-rs[kept_idx], kind="stable")[:n_drop]]
-        kept[worst] = False
+        history.append(float(np.mean(r[kept])))
+        done, n_drop = _end_of_round(model, r, rs, kept, it, history, guard, k_sigma, config)
+        if done is not None:
+            return done
+        _drop_worst(kept, rs, n_drop)
+    return _after_last_round(model, s, d, kept, scale, history, config)
+
+
+def _guard_points(initial_model: Any, n: int, config: ReqconConfig) -> int:
+    """The fewest points REQCON may keep of ``n``: ``min_points`` (default three times the
+    model's ``min_samples``), ``min_fraction`` of ``n`` and ``min_samples``, whichever is most."""
+    min_s = int(getattr(initial_model, "min_samples", 1))  # instance: degree-aware
+    return max(
+        config.min_points if config.min_points is not None else 3 * min_s,
+        math.ceil(config.min_fraction * n),
+        min_s,
+    )
+
+
+def _median_one_scale(noise_scale: ArrayLike | None, kept: NDArray[np.bool_], n: int) -> NDArray:
+    """``(n,)`` the points' noise scale (ones when None) divided by its median over the ``kept``
+    points; ValueError unless it is ``(n,)`` and positive there."""
+    scale = np.ones(n) if noise_scale is None else np.asarray(noise_scale, np.float64).ravel()
+    if scale.shape != (n,) or not (scale[kept] > 0).all():
+        raise ValueError(f"reqcon: noise_scale must be ({n},) and positive, got {scale.shape}")
+    return scale / float(np.median(scale[kept]))
+
+
+def _end_of_round(
+    model: Any,
+    r: NDArray,
+    rs: NDArray,
+    kept: NDArray[np.bool_],
+    it: int,
+    history: list[float],
+    guard: int,
+    k_sigma: float,
+    config: ReqconConfig,
+) -> tuple[FitResult | None, int]:
+    """After round ``it``'s fit: stop (with the result) or how many points to drop.
+
+    Args:
+        r, rs: ``(N,)`` residuals, destination px, and the same over the noise scale.
+        kept: ``(N,)`` the points the round fitted; ``history``: the mean residual of the kept
+            points after each round, this one last.
+        guard: fewest points to keep; ``k_sigma``: the ``"outliers"`` rule's threshold in
+            robust standard deviations.
+
+    Returns:
+        ``(result, 0)`` to stop: success when the mean target is met (or, with the
+        ``"outliers"`` rule, no outlier is left or the guard is reached), failure when dropping
+        would go below the guard; ``(None, n_drop)`` to drop ``n_drop`` points and go on.
+    """
+    mean_kept = history[-1]
+    sigma = float(np.median(rs[kept])) / _RAYLEIGH_MEDIAN
+    n_kept = int(kept.sum())
+    n_drop = max(1, math.ceil(config.drop_fraction * n_kept))
+    if mean_kept < config.target_mean_error_px:
+        return FitResult(model, kept.copy(), r, it, True, "", tuple(history), sigma), 0
+    if config.stop == "outliers":
+        n_out = int(np.count_nonzero(rs[kept] > k_sigma * sigma))
+        if n_out == 0:
+            return FitResult(model, kept.copy(), r, it, True, "", tuple(history), sigma), 0
+        n_drop = min(n_drop, n_out)
+    if config.stop == "outliers" and n_kept - n_drop < guard:
+        # The guard protects against collapse; reaching it is the answer, not a failure.
+        return FitResult(model, kept.copy(), r, it, True, "", tuple(history), sigma), 0
+    if n_kept - n_drop < guard:
+        failed = _failed(
+            len(r),
+            f"mean error {mean_kept:.3g} px of {n_kept} kept points is still above "
+            f"{config.target_mean_error_px} px, and dropping {n_drop} more would go below "
+            f"the guard of {guard} points",
+            it,
+            model,
+            inliers=kept.copy(),
+            residuals=r,
+            history=tuple(history),
+        )
+        return failed, 0
+    return None, n_drop
+
+
+def _drop_worst(kept: NDArray[np.bool_], rs: NDArray, n_drop: int) -> None:
+    """Clear ``kept`` (in place) at the ``n_drop`` kept points of largest ``rs``."""
+    kept_idx = np.flatnonzero(kept)
+    # Stable sort so that ties drop deterministically (lowest index kept).
+    worst = kept_idx[np.argsort(-rs[kept_idx], kind="stable")[:n_drop]]
+    kept[worst] = False
+
+
+def _after_last_round(
+    model: Any,
+    s: NDArray,
+    d: NDArray,
+    kept: NDArray[np.bool_],
+    scale: NDArray,
+    history: list[float],
+    config: ReqconConfig,
+) -> FitResult:
+    """The result after ``max_iterations`` rounds without stopping: success with the
+    ``"outliers"`` rule (its robust scale from the kept points), failure with ``"mean"``."""
     if config.stop == "outliers":
         r = _safe_residuals(model, s, d)
         sigma = float(np.median((r / scale)[kept])) / _RAYLEIGH_MEDIAN
@@ -197,7 +259,7 @@ def reqcon(
             model, kept.copy(), r, config.max_iterations, True, "", tuple(history), sigma
         )
     return _failed(
-        n,
+        len(s),
         f"mean error still {history[-1]:.3g} px after {config.max_iterations} rounds",
         config.max_iterations,
         model,

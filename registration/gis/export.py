@@ -417,10 +417,7 @@ def export_result(
     formats = resolve_formats(formats)
     out = Path(out_dir)
     if georef is not None:
-        if not isinstance(georef, GeoReference):
-            raise ValueError("georef must be a registration.gis.georef.GeoReference")
-        result = copy.copy(result)  # the caller's result keeps its own georef
-        result.georef = georef
+        result = _with_georef(result, georef)
     _check_request(result, out, formats, marks, options)
     ok = [k for k in range(result.n_frames) if result.is_ok(k)]
     raster = [f for f in formats if f in RASTER_FORMATS]
@@ -438,25 +435,45 @@ def export_result(
 
     if progress:
         progress(0, total)
-    summary: dict[str, Any] = {
+    summary = _new_summary(out, formats, result.n_frames, len(ok))
+    if raster:
+        _export_rasters(result, frames, out, raster, render_ks, options, summary, tick, cancel)
+    if not summary["cancelled"]:
+        _export_vectors(result, out, vector, marks, options, summary, tick)
+    return summary
+
+
+def _with_georef(result, georef: GeoReference):
+    """A shallow copy of ``result`` with ``georef`` (the caller's result keeps its own)."""
+    if not isinstance(georef, GeoReference):
+        raise ValueError("georef must be a registration.gis.georef.GeoReference")
+    result = copy.copy(result)
+    result.georef = georef
+    return result
+
+
+def _new_summary(out: Path, formats: list[str], n_frames: int, n_ok: int) -> dict[str, Any]:
+    """:func:`export_result`'s summary before anything is written (no files, no box)."""
+    return {
         "out": str(out),
         "formats": formats,
         "files": {f: [] for f in formats},
-        "n_frames": result.n_frames,
-        "n_failed": result.n_frames - len(ok),
+        "n_frames": n_frames,
+        "n_failed": n_frames - n_ok,
         "box": None,
         "time_s": {},
         "cancelled": False,
     }
-    if raster:
-        _export_rasters(result, frames, out, raster, render_ks, options, summary, tick, cancel)
-    if not summary["cancelled"]:
-        for f in vector:
-            t0 = time.perf_counter()
-            summary["files"][f] = [str(p) for p in _export_vector(result, out, f, marks, options)]
-            summary["time_s"][f] = round(time.perf_counter() - t0, 4)
-            tick()
-    return summary
+
+
+def _export_vectors(result, out: Path, vector: list[str], marks, options, summary, tick) -> None:
+    """Write each of the ``vector`` (non-raster) formats in turn, recording its files and
+    time (s) in ``summary`` and calling ``tick()`` after each."""
+    for f in vector:
+        t0 = time.perf_counter()
+        summary["files"][f] = [str(p) for p in _export_vector(result, out, f, marks, options)]
+        summary["time_s"][f] = round(time.perf_counter() - t0, 4)
+        tick()
 
 
 def _check_request(result, out: Path, formats: list[str], marks, options) -> None:

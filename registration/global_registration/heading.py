@@ -370,48 +370,15 @@ def prior_from_patch(
         correlates to ``patch_min_ncc``.
     """
     p0, q0 = np.asarray(seed_frame, float).reshape(2), np.asarray(seed_base, float).reshape(2)
-    radius, margin = config.patch_radius_px, _PATCH_MARGIN_PX
-    hb, wb = base_grey.shape[:2]
-    level = int(np.clip(round(math.log2(max(min(hb, wb) / 6.0 / radius, 1.0))), 0, 4))
-    base = _pyramid(base_grey, level)[-1]
-    valid = None
-    if base_valid is not None:
-        valid = _pyramid(base_valid.astype(np.float32), level)[-1] > 0.99
-    qc = (q0 + 0.5) / 2**level - 0.5
-    x0, y0 = int(round(qc[0])), int(round(qc[1]))
-    r = radius + margin
-    if x0 - r < 0 or y0 - r < 0 or x0 + r >= base.shape[1] or y0 + r >= base.shape[0]:
+    radius = config.patch_radius_px
+    patch = _base_patch(base_grey, base_valid, q0, radius)
+    if patch is None:
         return None
-    window = base[y0 - r : y0 + r + 1, x0 - r : x0 + r + 1]
-    centre = np.ones((2 * radius + 1,) * 2, bool)
-    if valid is not None:
-        centre = valid[y0 - radius : y0 + radius + 1, x0 - radius : x0 + radius + 1]
-        if centre.mean() < 0.5:
-            return None
+    level, window, centre = patch
     frames = _pyramid(frame_grey, _PATCH_MAX_LEVEL)
 
     def score(heading_deg: float, log_scale: float) -> float:
-        step = 2.0**level / math.exp(log_scale)  # frame px per base-level px
-        lf = int(np.clip(math.floor(math.log2(max(step, 1.0))), 0, _PATCH_MAX_LEVEL))
-        k = step / 2.0**lf
-        t = math.radians(heading_deg)
-        a = k * np.array([[math.cos(t), math.sin(t)], [-math.sin(t), math.cos(t)]])
-        off = (p0 + 0.5) / 2.0**lf - 0.5 - a @ np.array([radius, radius], float)
-        warp = np.hstack([a, off[:, None]])
-        img = frames[lf]
-        size = (2 * radius + 1, 2 * radius + 1)
-        flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-        tpl = cv2.warpAffine(img, warp, size, flags=flags)
-        inside = cv2.warpAffine(np.ones_like(img), warp, size, flags=flags) > 0.99
-        mask = centre & inside
-        if mask.mean() < 0.5 or float(tpl[mask].std()) < 1.0:
-            return -1.0
-        if mask.all():
-            out = cv2.matchTemplate(window, tpl, cv2.TM_CCOEFF_NORMED)
-        else:
-            out = cv2.matchTemplate(window, tpl, cv2.TM_CCOEFF_NORMED, mask=mask.astype(np.uint8))
-        out = np.nan_to_num(out, nan=-1.0, posinf=-1.0, neginf=-1.0)
-        return float(out.max())
+        return _patch_ncc(frames, p0, radius, level, window, centre, heading_deg, log_scale)
 
     headings = np.arange(0.0, 360.0, _PATCH_STEP_DEG)
     n_log = int(math.floor(config.max_log_scale / _PATCH_STEP_LOG))
@@ -439,6 +406,76 @@ def prior_from_patch(
         max(rival, 0.0) / max(top, 1e-12),
         seed_error_px,
     )
+
+
+def _base_patch(
+    base_grey: NDArray, base_valid: NDArray | None, q0: NDArray, radius: int
+) -> tuple[int, NDArray[np.float32], NDArray[np.bool_]] | None:
+    """The base around the seed ``q0`` (base px) at the pyramid level where the patch of
+    ``radius`` px is about a sixth of the base's shorter side (at most level 4).
+
+    Returns:
+        ``(level, window, centre)``: ``window`` the ``(2 r + 1, 2 r + 1)`` float32 search area
+        (``r = radius + _PATCH_MARGIN_PX``, for the seed's click error) and ``centre`` the
+        ``(2 radius + 1,) * 2`` bool mask of the base's content around the seed; None when the
+        search area leaves the base or less than half of the patch has content.
+    """
+    margin = _PATCH_MARGIN_PX
+    hb, wb = base_grey.shape[:2]
+    level = int(np.clip(round(math.log2(max(min(hb, wb) / 6.0 / radius, 1.0))), 0, 4))
+    base = _pyramid(base_grey, level)[-1]
+    valid = None
+    if base_valid is not None:
+        valid = _pyramid(base_valid.astype(np.float32), level)[-1] > 0.99
+    qc = (q0 + 0.5) / 2**level - 0.5
+    x0, y0 = int(round(qc[0])), int(round(qc[1]))
+    r = radius + margin
+    if x0 - r < 0 or y0 - r < 0 or x0 + r >= base.shape[1] or y0 + r >= base.shape[0]:
+        return None
+    window = base[y0 - r : y0 + r + 1, x0 - r : x0 + r + 1]
+    centre = np.ones((2 * radius + 1,) * 2, bool)
+    if valid is not None:
+        centre = valid[y0 - radius : y0 + radius + 1, x0 - radius : x0 + radius + 1]
+        if centre.mean() < 0.5:
+            return None
+    return level, window, centre
+
+
+def _patch_ncc(
+    frames: list[NDArray[np.float32]],
+    p0: NDArray,
+    radius: int,
+    level: int,
+    window: NDArray[np.float32],
+    centre: NDArray[np.bool_],
+    heading_deg: float,
+    log_scale: float,
+) -> float:
+    """Best normalised correlation over ``window`` (:func:`_base_patch`) of the frame patch
+    around the seed ``p0`` (frame px) resampled at ``heading_deg`` and ``exp(log_scale)`` base
+    px per frame px from the nearest coarser level of ``frames`` (:func:`_pyramid`); -1 when
+    less than half the patch has content or it is flat."""
+    step = 2.0**level / math.exp(log_scale)  # frame px per base-level px
+    lf = int(np.clip(math.floor(math.log2(max(step, 1.0))), 0, _PATCH_MAX_LEVEL))
+    k = step / 2.0**lf
+    t = math.radians(heading_deg)
+    a = k * np.array([[math.cos(t), math.sin(t)], [-math.sin(t), math.cos(t)]])
+    off = (p0 + 0.5) / 2.0**lf - 0.5 - a @ np.array([radius, radius], float)
+    warp = np.hstack([a, off[:, None]])
+    img = frames[lf]
+    size = (2 * radius + 1, 2 * radius + 1)
+    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    tpl = cv2.warpAffine(img, warp, size, flags=flags)
+    inside = cv2.warpAffine(np.ones_like(img), warp, size, flags=flags) > 0.99
+    mask = centre & inside
+    if mask.mean() < 0.5 or float(tpl[mask].std()) < 1.0:
+        return -1.0
+    if mask.all():
+        out = cv2.matchTemplate(window, tpl, cv2.TM_CCOEFF_NORMED)
+    else:
+        out = cv2.matchTemplate(window, tpl, cv2.TM_CCOEFF_NORMED, mask=mask.astype(np.uint8))
+    out = np.nan_to_num(out, nan=-1.0, posinf=-1.0, neginf=-1.0)
+    return float(out.max())
 
 
 def _pyramid(image: NDArray, levels: int) -> list[NDArray[np.float32]]:
@@ -487,6 +524,50 @@ def priors_without_seed(
     n = len(p)
     if n < config.min_votes:
         return []
+    member, inverse, counts = _hough_bins(
+        p, q, attr_heading_deg, attr_log_scale, frame_extent, config
+    )
+    # Strongest first; ties broken by the bin key (np.unique's lexicographic order) for
+    # reproducibility.
+    order = np.argsort(-counts, kind="stable")
+    priors: list[SimilarityPrior] = []
+    used: list[frozenset] = []
+    for bi in order:
+        if counts[bi] < config.min_votes or len(priors) >= config.max_candidates:
+            break
+        idx = np.unique(member[inverse == bi])
+        key = frozenset(idx.tolist())
+        # Neighbouring bins share most of their votes: skip near-duplicates.
+        if any(len(key & u) > 0.5 * len(key) for u in used):
+            continue
+        used.append(key)
+        prior = _prior_from_bin(p, q, idx, config)
+        if prior is not None:
+            priors.append(prior)
+    for k in range(len(priors)):
+        nxt = priors[k + 1].votes if k + 1 < len(priors) else 0
+        priors[k] = _with_ambiguity(priors[k], nxt / max(priors[k].votes, 1))
+    return priors
+
+
+def _hough_bins(
+    p: NDArray[np.float64],
+    q: NDArray[np.float64],
+    attr_heading_deg: NDArray,
+    attr_log_scale: NDArray,
+    frame_extent: float,
+    config: HeadingConfig,
+) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+    """The 4-D Hough votes of the ``(N, 2)`` matches ``p`` -> ``q``: each match's similarity
+    (rotation and scale from its keypoints, translation from its position) votes for the two
+    nearest bins in each dimension, 16 votes in all.
+
+    Returns:
+        ``(member, inverse, counts)``: ``(16 N,)`` the match and the bin (index into the
+        distinct bins, in np.unique's lexicographic order of their keys) of every vote, and
+        each bin's number of votes.
+    """
+    n = len(p)
     th = np.radians(attr_heading_deg)
     s = np.exp(attr_log_scale)
     rot_p = np.c_[np.cos(th) * p[:, 0] - np.sin(th) * p[:, 1],
@@ -505,43 +586,31 @@ def priors_without_seed(
     bins[..., 0] %= n_heading
     flat = bins.reshape(-1, 4)
     member = np.repeat(np.arange(n), 16)
-    keys, inverse, counts = np.unique(flat, axis=0, return_inverse=True, return_counts=True)
-    inverse = inverse.reshape(-1)
-    # Strongest first; ties broken by the bin key (np.unique's lexicographic order) for
-    # reproducibility.
-    order = np.argsort(-counts, kind="stable")
-    priors: list[SimilarityPrior] = []
-    used: list[frozenset] = []
-    for bi in order:
-        if counts[bi] < config.min_votes or len(priors) >= config.max_candidates:
-            break
-        idx = np.unique(member[inverse == bi])
-        key = frozenset(idx.tolist())
-        # Neighbouring bins share most of their votes: skip near-duplicates.
-        if any(len(key & u) > 0.5 * len(key) for u in used):
-            continue
-        used.append(key)
-        sim, idx = _trimmed_similarity(p, q, idx)
-        if sim is None or not abs(math.log(max(sim.scale, 1e-300))) < config.max_log_scale:
-            continue
-        anchor = p[idx].mean(axis=0)
-        spread = float(np.median(np.hypot(*(sim.apply(p[idx]) - q[idx]).T)))
-        priors.append(
-            SimilarityPrior(
-                sim.rotation_deg % 360.0,
-                sim.scale,
-                anchor,
-                sim.apply(anchor[None])[0],
-                "no seed",
-                int(len(idx)),
-                0.0,
-                spread,
-            )
-        )
-    for k in range(len(priors)):
-        nxt = priors[k + 1].votes if k + 1 < len(priors) else 0
-        priors[k] = _with_ambiguity(priors[k], nxt / max(priors[k].votes, 1))
-    return priors
+    _, inverse, counts = np.unique(flat, axis=0, return_inverse=True, return_counts=True)
+    return member, inverse.reshape(-1), counts
+
+
+def _prior_from_bin(
+    p: NDArray[np.float64], q: NDArray[np.float64], idx: NDArray[np.int64], config: HeadingConfig
+) -> SimilarityPrior | None:
+    """The ``"no seed"`` prior of a Hough bin's matches ``idx``: their trimmed least-squares
+    similarity, anchored at their frame centroid, with their median residual (base px) as the
+    anchor's error; None when it cannot be fitted or its scale is beyond ``max_log_scale``."""
+    sim, idx = _trimmed_similarity(p, q, idx)
+    if sim is None or not abs(math.log(max(sim.scale, 1e-300))) < config.max_log_scale:
+        return None
+    anchor = p[idx].mean(axis=0)
+    spread = float(np.median(np.hypot(*(sim.apply(p[idx]) - q[idx]).T)))
+    return SimilarityPrior(
+        sim.rotation_deg % 360.0,
+        sim.scale,
+        anchor,
+        sim.apply(anchor[None])[0],
+        "no seed",
+        int(len(idx)),
+        0.0,
+        spread,
+    )
 
 
 def _trimmed_similarity(p, q, idx, rounds: int = 3):
@@ -638,6 +707,33 @@ def guided_matches(
         raise ValueError(f"predicted_xy must be ({n_f}, 2), got {pred.shape}")
     if n_f == 0 or len(base_kp) == 0:
         return Matches.empty()
+    safe, valid = _guided_candidates(frame_kp, base_kp, pred, radius_px, heading_deg, scale, config)
+    rows = np.flatnonzero(valid.any(axis=1))
+    if len(rows) == 0:
+        return Matches.empty()
+    return _ratio_test_among(frame_kp, base_kp, rows, safe, valid, ratio)
+
+
+def _guided_candidates(
+    frame_kp: Keypoints,
+    base_kp: Keypoints,
+    pred: NDArray[np.float64],
+    radius_px: NDArray[np.float64] | float,
+    heading_deg: float,
+    scale: float,
+    config: HeadingConfig,
+) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
+    """Each frame keypoint's candidates: the ``k = min(guided_neighbours, N_base)`` base
+    keypoints nearest its prediction ``pred`` (``(N_frame, 2)`` base px, NaN = none), nearest
+    first.
+
+    Returns:
+        ``(safe, valid)``, both ``(N_frame, k)``: the candidates' base keypoint indices (0 where
+        there is none) and whether each is one: within ``radius_px`` of the prediction, with an
+        orientation and size change within ``attribute_tolerance_*`` of ``heading_deg`` and
+        ``scale``.
+    """
+    n_f = len(frame_kp)
     radius = np.broadcast_to(np.asarray(radius_px, np.float64), (n_f,))
     ok = np.isfinite(pred).all(axis=1) & np.isfinite(radius)
     k = min(config.guided_neighbours, len(base_kp))
@@ -658,9 +754,22 @@ def guided_matches(
     valid &= (size_gap <= config.attribute_tolerance_log_scale) & (
         angle_gap <= config.attribute_tolerance_deg
     )
-    rows = np.flatnonzero(valid.any(axis=1))
-    if len(rows) == 0:
-        return Matches.empty()
+    return safe, valid
+
+
+def _ratio_test_among(
+    frame_kp: Keypoints,
+    base_kp: Keypoints,
+    rows: NDArray[np.int64],
+    safe: NDArray[np.int64],
+    valid: NDArray[np.bool_],
+    ratio: float,
+) -> Matches:
+    """The nearest descriptor among each frame keypoint ``rows``' valid candidates
+    (:func:`_guided_candidates`), kept when it passes the ratio test against the second
+    nearest (a lone candidate passes); of equal distances the candidate nearest the
+    prediction wins."""
+    k = safe.shape[1]
     # Descriptor distances of the candidates, in chunks to bound memory.
     desc_d = np.full((len(rows), k), np.inf, np.float32)
     fd, bd = frame_kp.descriptors, base_kp.descriptors

@@ -159,17 +159,10 @@ def fast_coarse(
         return result
 
     shift, response = phase_shift(small, prev_small)
-    limit = max_shift * min(w, h) * scale
-    if not response >= MIN_RESPONSE:
-        return done(f"phase-correlation peak {response:.2f} < {MIN_RESPONSE} (no clear shift)")
-    if not np.hypot(*shift) <= limit:
-        return done(
-            f"shift {np.hypot(*shift) / scale:.0f} px from the previous frame exceeds "
-            f"{max_shift:g} of the frame ({limit / scale:.0f} px)"
-        )
-    spacing = int(min(SPACING_PX, max(MIN_SPACING_PX, min(small.shape[:2]) // TEMPLATES_PER_SIDE)))
-    templates = dataclasses.replace(_TEMPLATES, spacing_px=spacing)
-    cps = template_control_points(small, prev_small, lambda xy: xy + shift, None, templates)
+    problem = _shift_problem(shift, response, max_shift, max_shift * min(w, h) * scale, scale)
+    if problem:
+        return done(problem)
+    cps = _match_templates(small, prev_small, shift)
     n = len(cps)
     result.n_keypoints_frame = n
     if n < max(min_inliers, Projective.min_samples):
@@ -182,22 +175,63 @@ def fast_coarse(
     idx = np.flatnonzero(ok)
     if len(idx) < max(min_inliers, Projective.min_samples):
         return done(f"only {len(idx)} matches map into the base through the previous frame")
+    return done(_fit_and_check(result, cps.src, idx, small, view, scale, config, min_inliers, rng))
+
+
+def _shift_problem(
+    shift: NDArray[np.float64], response: float, max_shift: float, limit: float, scale: float
+) -> str:
+    """Why the phase-correlation ``shift`` (coarse px; ``response`` its peak) is not trusted
+    (a weak peak, or longer than ``limit`` coarse px = ``max_shift`` of the frame), or ""."""
+    if not response >= MIN_RESPONSE:
+        return f"phase-correlation peak {response:.2f} < {MIN_RESPONSE} (no clear shift)"
+    if not np.hypot(*shift) <= limit:
+        return (
+            f"shift {np.hypot(*shift) / scale:.0f} px from the previous frame exceeds "
+            f"{max_shift:g} of the frame ({limit / scale:.0f} px)"
+        )
+    return ""
+
+
+def _match_templates(small: NDArray[np.uint8], prev_small: NDArray[np.uint8], shift: NDArray):
+    """Template matches (:class:`ControlPoints`, coarse px) of ``small`` in ``prev_small``
+    around the positions moved by ``shift``, on a grid of at least ~``TEMPLATES_PER_SIDE``
+    templates per side."""
+    spacing = int(min(SPACING_PX, max(MIN_SPACING_PX, min(small.shape[:2]) // TEMPLATES_PER_SIDE)))
+    templates = dataclasses.replace(_TEMPLATES, spacing_px=spacing)
+    return template_control_points(small, prev_small, lambda xy: xy + shift, None, templates)
+
+
+def _fit_and_check(
+    result: CoarseResult,
+    src_small: NDArray[np.float64],
+    idx: NDArray[np.int64],
+    small: NDArray[np.uint8],
+    view: FrameView,
+    scale: float,
+    config: CoarseConfig,
+    min_inliers: int,
+    rng: np.random.Generator,
+) -> str:
+    """Steps 3-4 (module doc) on the matches ``idx`` that map into the base: RANSAC on
+    ``result.frame_xy`` -> ``result.base_xy`` at the coarse scale, then the inlier and coverage
+    checks (``src_small``: all matches' coarse px in ``small``). Fills ``result``'s inliers,
+    model and success; returns why the prediction is not confirmed, or "" when it is."""
+    frame_xy, base_xy, n = result.frame_xy, result.base_xy, len(src_small)
     fit = ransac(
         rescale(frame_xy[idx], scale), rescale(base_xy[idx], scale), Projective, config.ransac, rng
     )
     if not fit:
-        return done(f"RANSAC failed: {fit.reason}")
+        return f"RANSAC failed: {fit.reason}"
     result.inliers[idx[fit.inliers]] = True
     n_in = int(fit.n_inliers)
     if n_in < min_inliers or n_in < MIN_INLIER_SHARE * n:
-        return done(f"{n_in} of {n} matches agree (need {min_inliers} and {MIN_INLIER_SHARE:.0%})")
+        return f"{n_in} of {n} matches agree (need {min_inliers} and {MIN_INLIER_SHARE:.0%})"
     probes = _cell_centres(*image_size(small))
     inl = idx[fit.inliers]
-    coverage = hull_coverage(cps.src[inl], probes)
+    coverage = hull_coverage(src_small[inl], probes)
     if coverage < MIN_COVERAGE:
-        return done(
-            f"the agreeing matches span {coverage:.0%} of the frame (need {MIN_COVERAGE:.0%})"
-        )
+        return f"the agreeing matches span {coverage:.0%} of the frame (need {MIN_COVERAGE:.0%})"
     corrected_probes = view.to_corrected(rescale(probes, 1.0 / scale))
     model, result.model_kind = projective_or_simpler(
         rescale(frame_xy[inl], scale), rescale(base_xy[inl], scale), fit.model, config,
@@ -207,12 +241,12 @@ def fast_coarse(
     if coverage < FIRST_COVERAGE:
         # The SIFT step, which sees the whole joint base, goes first; this simpler model is
         # kept only when it fails (registration.global_registration.intra.register_intra).
-        return done(
+        return (
             f"the agreeing matches span {coverage:.0%} of the frame (need {FIRST_COVERAGE:.0%} "
             f"to go before the SIFT step)"
         )
     result.success = True
-    return done()
+    return ""
 
 
 def _cell_centres(width: int, height: int, cells: int = 10) -> NDArray[np.float64]:

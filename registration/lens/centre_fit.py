@@ -24,10 +24,10 @@ from scipy import optimize
 
 from registration.lens.gamma_from_lines import (
     GammaEstimate,
-    _t_factor,
     estimate_gamma_from_lines,
     line_groups,
 )
+from registration.lens.gamma_pooling import _t_factor
 from registration.lens.line_straightness import Straightness, _PackedLines, straightness
 from registration.lens.lines_file import as_polylines
 from registration.lens.radial import (
@@ -144,27 +144,9 @@ def fit_center(est: GammaEstimate) -> CenterFit:
     res_frame = straightness(lines, est.model(), raw_units=True).overall
     constrained = K >= MIN_CENTER_GROUPS and max(sig[1], sig[2]) <= MAX_CENTER_SIGMA_FRACTION * r_n
     supported = constrained and significance >= CENTER_SIGNIFICANCE
-    where = f"({model.c[0]:.1f}, {model.c[1]:.1f}) ± ({sig[1]:.1f}, {sig[2]:.1f}) px"
-    if K < MIN_CENTER_GROUPS:
-        message = (
-            f"only {K} independent group(s) of lines (need {MIN_CENTER_GROUPS}): the centre is "
-            f"not constrained; the frame centre is kept"
-        )
-    elif not constrained:
-        message = (
-            f"the lines locate the centre only to {where}: not constrained; the frame centre is "
-            f"kept"
-        )
-    elif not supported:
-        message = (
-            f"centre {where} is consistent with the frame centre ({significance:.1f} σ away); "
-            f"the frame centre is kept"
-        )
-    else:
-        message = (
-            f"centre {where}, {np.hypot(*offset):.1f} px ({significance:.1f} σ) from the frame "
-            f"centre: the lines support it (straightness {res_frame:.3f} -> {res_fit:.3f} px)"
-        )
+    message = _centre_message(
+        K, constrained, supported, model.c, sig, offset, significance, res_frame, res_fit
+    )
     return CenterFit(
         center=(float(model.c[0]), float(model.c[1])),
         center_sigma=(float(sig[1]), float(sig[2])),
@@ -179,6 +161,43 @@ def fit_center(est: GammaEstimate) -> CenterFit:
         constrained=bool(constrained),
         supported=bool(supported),
         message=message,
+    )
+
+
+def _centre_message(
+    K: int,
+    constrained: bool,
+    supported: bool,
+    centre: NDArray,
+    sig: NDArray,
+    offset: NDArray,
+    significance: float,
+    res_frame: float,
+    res_fit: float,
+) -> str:
+    """:attr:`CenterFit.message`: whether the ``K`` line groups locate the fitted ``centre``
+    ``(2,)`` raw px (``sig`` ``(3,)``: the standard uncertainties of γ, x and y) and support
+    moving it by ``offset`` ``(2,)`` px from the frame centre (``significance`` σ;
+    straightness ``res_frame`` at the frame centre and ``res_fit`` fitted, raw px)."""
+    where = f"({centre[0]:.1f}, {centre[1]:.1f}) ± ({sig[1]:.1f}, {sig[2]:.1f}) px"
+    if K < MIN_CENTER_GROUPS:
+        return (
+            f"only {K} independent group(s) of lines (need {MIN_CENTER_GROUPS}): the centre is "
+            f"not constrained; the frame centre is kept"
+        )
+    if not constrained:
+        return (
+            f"the lines locate the centre only to {where}: not constrained; the frame centre is "
+            f"kept"
+        )
+    if not supported:
+        return (
+            f"centre {where} is consistent with the frame centre ({significance:.1f} σ away); "
+            f"the frame centre is kept"
+        )
+    return (
+        f"centre {where}, {np.hypot(*offset):.1f} px ({significance:.1f} σ) from the frame "
+        f"centre: the lines support it (straightness {res_frame:.3f} -> {res_fit:.3f} px)"
     )
 
 

@@ -607,15 +607,7 @@ def estimate_gamma_from_motion(
     """
     t0 = time.perf_counter()
     config = config or MotionGammaConfig()
-    if not pairs:
-        raise ValueError("γ from motion needs at least one pair of frames, got none")
-    h, w = pairs[0][0].shape[:2]
-    for k, (fa, fb) in enumerate(pairs):
-        for f in (fa, fb):
-            if f.shape[:2] != (h, w):
-                raise ValueError(
-                    f"frame pair {k} has a {f.shape[1]}x{f.shape[0]} frame; all must be {w}x{h}"
-                )
+    w, h = _common_frame_size(pairs)
     lo, hi = gamma_bounds(w, h, None, gamma_range)
     masks = list(masks) if masks is not None else [(None, None)] * len(pairs)
     if len(masks) != len(pairs):
@@ -624,15 +616,7 @@ def estimate_gamma_from_motion(
     n_matches, used, every, inliers, g0 = _collect(pairs, masks, config, model, lo, hi, progress)
     sol, fit_pairs, inliers = _robust_fit(every, inliers, g0, lo, hi, config, model.r_n)
     gamma = float(sol.x[0])
-    formal = _formal_sigma(sol)
-    jac = sol.jac.toarray() if hasattr(sol.jac, "toarray") else np.asarray(sol.jac)
-    jack = (
-        _jackknife(fit_pairs, jac, sol.fun, config.jackknife_blocks)
-        if config.jackknife_blocks
-        else float("nan")
-    )
-    pair_jack = _pair_jackknife(fit_pairs, jac, sol.fun)
-    sigma = float(np.nanmax([formal, jack, pair_jack, config.sigma_floor]))
+    formal, jack, pair_jack, sigma = _uncertainties(sol, fit_pairs, config)
     curve_grid = np.linspace(max(lo, -1.0), hi, config.curve_points)
     residual = float(np.sqrt(np.mean(sol.fun**2) * 2)) * model.r_n
     uncorrected = _curve(fit_pairs, np.array([0.0]), model.r_n)[0]
@@ -662,6 +646,36 @@ def estimate_gamma_from_motion(
         residual_curve=_curve(fit_pairs, curve_grid, model.r_n),
         time_s=time.perf_counter() - t0,
     )
+
+
+def _common_frame_size(pairs: Sequence[tuple[NDArray, NDArray]]) -> tuple[int, int]:
+    """``(W, H)`` px of the frames of ``pairs``; ValueError when there are none or they differ."""
+    if not pairs:
+        raise ValueError("γ from motion needs at least one pair of frames, got none")
+    h, w = pairs[0][0].shape[:2]
+    for k, (fa, fb) in enumerate(pairs):
+        for f in (fa, fb):
+            if f.shape[:2] != (h, w):
+                raise ValueError(
+                    f"frame pair {k} has a {f.shape[1]}x{f.shape[0]} frame; all must be {w}x{h}"
+                )
+    return w, h
+
+
+def _uncertainties(sol, fit_pairs: _Pairs, config: MotionGammaConfig):
+    """``(formal, jackknife, pair_jackknife, sigma)`` standard uncertainties of the fitted γ
+    (dimensionless; the jackknife NaN without ``jackknife_blocks``): ``sigma`` is the largest
+    of them and ``config.sigma_floor``."""
+    formal = _formal_sigma(sol)
+    jac = sol.jac.toarray() if hasattr(sol.jac, "toarray") else np.asarray(sol.jac)
+    jack = (
+        _jackknife(fit_pairs, jac, sol.fun, config.jackknife_blocks)
+        if config.jackknife_blocks
+        else float("nan")
+    )
+    pair_jack = _pair_jackknife(fit_pairs, jac, sol.fun)
+    sigma = float(np.nanmax([formal, jack, pair_jack, config.sigma_floor]))
+    return formal, jack, pair_jack, sigma
 
 
 def estimate_gamma_from_flight(

@@ -133,6 +133,22 @@ def chain_segments(
     n = len(s)
     if n == 0:
         return []
+    candidates = _facing_end_pairs(s, config, polarity)
+    return _walk_chains(_link_ends(candidates, n), n)
+
+
+def _facing_end_pairs(
+    s: NDArray[np.float64], config: AutoLineConfig, polarity: NDArray | None
+) -> list[tuple[int, int]]:
+    """Pairs of segment ends that may be chained, best first (short gap, head-on).
+
+    Ends are numbered ``2 * segment + end`` (end 0 = ``x1, y1``, end 1 = ``x2, y2`` of the
+    ``(S, 4)`` segments ``s``, px). A pair qualifies when the ends belong to different segments,
+    their outward directions are within ``link_angle_deg`` of opposite, the gap along them is
+    between ``-link_overlap_px`` and ``link_gap_px``, each end's sideways offset is at most
+    ``link_lateral_px`` and (with ``polarity``, ``(S,)`` +1/-1) the polarities agree along the
+    chain.
+    """
     p = np.stack([s[:, :2], s[:, 2:]], axis=1)  # (n, 2 ends, 2)
     u = p[:, 1] - p[:, 0]
     u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-12)
@@ -143,44 +159,42 @@ def chain_segments(
     tree = cKDTree(ends)
     pairs = tree.query_pairs(config.link_gap_px + config.link_overlap_px, output_type="ndarray")
     cos_max = np.cos(np.deg2rad(config.link_angle_deg))
-    candidates = []
-    if len(pairs):
-        a, b = pairs[:, 0], pairs[:, 1]
-        ok = (a // 2) != (b // 2)
-        a, b = a[ok], b[ok]
-        g = ends[b] - ends[a]
-        oa, ob = outs[a], outs[b]
-        # Ends meet head-on: outward directions opposite, gap along the direction, small offset.
-        facing = -np.sum(oa * ob, axis=1) >= cos_max
-        along = np.sum(g * oa, axis=1)
-        lat_a = np.abs(oa[:, 0] * g[:, 1] - oa[:, 1] * g[:, 0])
-        lat_b = np.abs(ob[:, 0] * g[:, 1] - ob[:, 1] * g[:, 0])
-        ok = (
-            facing
-            & (along >= -config.link_overlap_px)
-            & (along <= config.link_gap_px)
-            & (lat_a <= config.link_lateral_px)
-            & (lat_b <= config.link_lateral_px)
-        )
-        if polarity is not None:
-            # Along the chain, a segment left through its end 1 (or entered at end 0) runs in its
-            # native direction.
-            pol = np.asarray(polarity, np.float64)
-            pa = pol[a // 2] * np.where(a % 2 == 1, 1.0, -1.0)
-            pb = pol[b // 2] * np.where(b % 2 == 0, 1.0, -1.0)
-            ok &= pa == pb
-        score = np.linalg.norm(g, axis=1) + 10.0 * (1 + np.sum(oa * ob, axis=1))
-        a_ok, b_ok = a[ok], b[ok]
-        order = np.argsort(score[ok], kind="stable")
-        candidates = list(zip(a_ok[order].tolist(), b_ok[order].tolist(), strict=True))
-    parent = list(range(n))
+    if not len(pairs):
+        return []
+    a, b = pairs[:, 0], pairs[:, 1]
+    ok = (a // 2) != (b // 2)
+    a, b = a[ok], b[ok]
+    g = ends[b] - ends[a]
+    oa, ob = outs[a], outs[b]
+    # Ends meet head-on: outward directions opposite, gap along the direction, small offset.
+    facing = -np.sum(oa * ob, axis=1) >= cos_max
+    along = np.sum(g * oa, axis=1)
+    lat_a = np.abs(oa[:, 0] * g[:, 1] - oa[:, 1] * g[:, 0])
+    lat_b = np.abs(ob[:, 0] * g[:, 1] - ob[:, 1] * g[:, 0])
+    ok = (
+        facing
+        & (along >= -config.link_overlap_px)
+        & (along <= config.link_gap_px)
+        & (lat_a <= config.link_lateral_px)
+        & (lat_b <= config.link_lateral_px)
+    )
+    if polarity is not None:
+        # Along the chain, a segment left through its end 1 (or entered at end 0) runs in its
+        # native direction.
+        pol = np.asarray(polarity, np.float64)
+        pa = pol[a // 2] * np.where(a % 2 == 1, 1.0, -1.0)
+        pb = pol[b // 2] * np.where(b % 2 == 0, 1.0, -1.0)
+        ok &= pa == pb
+    score = np.linalg.norm(g, axis=1) + 10.0 * (1 + np.sum(oa * ob, axis=1))
+    a_ok, b_ok = a[ok], b[ok]
+    order = np.argsort(score[ok], kind="stable")
+    return list(zip(a_ok[order].tolist(), b_ok[order].tolist(), strict=True))
 
-    def find(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
 
+def _link_ends(candidates: list[tuple[int, int]], n: int) -> dict[int, int]:
+    """Link end pairs greedily in the order given, each end at most once and never closing a
+    loop among the ``n`` segments: ``{end id: linked end id}`` (both directions)."""
+    parent, find = _union_find(n)
     link = {}  # end id -> linked end id
     for ea, eb in candidates:
         if ea in link or eb in link:
@@ -190,6 +204,13 @@ def chain_segments(
             continue
         parent[ra] = rb
         link[ea], link[eb] = eb, ea
+    return link
+
+
+def _walk_chains(link: dict[int, int], n: int) -> list[list[tuple[int, bool]]]:
+    """The chains of the ``n`` segments joined by ``link`` (:func:`_link_ends`), in order of
+    their lowest segment index, each a list of ``(segment index, reversed)`` from one extremity
+    to the other."""
     chains, seen = [], np.zeros(n, bool)
     for start in range(n):
         if seen[start]:
@@ -451,6 +472,47 @@ def link_collinear(
     ]
     if not idx:
         return []
+    cp = _corrected_pieces(pieces, idx, model)
+    tau2 = (config.link_rms_px / s) ** 2
+    candidates = _collinear_pairs(cp, pieces, config, tau2)
+    gmom, find = _merge_groups(candidates, cp.mom, tau2)
+    return _group_lines(cp, gmom, find, tau2, pieces.diagonal, config)
+
+
+@dataclass(frozen=True)
+class _CorrectedPieces:
+    """The ``L`` pieces taking part in :func:`link_collinear`, seen in the corrected frame
+    (corrected px relative to the model's centre unless noted).
+
+    Attributes:
+        raw: the pieces' ``(N_i, 2)`` raw samples (input px).
+        q: ``(N, 2)`` all samples, corrected (0 where the model is undefined), piece by piece.
+        first, last: ``(L,)`` index in ``q`` of each piece's first and last sample.
+        d, nrm: ``(L, 2)`` unit direction (first to last sample) and its normal ``(-dy, dx)``.
+        mid: ``(L, 2)`` midpoint of the first and last sample.
+        half_len: ``(L,)`` half the distance from the first to the last sample.
+        mag_mid: ``(L,)`` RMS magnification across the piece (corrected px per raw px).
+        mom: ``(L, 6)`` weighted moments ``(W, Wx, Wy, Wxx, Wxy, Wyy)`` (:func:`_piece_moments`).
+        bad: ``(L,)`` the piece has a sample beyond the model's validity (takes no part).
+        bright: ``(L, 2)`` the bright-side normal (raw; radial maps keep it on the same side).
+    """
+
+    raw: list[NDArray]
+    q: NDArray
+    first: NDArray
+    last: NDArray
+    d: NDArray
+    nrm: NDArray
+    mid: NDArray
+    half_len: NDArray
+    mag_mid: NDArray
+    mom: NDArray
+    bad: NDArray
+    bright: NDArray
+
+
+def _corrected_pieces(pieces: EdgePieces, idx: list[int], model: RadialModel) -> _CorrectedPieces:
+    """The pieces ``idx`` of ``pieces`` mapped to the frame corrected by ``model``."""
     raw = [pieces.points[i] for i in idx]
     counts = np.array([len(p) for p in raw])
     L = len(raw)
@@ -476,40 +538,56 @@ def link_collinear(
     bright = pieces.bright[idx]
     mid = 0.5 * (q[first] + q[last])
     half_len = 0.5 * np.linalg.norm(q[last] - q[first], axis=1)
-    tau2 = (config.link_rms_px / s) ** 2
+    return _CorrectedPieces(raw, q, first, last, d, nrm, mid, half_len, mag_mid, mom, bad, bright)
+
+
+def _collinear_pairs(
+    cp: _CorrectedPieces, pieces: EdgePieces, config: AutoLineConfig, tau2: float
+) -> list[tuple[int, int]]:
+    """Pairs ``(i, j)`` of corrected pieces that may be linked (:func:`link_collinear`'s
+    tests), best first (smallest lateral offset, raw px, then gap); ``tau2``: the largest
+    weighted mean squared distance from a line, raw px²."""
+    s = pieces.scale
+    d, nrm, mid, half_len, mag_mid, bad = cp.d, cp.nrm, cp.mid, cp.half_len, cp.mag_mid, cp.bad
     reach = config.max_gap_fraction * pieces.diagonal
     # Offsets of collinear pieces differ by their lateral tolerance plus the angle tolerance
     # over their distance (at most the reach plus both lengths).
     angle = np.deg2rad(config.piece_angle_deg)
     far = reach * max(float(np.nanpercentile(mag_mid, 90)), 1.0) + 4 * float(np.median(half_len))
     pairs = _candidate_pairs(mid, d, angle, config.piece_lateral_px / s + far * np.tan(angle))
-    candidates = []
-    if len(pairs):
-        a, b = pairs[:, 0], pairs[:, 1]
-        ok = ~bad[a] & ~bad[b]
-        # Same polarity: the bright normals point the same way once directions are aligned.
-        ok &= np.sum(bright[a] * bright[b], axis=1) > 0
-        g = mid[b] - mid[a]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            lat_b = np.abs(np.sum(g * nrm[a], axis=1)) / mag_mid[b]
-            lat_a = np.abs(np.sum(g * nrm[b], axis=1)) / mag_mid[a]
-            along = np.abs(np.sum(g * d[a], axis=1))
-            gap = (along - half_len[a] - half_len[b]) / np.sqrt(mag_mid[a] * mag_mid[b])
-            raw_len = 2 * (half_len[a] / mag_mid[a] + half_len[b] / mag_mid[b])
-        # A short piece's direction is uncertain: the lateral tolerance grows with distance.
-        tol = config.piece_lateral_px / s + np.maximum(gap, 0) * np.tan(
-            np.deg2rad(config.piece_angle_deg)
-        )
-        ok &= (lat_a <= tol) & (lat_b <= tol)
-        # Short pieces are weak evidence of a line: they bridge only short gaps.
-        max_gap = np.minimum(reach, config.gap_ratio * raw_len)
-        ok &= (gap <= max_gap) & (gap >= -0.5 * np.minimum(half_len[a], half_len[b]))
-        # A pair that is not straight on its own never joins one group.
-        ok[ok] &= _tls_ms(mom[a[ok]] + mom[b[ok]]) <= tau2
-        score = 0.5 * (lat_a + lat_b) + 0.01 * np.maximum(gap, 0)
-        order = np.argsort(score[ok], kind="stable")
-        candidates = list(zip(a[ok][order].tolist(), b[ok][order].tolist(), strict=True))
-    parent, find = _union_find(L)
+    if not len(pairs):
+        return []
+    a, b = pairs[:, 0], pairs[:, 1]
+    ok = ~bad[a] & ~bad[b]
+    # Same polarity: the bright normals point the same way once directions are aligned.
+    ok &= np.sum(cp.bright[a] * cp.bright[b], axis=1) > 0
+    g = mid[b] - mid[a]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        lat_b = np.abs(np.sum(g * nrm[a], axis=1)) / mag_mid[b]
+        lat_a = np.abs(np.sum(g * nrm[b], axis=1)) / mag_mid[a]
+        along = np.abs(np.sum(g * d[a], axis=1))
+        gap = (along - half_len[a] - half_len[b]) / np.sqrt(mag_mid[a] * mag_mid[b])
+        raw_len = 2 * (half_len[a] / mag_mid[a] + half_len[b] / mag_mid[b])
+    # A short piece's direction is uncertain: the lateral tolerance grows with distance.
+    tol = config.piece_lateral_px / s + np.maximum(gap, 0) * np.tan(
+        np.deg2rad(config.piece_angle_deg)
+    )
+    ok &= (lat_a <= tol) & (lat_b <= tol)
+    # Short pieces are weak evidence of a line: they bridge only short gaps.
+    max_gap = np.minimum(reach, config.gap_ratio * raw_len)
+    ok &= (gap <= max_gap) & (gap >= -0.5 * np.minimum(half_len[a], half_len[b]))
+    # A pair that is not straight on its own never joins one group.
+    ok[ok] &= _tls_ms(cp.mom[a[ok]] + cp.mom[b[ok]]) <= tau2
+    score = 0.5 * (lat_a + lat_b) + 0.01 * np.maximum(gap, 0)
+    order = np.argsort(score[ok], kind="stable")
+    return list(zip(a[ok][order].tolist(), b[ok][order].tolist(), strict=True))
+
+
+def _merge_groups(candidates: list[tuple[int, int]], mom: NDArray, tau2: float):
+    """Merge the candidate pairs greedily, in order, while the merged group's weighted mean
+    squared distance from its TLS line stays within ``tau2``: ``(gmom, find)``, the ``(L, 6)``
+    moments of each group at its root and the union-find root of each piece."""
+    parent, find = _union_find(len(mom))
     gmom = mom.copy()
     for i, j in candidates:
         ri, rj = find(i), find(j)
@@ -520,18 +598,28 @@ def link_collinear(
             continue
         parent[ri] = rj
         gmom[rj] = m
+    return gmom, find
+
+
+def _group_lines(
+    cp: _CorrectedPieces, gmom: NDArray, find, tau2: float, diagonal: float, config: AutoLineConfig
+) -> list[NDArray[np.float64]]:
+    """The groups' raw samples as polylines ordered along each group's corrected direction,
+    longest first, at most ``max_edges``, each thinned to ``max_points_per_line``; pieces
+    beyond the model's validity, single pieces that are not straight (``tau2``) and lines
+    shorter than ``min_edge_fraction`` of the ``diagonal`` (raw px) are dropped."""
     groups: dict[int, list[int]] = {}
-    for i in range(L):
-        if not bad[i]:
+    for i in range(len(cp.raw)):
+        if not cp.bad[i]:
             groups.setdefault(find(i), []).append(i)
-    min_len = config.min_edge_fraction * pieces.diagonal
+    min_len = config.min_edge_fraction * diagonal
     lines = []
     for members in groups.values():
         m = gmom[find(members[0])]
         if len(members) == 1 and _tls_ms(m[None])[0] > tau2:
             continue
-        p = np.concatenate([raw[i] for i in members])
-        qq = np.concatenate([q[first[i] : last[i] + 1] for i in members])
+        p = np.concatenate([cp.raw[i] for i in members])
+        qq = np.concatenate([cp.q[cp.first[i] : cp.last[i] + 1] for i in members])
         # Order along the group's direction in the corrected frame.
         order = np.argsort(qq @ _tls_direction(m), kind="stable")
         p = p[order]

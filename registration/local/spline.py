@@ -112,9 +112,6 @@ def estimate_field_spline(
         residual; status "ok", "few_matches" (some weight, under one sample's worth) or
         "outside" (none).
     """
-    from scipy.sparse import diags, identity
-    from scipy.sparse.linalg import spsolve
-
     t0 = time.perf_counter()
     p = np.asarray(pos, np.float64).reshape(-1, 2)
     d = np.asarray(disp, np.float64).reshape(-1, 2)
@@ -124,21 +121,46 @@ def estimate_field_spline(
     use = np.isfinite(p).all(axis=1) & np.isfinite(d).all(axis=1)
     use &= (p >= (x0, y0)).all(axis=1) & (p <= span).all(axis=1)
     p, d = p[use], d[use]
-    n_nodes = gx * gy
-    vectors = np.zeros((gy, gx, 2), np.float32)
-    status = np.full((gy, gx), OUTSIDE, np.int8)
-    n_match = np.zeros((gy, gx), np.int32)
-    n_kept = np.zeros((gy, gx), np.int32)
-    resid_node = np.full((gy, gx), np.nan, np.float32)
     if len(p) < max(config.min_matches, 3):
-        field_ = DisplacementField((x0, y0), spacing, vectors, np.zeros((gy, gx), bool))
-        stats = FieldStats(status, n_match, n_kept, resid_node)
+        field_ = DisplacementField(
+            (x0, y0), spacing, np.zeros((gy, gx, 2), np.float32), np.zeros((gy, gx), bool)
+        )
+        stats = FieldStats(
+            np.full((gy, gx), OUTSIDE, np.int8),
+            np.zeros((gy, gx), np.int32),
+            np.zeros((gy, gx), np.int32),
+            np.full((gy, gx), np.nan, np.float32),
+        )
         stats.time_match_s = stats.time_total_s = time.perf_counter() - t0
         return field_, stats
     design = _bilinear_design(p, (x0, y0), spacing, gx, gy)
+    v, w, r = _robust_node_fit(design, d, gx, gy, config)
+    valid, stats = _node_stats(design, w, r, gx, gy)
+    field_ = DisplacementField((x0, y0), spacing, v.reshape(gy, gx, 2).astype(np.float32), valid)
+    stats.time_match_s = stats.time_total_s = time.perf_counter() - t0
+    log.debug("spline field: %s", stats.counts())
+    return field_, stats
+
+
+def _robust_node_fit(design, d: NDArray, gx: int, gy: int, config: LocalConfig):
+    """The node vectors by iteratively reweighted, regularised least squares (see
+    :func:`estimate_field_spline`).
+
+    Args:
+        design: sparse ``(M, Gy * Gx)`` bilinear weights of the samples (:func:`_bilinear_design`).
+        d: ``(M, 2)`` the samples' displacements, base px.
+
+    Returns:
+        ``(v, w, r)``: ``(Gy * Gx, 2)`` node vectors (base px), ``(M,)`` the Tukey weights they
+        were fitted with and ``(M,)`` the samples' residuals (base px).
+    """
+    from scipy.sparse import diags, identity
+    from scipy.sparse.linalg import spsolve
+
+    n_nodes = gx * gy
     penalty = _second_differences(gx, gy)
-    regulariser = (config.spline_smoothness * len(p) / n_nodes) * (penalty.T @ penalty)
-    w = np.ones(len(p))
+    regulariser = (config.spline_smoothness * len(d) / n_nodes) * (penalty.T @ penalty)
+    w = np.ones(len(d))
     for it in range(SPLINE_ITERATIONS):
         normal = design.T @ diags(w) @ design + regulariser
         ridge = 1e-9 * max(float(normal.diagonal().max()), 1.0)
@@ -150,6 +172,19 @@ def estimate_field_spline(
         sigma = max(1.4826 * float(np.median(r[w > 0])), SPLINE_MIN_SIGMA_PX)
         u = r / (SPLINE_TUKEY_C * sigma)
         w = np.where(u < 1, (1 - u**2) ** 2, 0.0)
+    return v, w, r
+
+
+def _node_stats(design, w: NDArray, r: NDArray, gx: int, gy: int) -> tuple[NDArray, FieldStats]:
+    """``(valid, stats)`` per node of the ``(Gy, Gx)`` grid from the samples' bilinear
+    ``design`` ``(M, Gy * Gx)``, weights ``w`` and residuals ``r`` (``(M,)``, base px): valid
+    where the weight reaching the node is at least one sample's worth; in ``stats`` the
+    samples touching each node, those with a positive weight, their weighted mean residual
+    (NaN where not valid) and the status ("ok", "few_matches" or "outside")."""
+    status = np.full((gy, gx), OUTSIDE, np.int8)
+    n_match = np.zeros((gy, gx), np.int32)
+    n_kept = np.zeros((gy, gx), np.int32)
+    resid_node = np.full((gy, gx), np.nan, np.float32)
     touching = (design > 0).astype(np.float64)
     support = np.asarray(design.T @ w).reshape(gy, gx)
     n_match[:] = np.asarray(touching.sum(axis=0)).reshape(gy, gx)
@@ -163,8 +198,4 @@ def estimate_field_spline(
     status[(support > 0) & ~valid] = FEW_MATCHES
     status[valid] = OK
     resid_node[~valid] = np.nan
-    field_ = DisplacementField((x0, y0), spacing, v.reshape(gy, gx, 2).astype(np.float32), valid)
-    stats = FieldStats(status, n_match, n_kept, resid_node)
-    stats.time_match_s = stats.time_total_s = time.perf_counter() - t0
-    log.debug("spline field: %s", stats.counts())
-    return field_, stats
+    return valid, FieldStats(status, n_match, n_kept, resid_node)

@@ -173,16 +173,52 @@ def gridded_sift_control_points(
     half = (config.window_px - 1) / 2
 
     if frame_keypoints is None:
-        mask = np.zeros((fh, fw), np.uint8)
-        for cx, cy in centres:
-            x0, y0 = int(math.ceil(cx - half)), int(math.ceil(cy - half))
-            mask[y0 : y0 + config.window_px, x0 : x0 + config.window_px] = 1
-        frame_keypoints = detect_sift(frame, config.sift, mask)
-    # Bucket frame keypoints by window: nearest grid centre, then inside the window?
+        frame_keypoints = _detect_in_frame_windows(frame, centres, config)
+    order, bounds = _bucket_by_window(frame_keypoints.xy, centres, config)
+
+    # Window corners in the frame, (N, 4, 2).
+    corners = centres[:, None, :] + half * np.array(
+        [[-1, -1], [1, -1], [1, 1], [-1, 1]], np.float64
+    )
+    parts: list[tuple[NDArray, ...]] = []
+    for k, ref_entry in enumerate(references):
+        parts.extend(
+            _match_reference(frame_keypoints, order, bounds, corners, ref_entry, k, config)
+        )
+    if not parts:
+        return ControlPoints.empty()
+    return _combine_and_decimate(parts, len(centres), config.decimate)
+
+
+def _detect_in_frame_windows(
+    frame: NDArray, centres: NDArray[np.float64], config: GriddedSiftConfig
+) -> Keypoints:
+    """SIFT on the ``(H, W)`` grey frame, masked to the ``window_px`` windows around the
+    ``(N, 2)`` frame-px ``centres``."""
+    fw, fh = coords.image_size(frame)
+    half = (config.window_px - 1) / 2
+    mask = np.zeros((fh, fw), np.uint8)
+    for cx, cy in centres:
+        x0, y0 = int(math.ceil(cx - half)), int(math.ceil(cy - half))
+        mask[y0 : y0 + config.window_px, x0 : x0 + config.window_px] = 1
+    return detect_sift(frame, config.sift, mask)
+
+
+def _bucket_by_window(
+    fxy: NDArray[np.float64], centres: NDArray[np.float64], config: GriddedSiftConfig
+) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Bucket the ``(K, 2)`` frame keypoints ``fxy`` (frame px) by window: nearest grid centre,
+    then inside that window?
+
+    Returns:
+        ``(order, bounds)``: ``order`` ``(K,)`` keypoint indices sorted by window (those in no
+        window first), ``bounds`` ``(N + 1,)``: window ``w``'s keypoints are
+        ``order[bounds[w]:bounds[w + 1]]``.
+    """
+    half = (config.window_px - 1) / 2
     fx0, fy0 = centres[0]
     nx = len(np.unique(centres[:, 0]))
     ny = len(centres) // nx
-    fxy = frame_keypoints.xy
     gi = (
         np.round((fxy[:, 0] - fx0) / config.spacing_px).astype(np.int64)
         if len(fxy)
@@ -200,88 +236,139 @@ def gridded_sift_control_points(
     win_of[~inside] = -1
     order = np.argsort(win_of, kind="stable")
     bounds = np.searchsorted(win_of[order], np.arange(len(centres) + 1))
+    return order, bounds
 
-    # Window corners in the frame, (N, 4, 2).
-    corners = centres[:, None, :] + half * np.array(
-        [[-1, -1], [1, -1], [1, 1], [-1, 1]], np.float64
+
+def _reference_windows(
+    ref_entry: GriddedReference,
+    k: int,
+    corners: NDArray[np.float64],
+    margin: float,
+    rw: int,
+    rh: int,
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_]]:
+    """Each frame window's window in reference ``k`` (a ``rw`` x ``rh`` image): the bounding box
+    of its ``(N, 4, 2)`` frame-px ``corners`` mapped by ``ref_from_frame``, grown by ``margin``
+    reference px.
+
+    Returns:
+        ``(lo, hi, usable)``: ``(N, 2)`` box corners, reference px, and ``(N,)`` bool, the box is
+        finite and overlaps the image.
+    """
+    mapped = _call_points(
+        ref_entry.ref_from_frame, corners.reshape(-1, 2), f"refs[{k}].ref_from_frame"
     )
+    mapped = mapped.reshape(-1, 4, 2)
+    lo = np.nanmin(mapped, axis=1) - margin
+    hi = np.nanmax(mapped, axis=1) + margin
+    usable = (
+        np.isfinite(mapped).all(axis=(1, 2))
+        & (hi[:, 0] >= 0)
+        & (hi[:, 1] >= 0)
+        & (lo[:, 0] <= rw - 1)
+        & (lo[:, 1] <= rh - 1)
+    )
+    return lo, hi, usable
+
+
+def _detect_in_boxes(
+    ref: NDArray, lo: NDArray[np.float64], hi: NDArray[np.float64], config: GriddedSiftConfig
+) -> Keypoints:
+    """SIFT on the ``(H, W)`` grey reference, masked to the ``(M, 2)`` boxes ``lo``..``hi``
+    (reference px, clipped to the image)."""
+    rw, rh = coords.image_size(ref)
+    mask = np.zeros((rh, rw), np.uint8)
+    for a, b in zip(lo, hi, strict=True):
+        x0, y0 = max(0, int(math.floor(a[0]))), max(0, int(math.floor(a[1])))
+        x1, y1 = min(rw - 1, int(math.ceil(b[0]))), min(rh - 1, int(math.ceil(b[1])))
+        mask[y0 : y1 + 1, x0 : x1 + 1] = 1
+    return detect_sift(ref, config.sift, mask)
+
+
+def _match_reference(
+    frame_keypoints: Keypoints,
+    order: NDArray[np.int64],
+    bounds: NDArray[np.int64],
+    corners: NDArray[np.float64],
+    ref_entry: GriddedReference,
+    k: int,
+    config: GriddedSiftConfig,
+) -> list[tuple[NDArray, ...]]:
+    """Match the frame's keypoints window by window against reference ``k``'s keypoints inside
+    the corresponding reference window (ratio test).
+
+    Args:
+        frame_keypoints: the frame's keypoints, bucketed by ``order``/``bounds``
+            (:func:`_bucket_by_window`).
+        corners: ``(N, 4, 2)`` window corners, frame px.
+
+    Returns:
+        One ``(src (n, 2) frame px, dst (n, 2) reference px, score (n,), window (n,),
+        source (n,))`` tuple per window with matches, in window order; empty if no window of
+        the reference is usable or it has fewer than 2 keypoints.
+    """
+    ref = to_grey(ref_entry.image)
+    rw, rh = coords.image_size(ref)
+    lo, hi, usable = _reference_windows(ref_entry, k, corners, config.window_margin_px, rw, rh)
+    if not usable.any():
+        return []
+    ref_kp = ref_entry.keypoints
+    if ref_kp is None:
+        ref_kp = _detect_in_boxes(ref, lo[usable], hi[usable], config)
+    if len(ref_kp) < 2:
+        return []
+    rorder = np.argsort(ref_kp.xy[:, 0], kind="stable")
+    rx_sorted = ref_kp.xy[rorder, 0]
+    ry = ref_kp.xy[:, 1]
+    matcher = cv2.BFMatcher(cv2.NORM_L2)
     parts: list[tuple[NDArray, ...]] = []
-    for k, ref_entry in enumerate(references):
-        ref = to_grey(ref_entry.image)
-        rw, rh = coords.image_size(ref)
-        mapped = _call_points(
-            ref_entry.ref_from_frame, corners.reshape(-1, 2), f"refs[{k}].ref_from_frame"
-        )
-        mapped = mapped.reshape(-1, 4, 2)
-        m = config.window_margin_px
-        lo = np.nanmin(mapped, axis=1) - m
-        hi = np.nanmax(mapped, axis=1) + m
-        usable = (
-            np.isfinite(mapped).all(axis=(1, 2))
-            & (hi[:, 0] >= 0)
-            & (hi[:, 1] >= 0)
-            & (lo[:, 0] <= rw - 1)
-            & (lo[:, 1] <= rh - 1)
-        )
-        if not usable.any():
+    for w in np.flatnonzero(usable):
+        f_idx = order[bounds[w] : bounds[w + 1]]
+        if len(f_idx) == 0:
             continue
-        ref_kp = ref_entry.keypoints
-        if ref_kp is None:
-            mask = np.zeros((rh, rw), np.uint8)
-            for a, b in zip(lo[usable], hi[usable], strict=True):
-                x0, y0 = max(0, int(math.floor(a[0]))), max(0, int(math.floor(a[1])))
-                x1, y1 = min(rw - 1, int(math.ceil(b[0]))), min(rh - 1, int(math.ceil(b[1])))
-                mask[y0 : y1 + 1, x0 : x1 + 1] = 1
-            ref_kp = detect_sift(ref, config.sift, mask)
-        if len(ref_kp) < 2:
+        a0, a1 = np.searchsorted(rx_sorted, [lo[w, 0], hi[w, 0]], side="left")
+        cand = rorder[a0:a1]
+        cand = cand[(ry[cand] >= lo[w, 1]) & (ry[cand] <= hi[w, 1])]
+        if len(cand) < 2:
             continue
-        rorder = np.argsort(ref_kp.xy[:, 0], kind="stable")
-        rx_sorted = ref_kp.xy[rorder, 0]
-        ry = ref_kp.xy[:, 1]
-        matcher = cv2.BFMatcher(cv2.NORM_L2)
-        for w in np.flatnonzero(usable):
-            f_idx = order[bounds[w] : bounds[w + 1]]
-            if len(f_idx) == 0:
-                continue
-            a0, a1 = np.searchsorted(rx_sorted, [lo[w, 0], hi[w, 0]], side="left")
-            cand = rorder[a0:a1]
-            cand = cand[(ry[cand] >= lo[w, 1]) & (ry[cand] <= hi[w, 1])]
-            if len(cand) < 2:
-                continue
-            knn = matcher.knnMatch(
-                frame_keypoints.descriptors[f_idx], ref_kp.descriptors[cand], k=2
+        knn = matcher.knnMatch(frame_keypoints.descriptors[f_idx], ref_kp.descriptors[cand], k=2)
+        rows = [
+            (m[0].queryIdx, m[0].trainIdx, m[0].distance, m[1].distance)
+            for m in knn
+            if len(m) == 2 and m[0].distance < config.ratio * m[1].distance
+        ]
+        if not rows:
+            continue
+        r = np.array(rows, np.float64)
+        qi, ti = r[:, 0].astype(np.int64), r[:, 1].astype(np.int64)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            score = 1.0 - np.where(r[:, 3] > 0, r[:, 2] / r[:, 3], 1.0)
+        n = len(r)
+        parts.append(
+            (
+                frame_keypoints.xy[f_idx[qi]],
+                ref_kp.xy[cand[ti]],
+                score,
+                np.full(n, w, np.int64),
+                np.full(n, k, np.int64),
             )
-            rows = [
-                (m[0].queryIdx, m[0].trainIdx, m[0].distance, m[1].distance)
-                for m in knn
-                if len(m) == 2 and m[0].distance < config.ratio * m[1].distance
-            ]
-            if not rows:
-                continue
-            r = np.array(rows, np.float64)
-            qi, ti = r[:, 0].astype(np.int64), r[:, 1].astype(np.int64)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                score = 1.0 - np.where(r[:, 3] > 0, r[:, 2] / r[:, 3], 1.0)
-            n = len(r)
-            parts.append(
-                (
-                    frame_keypoints.xy[f_idx[qi]],
-                    ref_kp.xy[cand[ti]],
-                    score,
-                    np.full(n, w, np.int64),
-                    np.full(n, k, np.int64),
-                )
-            )
-    if not parts:
-        return ControlPoints.empty()
+        )
+    return parts
+
+
+def _combine_and_decimate(
+    parts: list[tuple[NDArray, ...]], n_windows: int, decimate: int
+) -> ControlPoints:
+    """Concatenate the per-window match tuples of all references (see
+    :func:`_match_reference`) and decimate (paper 4.4): order by window, then best score first,
+    keep every ``decimate``-th."""
     src, dst, score, win, source = (np.concatenate(c) for c in zip(*parts, strict=True))
-    # Decimation (paper 4.4): order by window, then best score first, keep every decimate-th.
-    order_all = np.lexsort((source, -score, win))[:: config.decimate]
+    order_all = np.lexsort((source, -score, win))[::decimate]
     logger.debug(
         "gridded SIFT: %d matches over %d windows, %d kept after decimation by %d",
         len(src),
-        len(centres),
+        n_windows,
         len(order_all),
-        config.decimate,
+        decimate,
     )
     return ControlPoints(src[order_all], dst[order_all], score[order_all], source[order_all])

@@ -422,14 +422,43 @@ def template_control_points(
         for the ``i``-th fallback, in that reference's pixels),
         ``score`` = NCC peak value; empty when nothing matched.
     """
+    fallbacks = _fallback_list(fallback, config)
+    frame = _signal(frame_grey, config)
+    ref = _signal(ref_grey, config)
+    fw, fh = coords.image_size(frame)
+    sets = _template_sets(fw, fh, config, centres)
+    # The grid and the ring search the same warped references: prepare each at most once.
+    searches = _Searches(ref, ref_from_frame, ref_valid, fallbacks, (fw, fh), config)
+    other_sensor = np.array([ref_other_sensor] + [fb.other_sensor for fb in fallbacks])
+    # fmt: off
+    return ControlPoints.concatenate([
+        _match_set(frame, c, cfg, ref, ref_from_frame, frame_from_ref, ref_valid, fallbacks,
+                   searches, other_sensor)
+        for c, cfg in sets
+    ])
+    # fmt: on
+
+
+def _fallback_list(
+    fallback: GriddedReference | list[GriddedReference] | None, config: TemplateConfig
+) -> list[GriddedReference]:
+    """``fallback`` as a list (empty for None); ValueError when there is one without
+    ``warp_reference``."""
     fallbacks = (
         [] if fallback is None else [fallback] if not isinstance(fallback, list) else fallback
     )
     if fallbacks and not config.warp_reference:
         raise ValueError("template_control_points: a fallback reference needs warp_reference=True")
-    frame = _signal(frame_grey, config)
-    ref = _signal(ref_grey, config)
-    fw, fh = coords.image_size(frame)
+    return fallbacks
+
+
+def _template_sets(
+    fw: int, fh: int, config: TemplateConfig, centres: NDArray[np.int64] | None
+) -> list[tuple[NDArray[np.int64], TemplateConfig]]:
+    """``[(centres, config), ...]``: the template sets of one size each searched for a
+    ``fw`` x ``fh`` frame: the grid (or the given ``centres``) and, with ``edge_template_px``
+    and no given centres, the ring of smaller templates along the border (no change test:
+    too small for it, :class:`TemplateConfig`)."""
     sets = [(template_grid(fw, fh, config) if centres is None else centres, config)]
     if centres is None and config.edge_template_px > 0:
         ring = edge_ring(fw, fh, config.edge_template_px, grid_spacing(fw, fh, config))
@@ -444,26 +473,7 @@ def template_control_points(
                 ),
             )
         )
-    # The grid and the ring search the same warped references: prepare each at most once.
-    searches = _Searches(ref, ref_from_frame, ref_valid, fallbacks, (fw, fh), config)
-    other_sensor = np.array([ref_other_sensor] + [fb.other_sensor for fb in fallbacks])
-    return ControlPoints.concatenate(
-        [
-            _match_set(
-                frame,
-                c,
-                cfg,
-                ref,
-                ref_from_frame,
-                frame_from_ref,
-                ref_valid,
-                fallbacks,
-                searches,
-                other_sensor,
-            )  # fmt: skip
-            for c, cfg in sets
-        ]  # fmt: skip
-    )
+    return sets
 
 
 class _Searches:

@@ -410,16 +410,44 @@ def draw_car(img, x, y, axis, length, width, colour, shadow=None):
 
 def render_city(lay: Layout, look: Look = Look()) -> NDArray[np.uint8]:
     """Paint ``lay`` as seen with ``look``: ``(H, W, 3)`` uint8 RGB."""
-    W, H, m = lay.width, lay.height, 1.0 / lay.gsd
+    m = 1.0 / lay.gsd
     rng = np.random.default_rng([lay.seed, 202])  # texture shared by all looks (same ground)
-    # Ground: dry grass / dirt with large-scale variation.
+    img, n2 = _paint_ground(lay, rng, m)
+    _paint_paving(img, lay)
+    # Asphalt patches and stains (texture for correlation on the roads).
+    _road_patches(img, lay, rng)
+    _paint_stall_lines(img, lay, m)
+    _markings(img, lay)
+    sun = _sun_offset(look)
+    _paint_cars(img, lay, look, sun, m)
+    # Cast shadows of buildings and trees (darken), then roofs and canopies on top.
+    _cast_shadows(img, lay, sun, m)
+    for b in lay.buildings:
+        _roof(img, b, m, rng)
+    _paint_trees(img, lay, sun, rng)
+    # Texture everywhere: multiplicative dirt (large) and grain (small), plus colour speckle.
+    n3 = fractal_noise(lay.height, lay.width, rng, cell=30.0, octaves=4)
+    img *= (1.0 + 0.07 * n3 + 0.06 * n2)[..., None]
+    img += rng.normal(0, 3.0, (lay.height, lay.width, 1)).astype(np.float32)
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def _paint_ground(lay: Layout, rng: np.random.Generator, m: float):
+    """``(img, grain)``: the ``(H, W, 3)`` float32 ground, dry grass / dirt with large-scale
+    variation, and the ``(H, W)`` fine noise the final texture reuses (``m``: px per metre)."""
+    W, H = lay.width, lay.height
     n1 = fractal_noise(H, W, rng, cell=120 * m / 3.33, octaves=5)
     n2 = fractal_noise(H, W, rng, cell=8.0, octaves=3)
     base = np.empty((H, W, 3), np.float32)
     base[..., 0] = 128 + 18 * n1
     base[..., 1] = 122 + 14 * n1
     base[..., 2] = 92 + 10 * n1
-    img = base
+    return base, n2
+
+
+def _paint_paving(img: NDArray[np.float32], lay: Layout) -> None:
+    """Greens, plazas, the streets' sidewalks and asphalt and the parking lots, in that order."""
+    W, H = lay.width, lay.height
     # Greens (parks, leftover yards): grass.
     for x0, y0, x1, y1 in lay.greens:
         _rect(img, x0, y0, x1, y1, (88, 118, 62))
@@ -443,8 +471,10 @@ def render_city(lay: Layout, look: Look = Look()) -> NDArray[np.uint8]:
     # Parking lots: asphalt with stall lines.
     for x0, y0, x1, y1 in lay.lots:
         _rect(img, x0, y0, x1, y1, (92, 92, 95))
-    # Asphalt patches and stains (texture for correlation on the roads).
-    _road_patches(img, lay, rng)
+
+
+def _paint_stall_lines(img: NDArray[np.float32], lay: Layout, m: float) -> None:
+    """The two side lines of every parking stall (``m``: px per metre)."""
     for x, y, axis in lay.stalls:
         hw, hd = 1.35 * m, 2.65 * m
         lw = 0.12 * m + 0.5
@@ -455,13 +485,17 @@ def render_city(lay: Layout, look: Look = Look()) -> NDArray[np.uint8]:
         else:
             _rect(img, x - hd, y - hw - lw / 2, x + hd, y - hw + lw / 2, col)
             _rect(img, x - hd, y + hw - lw / 2, x + hd, y + hw + lw / 2, col)
-    _markings(img, lay)
-    # Parked cars of this look.
-    prng = np.random.default_rng([lay.seed, 303, look.parked_seed])
+
+
+def _sun_offset(look: Look) -> NDArray[np.float64]:
+    """``(2,)`` shadow offset per unit of height (px per px), pointing along the sun's azimuth."""
     az = np.radians(look.sun_azimuth_deg)
-    sun = np.array([np.cos(az), np.sin(az)]) / np.tan(
-        np.radians(look.sun_elevation_deg)
-    )  # px per px height
+    return np.array([np.cos(az), np.sin(az)]) / np.tan(np.radians(look.sun_elevation_deg))
+
+
+def _paint_cars(img: NDArray[np.float32], lay: Layout, look: Look, sun: NDArray, m: float) -> None:
+    """This look's parked cars (drawn from its own seed) and moving traffic, with shadows."""
+    prng = np.random.default_rng([lay.seed, 303, look.parked_seed])
     for x, y, axis in lay.stalls:
         if prng.random() < look.parked_fraction:
             col = CAR_COLOURS[prng.choice(len(CAR_COLOURS), p=CAR_COLOUR_P)]
@@ -478,8 +512,11 @@ def render_city(lay: Layout, look: Look = Look()) -> NDArray[np.uint8]:
     if look.traffic_seed is not None:
         for v in traffic_snapshot(lay, look.traffic_seed, look.traffic_per_km):
             draw_car(img, v[0], v[1], int(v[2]), v[3], v[4], v[5:8], shadow=sun * 1.4 * m)
-    # Cast shadows of buildings and trees (darken), then roofs and canopies on top.
-    shadow = np.zeros((H, W), np.uint8)
+
+
+def _cast_shadows(img: NDArray[np.float32], lay: Layout, sun: NDArray, m: float) -> None:
+    """Darken ``img`` where buildings and trees cast their shadows."""
+    shadow = np.zeros((lay.height, lay.width), np.uint8)
     for b in lay.buildings:
         x0, y0, x1, y1 = b.rect
         d = sun * b.height_m * m
@@ -491,8 +528,10 @@ def render_city(lay: Layout, look: Look = Look()) -> NDArray[np.uint8]:
         _circle(shadow, x + d[0], y + d[1], r * 0.95, 255)
     sh = shadow.astype(np.float32)[..., None] / 255.0
     img *= 1.0 - sh * np.array([0.58, 0.55, 0.48], np.float32)
-    for b in lay.buildings:
-        _roof(img, b, m, rng)
+
+
+def _paint_trees(img: NDArray[np.float32], lay: Layout, sun: NDArray, rng: np.random.Generator):
+    """The tree canopies: a shade of green, the side lit towards the sun and a few lumps."""
     for x, y, r, _hm in lay.trees:
         g = rng.uniform(0.8, 1.15)
         _circle(img, x, y, r, (52 * g, 78 * g, 40 * g))
@@ -503,11 +542,6 @@ def render_city(lay: Layout, look: Look = Look()) -> NDArray[np.uint8]:
         for _ in range(3):
             ox, oy = rng.uniform(-0.5, 0.5, 2) * r
             _circle(img, x + ox, y + oy, r * rng.uniform(0.2, 0.4), (58 * g, 90 * g, 45 * g))
-    # Texture everywhere: multiplicative dirt (large) and grain (small), plus colour speckle.
-    n3 = fractal_noise(H, W, rng, cell=30.0, octaves=4)
-    img *= (1.0 + 0.07 * n3 + 0.06 * n2)[..., None]
-    img += rng.normal(0, 3.0, (H, W, 1)).astype(np.float32)
-    return np.clip(img, 0, 255).astype(np.uint8)
 
 
 def _road_patches(img, lay: Layout, rng):

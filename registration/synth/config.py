@@ -119,8 +119,17 @@ class SimConfig:
     def validate(self) -> None:
         """Raise a one-line ValueError naming the first bad value (and the limit it breaks)."""
         from registration.synth.basemap import check_base_params
-        from registration.synth.camera import SimLens
 
+        self._check_frames()
+        self._check_lens()
+        self._check_camera_and_motion()
+        self._check_motion_targets()
+        self._check_scene_and_output()
+        check_base_params(self.base_heading_deg, self.base_scale)
+
+    def _check_frames(self) -> None:
+        """Frame size (px per side, MP per frame), number of frames, their total pixels and
+        the frame rate."""
         w, h = self.frame_size
         if int(w) <= 0 or int(h) <= 0:
             raise ValueError(f"frame size must be positive, got {w}x{h}")
@@ -145,6 +154,12 @@ class SimConfig:
             )
         if not (math.isfinite(self.fps) and self.fps > 0):
             raise ValueError(f"fps must be positive, got {self.fps}")
+
+    def _check_lens(self) -> None:
+        """γ and ``lens_k2``, alone and together on this frame size."""
+        from registration.synth.camera import SimLens
+
+        w, h = self.frame_size
         # Harris model valid on the raw frame: 1 - γ ρ² > 0 at the corners (ρ = 1 for a centred
         # model); a margin keeps the corner rays away from the horizon.
         if not (-1.0 <= self.gamma <= 0.9):
@@ -161,6 +176,10 @@ class SimConfig:
         problem = SimLens(self.gamma, self.lens_k2, int(w), int(h)).validity_problem()
         if problem:
             raise ValueError(problem)
+
+    def _check_camera_and_motion(self) -> None:
+        """Field of view, rolling shutter, frame scale, the non-negative motion and scene
+        amplitudes, the flyover length and the heading."""
         if not (10.0 <= self.fov_deg <= 120.0):
             raise ValueError(f"field of view must be in [10, 120] degrees, got {self.fov_deg}")
         if not (0.0 <= self.rolling_shutter_s < 1.0 / self.fps):
@@ -189,6 +208,10 @@ class SimConfig:
             )
         if not math.isfinite(self.heading_deg):
             raise ValueError(f"heading must be a finite angle in degrees, got {self.heading_deg}")
+
+    def _check_motion_targets(self) -> None:
+        """``shake_deg`` and ``unregistered_px`` (with what they scale) and the attitude
+        frequency ranges."""
         if self.shake_deg is not None:
             if not (math.isfinite(self.shake_deg) and 0 < self.shake_deg <= 20):
                 raise ValueError(f"shake_deg must be in (0, 20] degrees, got {self.shake_deg}")
@@ -207,6 +230,9 @@ class SimConfig:
             lo, hi = getattr(self, name)
             if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo <= hi <= 50):
                 raise ValueError(f"{name} must be a range 0 < low <= high <= 50 Hz, got {lo}, {hi}")
+
+    def _check_scene_and_output(self) -> None:
+        """Ground sample distance, city size, seed and JPEG quality."""
         if not self.gsd_m > 0:
             raise ValueError(f"gsd must be positive, got {self.gsd_m}")
         if self.city_size is not None:
@@ -221,4 +247,3 @@ class SimConfig:
             raise ValueError(f"seed must be a non-negative integer, got {self.seed}")
         if not (0 <= self.jpeg_quality <= 100):
             raise ValueError(f"JPEG quality must be in [0, 100], got {self.jpeg_quality}")
-        check_base_params(self.base_heading_deg, self.base_scale)

@@ -178,7 +178,38 @@ def simulate(
     out = Path(out_dir)
     check_target(out, force)
     total = cfg.n_frames + 2  # scene, frames, video
-    # Progress starts once the flight is planned (a bad flight fails before any bar).
+    geom, layout, scene_img, base_img, scene_desc = _plan_and_paint(
+        cfg, scene, base, base_from_scene, progress, total
+    )
+    native_size = tuple(int(v) for v in geom.base_size)
+    native_from_scene = np.asarray(geom.base_from_scene, np.float64)
+    base_img, base_from_native, canvas = warp_base(base_img, cfg.base_heading_deg, cfg.base_scale)
+    geom = dataclasses.replace(
+        geom, base_from_scene=base_from_native @ native_from_scene, base_size=canvas
+    )
+    base_map = base_map_info(
+        native_size, native_from_scene, cfg.base_heading_deg, cfg.base_scale, base_from_native
+    )
+    truth = _truth_record(cfg, geom, scene_desc, base_map)
+    with Staging(out, force) as stage:
+        files = {"base.png": write_png(stage.dir / "base.png", base_img)}
+        del base_img
+        if progress:
+            progress(1, total)
+        renderer = FrameRenderer(geom, scene_img, cfg, layout)
+        _write_frames(stage.dir, renderer, cfg, files, progress, total)
+        truth["files"] = files
+        stage.commit(truth)
+    if progress:
+        progress(total, total)
+    return out
+
+
+def _plan_and_paint(cfg: SimConfig, scene, base, base_from_scene, progress, total: int):
+    """``(geometry, layout, scene, native base, scene description)``: the flight planned over
+    the procedural city (``layout`` its plan) or the user's ``scene`` (``layout`` None), the
+    scene painted or read and the base map at its native heading and scale. ``progress(0,
+    total)`` is reported once the flight is planned (a bad flight fails before any bar)."""
     if scene is None:
         if base is not None or base_from_scene is not None:
             raise ValueError("base and base_from_scene need a scene image")
@@ -193,14 +224,13 @@ def simulate(
         geom, scene_img, base_img = _plan_user_scene(cfg, scene, base, base_from_scene)
         if progress:
             progress(0, total)
+    return geom, layout, scene_img, base_img, scene_desc
 
-    native_size = tuple(int(v) for v in geom.base_size)
-    native_from_scene = np.asarray(geom.base_from_scene, np.float64)
-    base_img, base_from_native, canvas = warp_base(base_img, cfg.base_heading_deg, cfg.base_scale)
-    geom = dataclasses.replace(
-        geom, base_from_scene=base_from_native @ native_from_scene, base_size=canvas
-    )
-    truth = {
+
+def _truth_record(cfg: SimConfig, geom: SequenceGeometry, scene_desc: str, base_map: dict) -> dict:
+    """``truth.json`` but its ``files`` (added once the frames are written): the frames, lens,
+    geometry ``geom`` (scene px), ``base_map`` (:func:`base_map_info`) and the config."""
+    return {
         "format": TRUTH_FORMAT,
         "version": TRUTH_VERSION,
         "scene": scene_desc,
@@ -211,33 +241,33 @@ def simulate(
         "lens_k2": cfg.lens_k2,
         "frame_scale": float(-geom.pose.origin[2] / (cfg.gsd_m * geom.focal_px)),
         "geometry": geom.to_dict(),
-        "base_map": base_map_info(
-            native_size, native_from_scene, cfg.base_heading_deg, cfg.base_scale, base_from_native
-        ),
+        "base_map": base_map,
         "config": dataclasses.asdict(cfg),
     }
-    with Staging(out, force) as stage:
-        files = {"base.png": write_png(stage.dir / "base.png", base_img)}
-        del base_img
-        if progress:
-            progress(1, total)
-        renderer = FrameRenderer(geom, scene_img, cfg, layout)
-        with ExitStack() as stack:
-            video = (
-                stack.enter_context(_video_writer(stage.dir / "sequence.mp4", cfg.fps))
-                if cfg.video
-                else None
-            )
-            for k in range(cfg.n_frames):
-                frame = renderer.render(k)
-                rel = f"frames/{k:06d}.png"
-                files[rel] = write_png(stage.dir / rel, frame)
-                if video:
-                    video(frame)
-                if progress:
-                    progress(k + 2, total)
-        truth["files"] = files
-        stage.commit(truth)
-    if progress:
-        progress(total, total)
-    return out
+
+
+def _write_frames(
+    stage_dir: Path,
+    renderer: FrameRenderer,
+    cfg: SimConfig,
+    files: dict[str, str],
+    progress: Progress | None,
+    total: int,
+) -> None:
+    """Render every frame into ``stage_dir/frames/`` (and ``sequence.mp4`` with
+    ``cfg.video``), adding each frame's SHA-256 to ``files`` (``{"frames/000000.png": hex}``)
+    and reporting ``progress(k + 2, total)`` after frame ``k``."""
+    with ExitStack() as stack:
+        video = (
+            stack.enter_context(_video_writer(stage_dir / "sequence.mp4", cfg.fps))
+            if cfg.video
+            else None
+        )
+        for k in range(cfg.n_frames):
+            frame = renderer.render(k)
+            rel = f"frames/{k:06d}.png"
+            files[rel] = write_png(stage_dir / rel, frame)
+            if video:
+                video(frame)
+            if progress:
+                progress(k + 2, total)
