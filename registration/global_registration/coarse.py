@@ -30,6 +30,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+from dataclasses import replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -210,22 +211,28 @@ def coarse_register(
             >= max(2 * cfg.min_inliers_unseeded, 2 * cfg.decisive_ratio * priors[i + 1].votes)
         ):
             break
-    result = _decide(attempts, priors, seeds, frame, base_c, cfg, w, h, lens)
-    result.n_keypoints_frame = len(frame.keypoints)
-    result.n_keypoints_base = len(base_c.keypoints)
-    result.seeds = tuple(seeds)
+    result = replace(
+        _decide(attempts, priors, seeds, frame, base_c, cfg, w, h, lens),
+        n_keypoints_frame=len(frame.keypoints),
+        n_keypoints_base=len(base_c.keypoints),
+        seeds=tuple(seeds),
+    )
     if cfg.correlation.rounds and (result.success or (seeds and priors)):
         # The seed's own similarity start is the prior that won (the first when none did).
         won = max(range(len(attempts)), key=lambda i: attempts[i].score) if attempts else 0
-        _correlate(result, view, cbase, priors[won], seeds, s_f, cfg, rng, domain, base_c.scale)
+        result = _correlate(
+            result, view, cbase, priors[won], seeds, s_f, cfg, rng, domain, base_c.scale
+        )
     if seeds and result.success:
-        _check_seed(result, seeds, lens, cfg)
+        result = _check_seed(result, seeds, lens, cfg)
     confirm = result.image_agreement
     if result.success and len(seeds) < 2 and confirm and confirm.chance_p > cfg.max_chance_p:
-        _refuse_unconfirmed(result, len(seeds))
-    result.base_from_corrected = quantized(result.base_from_corrected)
-    result.time_s = time.perf_counter() - t0
-    return result
+        result = _refuse_unconfirmed(result, len(seeds))
+    return replace(
+        result,
+        base_from_corrected=quantized(result.base_from_corrected),
+        time_s=time.perf_counter() - t0,
+    )
 
 
 # The correlation rounds' model replaces the SIFT one only when this many times as many
@@ -233,8 +240,8 @@ def coarse_register(
 _CORRELATION_GAIN = 1.25
 
 
-def _correlate(result, view, cbase, prior, seeds, s_f, cfg, rng, probes, s_b) -> None:
-    """Refine the result by the correlation rounds, started from the SIFT model and, with a
+def _correlate(result, view, cbase, prior, seeds, s_f, cfg, rng, probes, s_b) -> CoarseResult:
+    """The result refined by the correlation rounds, started from the SIFT model and, with a
     seed, from the seed's similarity too; the start whose last round fits more template
     matches wins. A seeded result that SIFT could not find is rescued when a round succeeds."""
     starts = []
@@ -250,7 +257,7 @@ def _correlate(result, view, cbase, prior, seeds, s_f, cfg, rng, probes, s_b) ->
         return chosen.rescaled(1.0 / s_f, 1.0 / s_f), kind
 
     if not starts:
-        return
+        return result
     images = gradient_images(
         view.grey, view.to_corrected, view.from_corrected, cbase.grey, cbase.valid
     )
@@ -261,24 +268,26 @@ def _correlate(result, view, cbase, prior, seeds, s_f, cfg, rng, probes, s_b) ->
             best = out
     if best is None:
         if result.success:
-            result.image_agreement = agreement(images, result.base_from_corrected, cfg.correlation)
-        return
+            confirm = agreement(images, result.base_from_corrected, cfg.correlation)
+            return replace(result, image_agreement=confirm)
+        return result
     after = agreement(images, best.model, cfg.correlation)
     if result.success:
         # The SIFT model stays unless the images agree clearly better with the refined one
         # (another date or sensor can pull correlation by a few pixels where SIFT was right).
         before = agreement(images, result.base_from_corrected, cfg.correlation)
-        result.correlation_inliers = after.agreeing
         if not after.agreeing > _CORRELATION_GAIN * before.agreeing:
-            result.image_agreement = before
-            return
-    result.image_agreement = after
-    result.base_from_corrected = best.model
-    result.model_kind = best.kind
-    result.correlation_inliers = best.inliers
-    if not result.success:
-        result.success, result.reason = True, ""
-        result.gate = result.gate or "seed"
+            return replace(result, correlation_inliers=after.agreeing, image_agreement=before)
+    refined = replace(
+        result,
+        image_agreement=after,
+        base_from_corrected=best.model,
+        model_kind=best.kind,
+        correlation_inliers=best.inliers,
+    )
+    if result.success:
+        return refined
+    return replace(refined, success=True, reason="", remedy="", gate=result.gate or "seed")
 
 
 # The reference frame's matches are exact (brute force) below this many descriptor pairs (~1 s
@@ -305,68 +314,87 @@ def _priors(seeds, lens, frame, base_c, cfg, w, h):
     return priors, matches, attr
 
 
+# Where a click would help the coarse step, the reason says so in these words; the front ends
+# add how to give one (``CoarseResult.remedy``).
+CLICK_HELPS = "click one corresponding point in the frame and the map to help"
+
+
 def _decide(attempts, priors, seeds, frame, base_c, cfg, w, h, lens) -> CoarseResult:
     """Build the result from the best attempt (or say why there is none)."""
     sf, sb = frame.scale, base_c.scale
     empty = np.zeros((0, 2))
-    result = CoarseResult(False, "", None, empty, empty, np.zeros(0, bool), np.zeros(0, bool), 0, 0)
+    none = CoarseResult(False, "", None, empty, empty, np.zeros(0, bool), np.zeros(0, bool), 0, 0)
     if not priors:
-        result.reason = (
+        reason = (
             "coarse step: no SIFT match between the frame and the map supports any heading "
             "and scale"
-            + (" around the seed; check the seed click" if seeds else "; click one "
-               "corresponding point in the frame and the map (--seed FX,FY,BX,BY) to help")
-        )  # fmt: skip
-        return result
+        )
+        if seeds:
+            return replace(none, reason=f"{reason} around the seed; check the seed click")
+        return replace(none, reason=f"{reason}; {CLICK_HELPS}", remedy="click")
     # Most support first; ties keep the candidates' order (stable).
     order = sorted(range(len(attempts)), key=lambda i: -attempts[i].score)
     best_i = order[0]
     best, prior = attempts[best_i], priors[best_i]
-    result.frame_xy, result.base_xy = rescale(best.frame_xy, 1 / sf), rescale(best.base_xy, 1 / sb)
-    result.gated, result.inliers = best.gated, best.inliers
     full = prior.rescaled(1 / sf, 1 / sb)
-    result.heading_deg, result.scale = full.heading_deg, full.scale
-    result.gate = {"two seeds": "two seeds", "seed": "seed"}.get(prior.source, "no seed")
-    result.ambiguity = prior.ambiguity
-    result.gate_center_base = full.anchor_base
+    found = replace(
+        none,
+        frame_xy=rescale(best.frame_xy, 1 / sf),
+        base_xy=rescale(best.base_xy, 1 / sb),
+        gated=best.gated,
+        inliers=best.inliers,
+        heading_deg=full.heading_deg,
+        scale=full.scale,
+        gate={"two seeds": "two seeds", "seed": "seed"}.get(prior.source, "no seed"),
+        ambiguity=prior.ambiguity,
+        gate_center_base=full.anchor_base,
+    )
     if seeds:
         outline = _gate_outline(full, w, h, lens, cfg)
-        result.gate_outline_base = outline
-        result.gate_radius_base = float(np.max(np.hypot(*(outline - full.anchor_base).T)))
+        found = replace(
+            found,
+            gate_outline_base=outline,
+            gate_radius_base=float(np.max(np.hypot(*(outline - full.anchor_base).T))),
+        )
     if best.model is None:
-        result.reason = f"coarse step: {best.reason}" + (
-            "; check the seed click" if seeds else
-            "; click one corresponding point (--seed FX,FY,BX,BY) to help"
-        )  # fmt: skip
-        return result
+        if seeds:
+            return replace(found, reason=f"coarse step: {best.reason}; check the seed click")
+        return replace(found, reason=f"coarse step: {best.reason}; {CLICK_HELPS}", remedy="click")
     if not seeds:
-        if best.score < cfg.min_inliers_unseeded:
-            result.reason = (
-                f"coarse step: without a seed the best registration has only "
-                f"{best.score} inliers (need {cfg.min_inliers_unseeded}); click one "
-                "corresponding point in the frame and the map (--seed FX,FY,BX,BY) to help"
+        why = _undecided_without_seed(best, attempts, order, cfg, w, h, sf, sb)
+        if why:
+            return replace(found, reason=f"coarse step: {why}; {CLICK_HELPS}", remedy="click")
+    return replace(
+        found,
+        base_from_corrected=best.model.rescaled(1.0 / sf, 1.0 / sb),
+        model_kind=best.kind,
+        success=True,
+    )
+
+
+def _undecided_without_seed(best, attempts, order, cfg, w, h, sf, sb) -> str:
+    """Why the best unseeded attempt cannot be trusted ("" when it can): too few inliers, or a
+    rival nearly as well supported that puts the frame elsewhere."""
+    if best.score < cfg.min_inliers_unseeded:
+        return (
+            f"without a seed the best registration has only {best.score} inliers (need "
+            f"{cfg.min_inliers_unseeded})"
+        )
+    corners = frame_outline(w, h, per_edge=2) * sf
+    for i in order[1:]:
+        other = attempts[i]
+        if other.model is None or other.score * cfg.decisive_ratio < best.score:
+            continue
+        gap = np.nanmax(np.hypot(*(best.model.apply(corners) - other.model.apply(corners)).T))
+        if not gap <= 4 * cfg.ransac.threshold_px:
+            return (
+                f"cannot decide without a seed: two registrations {gap / sb:.0f} map px apart "
+                f"have {best.score} and {other.score} inliers"
             )
-            return result
-        corners = frame_outline(w, h, per_edge=2) * sf
-        for i in order[1:]:
-            other = attempts[i]
-            if other.model is None or other.score * cfg.decisive_ratio < best.score:
-                continue
-            gap = np.nanmax(np.hypot(*(best.model.apply(corners) - other.model.apply(corners)).T))
-            if not gap <= 4 * cfg.ransac.threshold_px:
-                result.reason = (
-                    f"coarse step: cannot decide without a seed: two registrations {gap / sb:.0f} "
-                    f"map px apart have {best.score} and {other.score} inliers; click one "
-                    "corresponding point in the frame and the map (--seed FX,FY,BX,BY) to help"
-                )
-                return result
-    result.base_from_corrected = best.model.rescaled(1.0 / sf, 1.0 / sb)
-    result.model_kind = best.kind
-    result.success = True
-    return result
+    return ""
 
 
-def _refuse_unconfirmed(result: CoarseResult, n_seeds: int) -> None:
+def _refuse_unconfirmed(result: CoarseResult, n_seeds: int) -> CoarseResult:
     """Refuse a registration the images do not confirm (``CoarseConfig.max_chance_p``): the
     keypoints that made it agree by chance, as on a map of another date whose keypoints barely
     repeat; saying so lets the analyst add the click that fixes heading and scale."""
@@ -374,18 +402,22 @@ def _refuse_unconfirmed(result: CoarseResult, n_seeds: int) -> None:
     help_ = (
         "check the click, or click a second corresponding point to fix heading and scale"
         if n_seeds
-        else "click one corresponding point in the frame and the map (--seed FX,FY,BX,BY) to help"
+        else CLICK_HELPS
     )
-    result.success = False
-    result.reason = (
-        f"coarse step: the images do not confirm the registration found: {a.agreeing} of "
-        f"{a.matched} map templates agree with it, as chance alone would (p = "
-        f"{a.chance_p:.2g}); {help_}"
+    return replace(
+        result,
+        success=False,
+        reason=(
+            f"coarse step: the images do not confirm the registration found: {a.agreeing} of "
+            f"{a.matched} map templates agree with it, as chance alone would (p = "
+            f"{a.chance_p:.2g}); {help_}"
+        ),
+        remedy="" if n_seeds else "click",
+        base_from_corrected=None,
     )
-    result.base_from_corrected = None
 
 
-def _check_seed(result: CoarseResult, seeds, lens, cfg: CoarseConfig) -> None:
+def _check_seed(result: CoarseResult, seeds, lens, cfg: CoarseConfig) -> CoarseResult:
     """Refuse a registration that puts a seed's frame point far from its clicked base point."""
     scale = result.scale or 1.0
     limit = cfg.seed_check_px + cfg.heading.seed_error_px * (1.0 + scale)
@@ -394,12 +426,15 @@ def _check_seed(result: CoarseResult, seeds, lens, cfg: CoarseConfig) -> None:
         at = (bx - d[0], by - d[1])
         gap = float(np.hypot(*d))
         if not gap <= limit:
-            result.success = False
-            result.reason = (
-                f"coarse step: the registration found puts the seed's frame point "
-                f"({fx:.0f}, {fy:.0f}) at map ({at[0]:.0f}, {at[1]:.0f}), {gap:.0f} px from the "
-                f"clicked ({bx:.0f}, {by:.0f}); check the click (both points must show the "
-                "same ground spot)"
+            return replace(
+                result,
+                success=False,
+                reason=(
+                    f"coarse step: the registration found puts the seed's frame point "
+                    f"({fx:.0f}, {fy:.0f}) at map ({at[0]:.0f}, {at[1]:.0f}), {gap:.0f} px from "
+                    f"the clicked ({bx:.0f}, {by:.0f}); check the click (both points must show "
+                    "the same ground spot)"
+                ),
+                base_from_corrected=None,
             )
-            result.base_from_corrected = None
-            return
+    return result

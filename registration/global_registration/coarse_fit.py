@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -299,18 +299,20 @@ def fit_coarse(
     )
     n_gated = int(gated.sum())
     if n_gated < Projective.min_samples:
-        result.reason = f"coarse step: only {n_gated} matches passed the location gate (need 4)"
-        return result
+        reason = f"coarse step: only {n_gated} matches passed the location gate (need 4)"
+        return replace(result, reason=reason)
     idx = np.flatnonzero(gated)
     fit = ransac(
         rescale(frame_xy[idx], s), rescale(base_xy[idx], s), Projective, config.ransac, rng
     )
     if not fit:
-        result.reason = f"coarse step: RANSAC failed: {fit.reason}"
-        return result
+        return replace(result, reason=f"coarse step: RANSAC failed: {fit.reason}")
     inliers[idx[fit.inliers]] = True
     src, dst = rescale(frame_xy[inliers], s), rescale(base_xy[inliers], s)
-    model, result.model_kind = projective_or_simpler(src, dst, fit.model, config, probes, s)
-    result.base_from_corrected = quantized(model.rescaled(1.0 / s, 1.0 / s))
-    result.success = True
-    return result
+    model, kind = projective_or_simpler(src, dst, fit.model, config, probes, s)
+    return replace(
+        result,
+        model_kind=kind,
+        base_from_corrected=quantized(model.rescaled(1.0 / s, 1.0 / s)),
+        success=True,
+    )

@@ -122,7 +122,7 @@ class CoarseConfig:
             )
 
 
-@dataclass
+@dataclass(frozen=True)
 class CoarseResult:
     """Outcome of a coarse projective step; match arrays are full-scale pixels.
 
@@ -137,7 +137,9 @@ class CoarseResult:
     raw frame px and base px; the fine step may refit through them). For intra-sensor frames,
     ``path`` is the step that produced the model (``"fast"``: :mod:`registration.global_registration.predicted_coarse`,
     ``"sift"``: the SIFT step) and ``fast_reason`` why the fast path was not used (``"off"``
-    when it is disabled or there is no previous frame; empty when it was used).
+    when it is disabled or there is no previous frame; empty when it was used). ``remedy`` is
+    ``"click"`` where a seed click would help (the front ends say how to give one; see
+    :mod:`registration.errors`). Frozen: the steps that refine a result return a new one.
     """
 
     success: bool
@@ -163,6 +165,7 @@ class CoarseResult:
     path: str = ""
     fast_reason: str = ""
     seeds: tuple[Seed, ...] = ()
+    remedy: str = ""
 
     @property
     def n_matches(self) -> int:

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -93,7 +93,7 @@ class FineConfig:
             )
 
 
-@dataclass
+@dataclass(frozen=True)
 class FineResult:
     """Outcome of a fine polyprojective step.
 
@@ -169,23 +169,27 @@ def _fit_fine(
     )
     if n < 3 * start.min_samples and check_support and isinstance(initial, Projective):
         # Too few points for REQCON on the polyprojective: the coarse model stays, said so.
-        empty.success = True
-        empty.base_from_corrected = PolyProjective.from_projective(initial, degree)
-        empty.residuals = np.asarray(initial.residuals(cps.src, cps.dst), float)
-        empty.model_kind = "coarse"
-        empty.model_reason = (
-            f"only {n} control points matched (REQCON on a degree-{degree} polyprojective "
-            f"needs {3 * start.min_samples}): the coarse model is kept"
+        return replace(
+            empty,
+            success=True,
+            base_from_corrected=PolyProjective.from_projective(initial, degree),
+            residuals=np.asarray(initial.residuals(cps.src, cps.dst), float),
+            model_kind="coarse",
+            model_reason=(
+                f"only {n} control points matched (REQCON on a degree-{degree} polyprojective "
+                f"needs {3 * start.min_samples}): the coarse model is kept"
+            ),
+            time_s=time.perf_counter() - t0,
         )
-        empty.time_s = time.perf_counter() - t0
-        return empty
     if n < start.min_samples:
-        empty.reason = (
-            f"fine step: only {n} control points, a degree-{degree} polyprojective needs "
-            f"at least {start.min_samples}"
+        return replace(
+            empty,
+            reason=(
+                f"fine step: only {n} control points, a degree-{degree} polyprojective needs "
+                f"at least {start.min_samples}"
+            ),
+            time_s=time.perf_counter() - t0,
         )
-        empty.time_s = time.perf_counter() - t0
-        return empty
     fit: FitResult = reqcon(
         cps.src, cps.dst, start, reqcon_cfg, domain=domain, noise_scale=noise_scale
     )
@@ -205,13 +209,16 @@ def _fit_fine(
         coverage = hull_coverage(cps.src[result.kept], probes)
         check_support = coverage < FINE_MIN_COVERAGE["polyprojective"]
     if fit and check_support and degree > 1 and domain is not None:
-        _fall_back_if_unsupported(result, degree, domain, probes)
+        result = _fall_back_if_unsupported(result, degree, domain, probes)
     if result.success:
         # The model as recorded (reproducible runs, models.quantized) and its residuals.
-        result.base_from_corrected = quantized(result.base_from_corrected)
-        result.residuals = np.asarray(result.base_from_corrected.residuals(cps.src, cps.dst))
-    result.time_s = time.perf_counter() - t0
-    return result
+        model = quantized(result.base_from_corrected)
+        result = replace(
+            result,
+            base_from_corrected=model,
+            residuals=np.asarray(model.residuals(cps.src, cps.dst)),
+        )
+    return replace(result, time_s=time.perf_counter() - t0)
 
 
 # Models the fine step may fall back to, simplest first (all expressed as polyprojectives).
@@ -232,7 +239,7 @@ FINE_MIN_COVERAGE = {"affine": 0.3, "projective": 0.5, "polyprojective": 0.8}
 
 def _fall_back_if_unsupported(
     result: FineResult, degree: int, domain: NDArray, probes: NDArray | None
-) -> None:
+) -> FineResult:
     """Keep the model (similarity, affine, projective or the polyprojective) that predicts
     held-out parts of the kept control points best (spatial cross-validation,
     :func:`registration.geometry.model_choice.simplest_supported`): points covering only part of the frame (a
@@ -259,20 +266,26 @@ def _fall_back_if_unsupported(
     kind, model = simplest_supported(
         fits, src, dst, domain=domain, probes=probes, min_coverage=FINE_MIN_COVERAGE
     )
-    result.model_kind = kind
     if kind == "polyprojective":
-        result.model_reason = (
-            f"the degree-{degree} polyprojective predicts held-out parts of the {len(src)} kept "
-            "control points better than the simpler models"
+        return replace(
+            result,
+            model_kind=kind,
+            model_reason=(
+                f"the degree-{degree} polyprojective predicts held-out parts of the {len(src)} "
+                "kept control points better than the simpler models"
+            ),
         )
-        return
     proj = model if kind == "projective" else model.as_projective()
-    result.base_from_corrected = PolyProjective.from_projective(
-        proj, degree, poly.src_norm, poly.dst_norm
-    )
-    result.model_reason = (
-        f"the {kind} predicts held-out parts of the {len(src)} kept control points at least as "
-        "well as the richer models, whose extra terms the points do not determine"
+    return replace(
+        result,
+        model_kind=kind,
+        base_from_corrected=PolyProjective.from_projective(
+            proj, degree, poly.src_norm, poly.dst_norm
+        ),
+        model_reason=(
+            f"the {kind} predicts held-out parts of the {len(src)} kept control points at least "
+            "as well as the richer models, whose extra terms the points do not determine"
+        ),
     )
 
 
@@ -332,18 +345,24 @@ def _refit_through_clicks(fine, coarse, fit, camera: Camera, limit_px: float) ->
     else:
         now = miss(again.base_from_corrected)
         if now <= limit_px and now < was:
-            again.model_reason = (
-                f"refitted through the click: the first fit passed {was:.1f} px from it, this "
-                f"one {now:.1f} px ({int(again.kept.sum())} control points); {again.model_reason}"
+            return replace(
+                again,
+                model_reason=(
+                    f"refitted through the click: the first fit passed {was:.1f} px from it, "
+                    f"this one {now:.1f} px ({int(again.kept.sum())} control points); "
+                    f"{again.model_reason}"
+                ),
+                time_s=again.time_s + fine.time_s,
             )
-            again.time_s += fine.time_s
-            return again
         why = f"the fit started there settled {now:.1f} px from it"
-    fine.time_s += again.time_s
+    fine = replace(fine, time_s=fine.time_s + again.time_s)
     if fine:
-        fine.model_reason = (
-            f"passes {was:.1f} px from the click, not refitted through it ({why}); "
-            f"{fine.model_reason}"
+        fine = replace(
+            fine,
+            model_reason=(
+                f"passes {was:.1f} px from the click, not refitted through it ({why}); "
+                f"{fine.model_reason}"
+            ),
         )
     return fine
 

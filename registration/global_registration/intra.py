@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -252,14 +252,17 @@ def register_intra(
         if not coarse and fast is not None and fast.base_from_corrected is not None:
             # The fast path's simpler model from matches on part of the frame is all there is.
             fast_reason = f"{fast_reason}; kept, as the SIFT step failed: {coarse.reason}"
-            fast.success, fast.reason, coarse = True, "", fast
-    coarse.path = "fast" if coarse.gate == "fast" else "sift"
-    coarse.fast_reason = fast_reason
-    coarse.time_s = time.perf_counter() - t0
+            coarse = replace(fast, success=True, reason="")
+    coarse = replace(
+        coarse,
+        path="fast" if coarse.gate == "fast" else "sift",
+        fast_reason=fast_reason,
+        time_s=time.perf_counter() - t0,
+    )
     if not coarse:
         if fast_reason and fast_reason != "off":
             # Both steps failed: say why the fast one did too.
-            coarse.reason = f"{coarse.reason}; {fast_reason}"
+            coarse = replace(coarse, reason=f"{coarse.reason}; {fast_reason}")
         return coarse, FineResult.failed(coarse.reason), None
 
     t1 = time.perf_counter()
@@ -288,7 +291,7 @@ def register_intra(
         cps, model, degree, cfg.reqcon, t1, frame_domain(frame_raw, camera),
         "sparse" if cfg.sparse_support else False, camera.cell_centres(10), noise_scale=noise,
     )  # fmt: skip
-    fine.flow = flow
+    fine = replace(fine, flow=flow)
     if not fine:
         return coarse, fine, None
     state.base_from_corrected = fine.base_from_corrected

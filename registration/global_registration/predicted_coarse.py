@@ -41,6 +41,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections.abc import Callable
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -153,29 +154,32 @@ def fast_coarse(
         gate="fast",
     )
 
-    def done(reason: str = "") -> CoarseResult:
-        result.reason = f"fast path: {reason}" if reason else ""
-        result.time_s = time.perf_counter() - t0
-        return result
+    def done(result: CoarseResult, reason: str = "") -> CoarseResult:
+        return replace(
+            result,
+            reason=f"fast path: {reason}" if reason else "",
+            time_s=time.perf_counter() - t0,
+        )
 
     shift, response = phase_shift(small, prev_small)
     problem = _shift_problem(shift, response, max_shift, max_shift * min(w, h) * scale, scale)
     if problem:
-        return done(problem)
+        return done(result, problem)
     cps = _match_templates(small, prev_small, shift)
     n = len(cps)
-    result.n_keypoints_frame = n
+    result = replace(result, n_keypoints_frame=n)
     if n < max(min_inliers, Projective.min_samples):
-        return done(f"{n} templates matched the previous frame (need {min_inliers})")
+        return done(result, f"{n} templates matched the previous frame (need {min_inliers})")
     frame_xy = view.to_corrected(rescale(cps.src, 1.0 / scale))
     base_xy = prev_to_base(prev_view.to_corrected(rescale(cps.dst, 1.0 / scale)))
     ok = np.isfinite(base_xy).all(axis=1) & np.isfinite(frame_xy).all(axis=1)
-    result.frame_xy, result.base_xy, result.gated = frame_xy, base_xy, ok
-    result.inliers = np.zeros(n, bool)
+    result = replace(
+        result, frame_xy=frame_xy, base_xy=base_xy, gated=ok, inliers=np.zeros(n, bool)
+    )
     idx = np.flatnonzero(ok)
     if len(idx) < max(min_inliers, Projective.min_samples):
-        return done(f"only {len(idx)} matches map into the base through the previous frame")
-    return done(_fit_and_check(result, cps.src, idx, small, view, scale, config, min_inliers, rng))
+        return done(result, f"only {len(idx)} matches map into the base through the previous frame")
+    return done(*_fit_and_check(result, cps.src, idx, small, view, scale, config, min_inliers, rng))
 
 
 def _shift_problem(
@@ -212,41 +216,45 @@ def _fit_and_check(
     config: CoarseConfig,
     min_inliers: int,
     rng: np.random.Generator,
-) -> str:
+) -> tuple[CoarseResult, str]:
     """Steps 3-4 (module doc) on the matches ``idx`` that map into the base: RANSAC on
     ``result.frame_xy`` -> ``result.base_xy`` at the coarse scale, then the inlier and coverage
-    checks (``src_small``: all matches' coarse px in ``small``). Fills ``result``'s inliers,
-    model and success; returns why the prediction is not confirmed, or "" when it is."""
+    checks (``src_small``: all matches' coarse px in ``small``). Returns ``result`` with its
+    inliers, model and success, and why the prediction is not confirmed ("" when it is)."""
     frame_xy, base_xy, n = result.frame_xy, result.base_xy, len(src_small)
     fit = ransac(
         rescale(frame_xy[idx], scale), rescale(base_xy[idx], scale), Projective, config.ransac, rng
     )
     if not fit:
-        return f"RANSAC failed: {fit.reason}"
-    result.inliers[idx[fit.inliers]] = True
+        return result, f"RANSAC failed: {fit.reason}"
+    result.inliers[idx[fit.inliers]] = True  # the result's own array, made for it above
     n_in = int(fit.n_inliers)
     if n_in < min_inliers or n_in < MIN_INLIER_SHARE * n:
-        return f"{n_in} of {n} matches agree (need {min_inliers} and {MIN_INLIER_SHARE:.0%})"
+        return (
+            result,
+            f"{n_in} of {n} matches agree (need {min_inliers} and {MIN_INLIER_SHARE:.0%})",
+        )
     probes = _cell_centres(*image_size(small))
     inl = idx[fit.inliers]
     coverage = hull_coverage(src_small[inl], probes)
     if coverage < MIN_COVERAGE:
-        return f"the agreeing matches span {coverage:.0%} of the frame (need {MIN_COVERAGE:.0%})"
+        why = f"the agreeing matches span {coverage:.0%} of the frame (need {MIN_COVERAGE:.0%})"
+        return result, why
     corrected_probes = view.to_corrected(rescale(probes, 1.0 / scale))
-    model, result.model_kind = projective_or_simpler(
+    model, kind = projective_or_simpler(
         rescale(frame_xy[inl], scale), rescale(base_xy[inl], scale), fit.model, config,
         corrected_probes, scale,
     )  # fmt: skip
-    result.base_from_corrected = quantized(model.rescaled(1.0 / scale, 1.0 / scale))
+    full = quantized(model.rescaled(1.0 / scale, 1.0 / scale))
+    result = replace(result, model_kind=kind, base_from_corrected=full)
     if coverage < FIRST_COVERAGE:
         # The SIFT step, which sees the whole joint base, goes first; this simpler model is
         # kept only when it fails (registration.global_registration.intra.register_intra).
-        return (
+        return result, (
             f"the agreeing matches span {coverage:.0%} of the frame (need {FIRST_COVERAGE:.0%} "
             f"to go before the SIFT step)"
         )
-    result.success = True
-    return ""
+    return replace(result, success=True), ""
 
 
 def _cell_centres(width: int, height: int, cells: int = 10) -> NDArray[np.float64]:
