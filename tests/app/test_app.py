@@ -17,12 +17,12 @@ import pytest
 
 viser = pytest.importorskip("viser")
 
-from app import scene2d  # noqa: E402
-from app.project import Project, write_atomic  # noqa: E402
-from app.security import make_server  # noqa: E402
-from app.server import App  # noqa: E402
-from app.state import AppState  # noqa: E402
-from app.worker import LatestWorker  # noqa: E402
+from app.gui import scene2d  # noqa: E402
+from app.gui.project import Project, write_atomic  # noqa: E402
+from app.gui.security import make_server  # noqa: E402
+from app.gui.server import App  # noqa: E402
+from app.gui.state import AppState  # noqa: E402
+from app.gui.worker import LatestWorker  # noqa: E402
 from registration.lens import HarrisModel  # noqa: E402
 from registration.render import viz  # noqa: E402
 
@@ -417,7 +417,7 @@ def test_seed_heading_typed_correction_and_failure_reason(tmp_path, small_seq, m
     assert "Coarse step failed" in seed.panel.alert.content
     assert "check the click" in seed.panel.alert.content
     # The saved fit keeps what the panel shows (heading, gate outline) across a restart.
-    from app.project import REFERENCE_FILE, reference_from_file
+    from app.gui.project import REFERENCE_FILE, reference_from_file
 
     seed.place_seed("base", tuple(bxy), pair=1)
     good = coarse()
@@ -822,7 +822,7 @@ def test_one_project_per_opening(tmp_path, small_seq):
     the uploads; the upload alone does not open anything."""
     data = tmp_path / "data"
     server = make_server("127.0.0.1", 0, verbose=False)
-    from app.project import default_project_dir
+    from app.gui.project import default_project_dir
 
     app = App(
         server,
@@ -862,7 +862,7 @@ def test_one_project_per_opening(tmp_path, small_seq):
 
 
 def test_job_progress_reports_time_left():
-    from app.worker import Job
+    from app.gui.worker import Job
 
     seen = []
     job = Job("register", seen.append)
@@ -879,7 +879,7 @@ def test_job_progress_reports_time_left():
 
 
 def test_undo_restores_seeds_and_edits():
-    from app.controlpoints import Edits
+    from app.gui.controlpoints import Edits
 
     st = AppState()
     st.push_undo()
@@ -912,7 +912,7 @@ def test_upload_does_not_open_an_unchecked_path(tmp_path, small_seq, make_app):
 
 
 def test_serve_allows_only_named_folders(tmp_path, small_seq, monkeypatch):
-    from app.server import serve
+    from app.gui.server import serve
 
     monkeypatch.chdir(tmp_path)
     app = serve(
