@@ -256,7 +256,7 @@ def run(args) -> dict:
     for _ in range(5):
         rms0 = seed.table.rms
         t = time.perf_counter()
-        seed.bulk_action("Disable worst")
+        seed.points.disable_worst()
         app.worker.wait_idle()
         refit.append(time.perf_counter() - t)
         assert seed.table.rms <= rms0 + 1e-9
@@ -269,7 +269,7 @@ def run(args) -> dict:
             "",
         )
     )
-    seed.bulk_action("Reset edits")
+    seed.points.reset_edits()
     app.worker.wait_idle()
 
     # Register the sequence, then scrub.

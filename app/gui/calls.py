@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from registration import global_registration
-from registration.lens import HarrisModel
+from registration.lens import Camera
 from registration.run import config as run_config
 from registration.run import frame_record_path, pipeline
 
@@ -69,6 +69,10 @@ class HeadingScale:
         )
 
 
+COINCIDENT_PX = 1e-6
+"""Seed pairs closer than this (corrected frame px, or map px) fix no heading."""
+
+
 def _heading(angle_deg: float) -> float:
     """An angle in [0, 360), rounded so that 360 - 1e-12 shows as 0."""
     a = float(angle_deg) % 360.0
@@ -76,20 +80,28 @@ def _heading(angle_deg: float) -> float:
 
 
 def heading_from_pairs(seed, seed2, gamma: float, frame_size) -> HeadingScale | None:
-    """Heading and scale that two seed pairs fix (the similarity through both pairs, between
-    corrected frame points and map points, as the coarse step builds it); None for coincident
-    points."""
+    """Heading and scale that two seed pairs fix: the library's
+    :func:`registration.global_registration.prior_from_seeds` between corrected frame points and
+    map points, as the coarse step builds it; None for coincident or undefined points.
+
+    The library refuses pairs less than 1 px apart (they cannot seed a fit); the panel has always
+    shown the heading and scale of any two pairs more than :data:`COINCIDENT_PX` apart. To keep
+    that, the pairs' offsets are handed over scaled by a power of two, which leaves heading and
+    scale unchanged bit for bit (the coarse step still refuses such pairs, with its reason)."""
     if seed is None or seed2 is None:
         return None
-    harris = HarrisModel(gamma, *frame_size)
-    f = harris.corrected_from_raw(np.array([seed[:2], seed2[:2]], float))
+    camera = Camera(gamma, *frame_size)
+    f = camera.corrected_from_raw(np.array([seed[:2], seed2[:2]], float))
     b = np.array([seed[2:], seed2[2:]], float)
     df, db = f[1] - f[0], b[1] - b[0]
     nf, nb = math.hypot(*df), math.hypot(*db)
-    if not (np.isfinite([nf, nb]).all() and nf > 1e-6 and nb > 1e-6):
+    if not (np.isfinite([nf, nb]).all() and nf > COINCIDENT_PX and nb > COINCIDENT_PX):
         return None
-    angle = math.degrees(math.atan2(db[1], db[0]) - math.atan2(df[1], df[0]))
-    return HeadingScale(_heading(angle), nb / nf, "fixed by the two pairs")
+    s = 1.0
+    while min(nf, nb) * s < 1.0:  # a power of two: the scaled offsets are exact
+        s *= 2.0
+    prior = global_registration.prior_from_seeds([(0.0, 0.0), s * df], [(0.0, 0.0), s * db])
+    return HeadingScale(_heading(prior.heading_deg), prior.scale, "fixed by the two pairs")
 
 
 GATE_SOURCES = {
@@ -138,8 +150,8 @@ def second_seed_from_similarity(
             f"heading must be finite and scale positive, got {heading_deg!r}, {scale!r}"
         )
     w, h = frame_size
-    harris = HarrisModel(gamma, w, h)
-    c1 = harris.corrected_from_raw(np.array([seed[:2]], float))[0]
+    camera = Camera(gamma, w, h)
+    c1 = camera.corrected_from_raw(np.array([seed[:2]], float))[0]
     towards = np.array([(w - 1) / 2.0, (h - 1) / 2.0]) - c1
     n = math.hypot(*towards)
     step = towards / n if n > 1.0 else np.array([1.0, 0.0])
@@ -147,7 +159,7 @@ def second_seed_from_similarity(
     t = math.radians(heading_deg)
     rot = np.array([[math.cos(t), -math.sin(t)], [math.sin(t), math.cos(t)]])
     b2 = np.asarray(seed[2:], float) + scale * rot @ (c2 - c1)
-    f2 = harris.raw_from_corrected(c2[None])[0]
+    f2 = camera.raw_from_corrected(c2[None])[0]
     return (float(f2[0]), float(f2[1]), float(b2[0]), float(b2[1]))
 
 

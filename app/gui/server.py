@@ -3,16 +3,19 @@ the registered sequence, Table 2.
 
 Structure (``notes/viser.md``, ``notes/style.md`` practice 12):
 
-* :class:`App` owns the viser server, the one :class:`~app.gui.state.AppState` (one lock), the
+* :class:`App` implements the views' :class:`~app.gui.context.ViewContext` (views never import
+  this module). It owns the viser server, the one :class:`~app.gui.state.AppState` (one lock), the
   project folder, one :class:`~app.gui.worker.LatestWorker` for interactive renders (latest request
   wins) and one :class:`~app.gui.worker.JobRunner` for long runs (demo build, fits, registration),
   whose progress and time left show in the header.
 * The header: the step checklist (calibrated → seeded → reference registered → sequence
   registered → evaluated) with what to do next, the view buttons (the active one marked), the
   running job with a Cancel button.
-* One view per step (``app/views/``): each split into its panel (widgets), its scene (drawing)
-  and the view (state and actions). Shared results live in the state, not in the views.
-* GUI callbacks only update state and post requests; scene drawing happens on the worker.
+* One view per step (``app/gui/views/<view>/``): each split into its panel (widgets), its scene
+  (drawing) and the view (state and actions). Shared results live in the state, not in the views.
+* GUI callbacks only update state and post requests; scene drawing and anything slower than a
+  frame happen on the worker or as a job. Nothing touches the disk while the state's lock is held
+  (the session is copied under it and written after).
 * Clicks on the scene arrive as rays; :meth:`App.handle_click` intersects them with the current
   view's image planes and hands pixel coordinates to the view. The browser's zoom is followed so
   markers keep their size on screen.
@@ -37,29 +40,23 @@ import numpy as np
 import viser
 
 from app.gui import assets, scene2d, security
+from app.gui.context import Client
+from app.gui.header import HeaderPanel, InputsPanel
 from app.gui.inputs import Inputs
 from app.gui.project import Project, default_project_dir, input_identity, upload_name
 from app.gui.security import escape_md, resolve_allowed
-from app.gui.state import MODES, STEPS, AppState
+from app.gui.state import MODES, AppState
+from app.gui.views.calibrate.view import CalibrateView
+from app.gui.views.evaluate.view import EvaluateView
+from app.gui.views.seed.view import SeedView
+from app.gui.views.sequence.view import SequenceView
 from app.gui.worker import Job, JobRunner, LatestWorker
 from app.progress import human_size
 
 log = logging.getLogger(__name__)
 
-STEP_VIEWS = {
-    "calibrated": "Calibrate",
-    "seeded": "Seed",
-    "reference registered": "Seed",
-    "sequence registered": "Sequence",
-    "evaluated": "Evaluate",
-}
-NEXT = {
-    "calibrated": "set γ in **Calibrate** (slider, lines along streets, or the automatic estimate)",
-    "seeded": "in **Seed**, click a point on the frame, then the same point on the map",
-    "reference registered": "in **Seed**, run the fine step (it runs by itself after a seed click)",
-    "sequence registered": "in **Sequence**, press *Register all frames*",
-    "evaluated": "in **Evaluate**, mark ground points in several frames, then *Compute Table 2*",
-}
+VIEWS = (CalibrateView, SeedView, SequenceView, EvaluateView)
+"""The views, in the order of the analyst's work (and of :data:`app.gui.state.MODES`)."""
 PANEL_WIDTH_PX = 480
 ZOOM_STEP = 0.1
 SAVE_DELAY_S = 0.5
@@ -130,14 +127,34 @@ class App:
         self._last_progress = 0.0
         self._save_lock = threading.Lock()
         self._save_timer: threading.Timer | None = None
+        self._write_lock = threading.Lock()  # one project.json write at a time
+        self._snapshots = 0  # sessions copied for saving so far (under the state's lock)
+        self._written = 0  # the newest of them written
+
+    # ------------------------------------------------------------------ the views' context
+    @property
+    def scene(self) -> viser.SceneApi:
+        return self.server.scene
+
+    @property
+    def gui(self) -> viser.GuiApi:
+        return self.server.gui
+
+    def atomic(self):
+        return self.server.atomic()
+
+    def gui_for(self, client: Client) -> viser.GuiApi:
+        return client.gui if client is not None else self.server.gui
+
+    def camera_position(self, client: Client) -> tuple[float, float, float]:
+        cam = client.camera if client is not None else self.server.initial_camera
+        return tuple(cam.position)
+
+    def submit(self, key: str, fn: Callable[[], None]) -> None:
+        self.worker.submit(key, fn)
 
     # ------------------------------------------------------------------ setup
     def start(self) -> None:
-        from app.gui.views.calibrate.view import CalibrateView
-        from app.gui.views.evaluate.view import EvaluateView
-        from app.gui.views.seed.view import SeedView
-        from app.gui.views.sequence.view import SequenceView
-
         server = self.server
         server.gui.configure_theme(
             control_width="large", show_share_button=False, show_logo=False, dark_mode=False
@@ -165,7 +182,7 @@ class App:
 
         self._build_header()
         self._build_inputs_folder()
-        for cls in (CalibrateView, SeedView, SequenceView, EvaluateView):
+        for cls in VIEWS:
             view = cls(self)
             self.views[view.MODE] = view
         server.scene.on_click()(self._on_scene_click)
@@ -187,32 +204,14 @@ class App:
         self.set_mode(self.state.mode)
 
     def _build_header(self) -> None:
-        gui = self.server.gui
-        self.status = gui.add_markdown("**aerialreg** starting ...")
-        self.steps_md = gui.add_markdown("")
-        self.mode_buttons = gui.add_button_group("View", list(MODES))
-        self.mode_buttons.on_click(lambda ev: self.set_mode(self.mode_of_label(ev.target.value)))
-        self.job_md = gui.add_markdown("", visible=False)
-        self.progress = gui.add_progress_bar(0.0, visible=False)
-        self.btn_cancel = gui.add_button("Cancel", color="red", visible=False)
-        self.btn_cancel.on_click(lambda ev: self.jobs.request_cancel())
+        self.header = HeaderPanel(self.server.gui)
+        self.header.on_view_chosen(lambda mode, client: self.set_mode(mode))
+        self.header.on_cancel(lambda client: self.jobs.request_cancel())
 
     def _build_inputs_folder(self) -> None:
-        gui = self.server.gui
-        with gui.add_folder("Inputs", expand_by_default=False):
-            self.frames_text = gui.add_text("Frames (video, folder, glob)", "")
-            self.base_text = gui.add_text("Base map image", "")
-            open_btn = gui.add_button("Open paths")
-            open_btn.on_click(lambda ev: self.open_paths_from_gui(ev.client))
-            self.upload_frames = gui.add_upload_button("Upload frames (video)", icon=None)
-            self.upload_frames.on_upload(
-                lambda ev: self.handle_upload("frames", ev.target.value, ev.client)
-            )
-            self.upload_base = gui.add_upload_button("Upload base map", icon=None)
-            self.upload_base.on_upload(
-                lambda ev: self.handle_upload("base", ev.target.value, ev.client)
-            )
-            self.inputs_md = gui.add_markdown("")
+        self.inputs_panel = InputsPanel(self.server.gui)
+        self.inputs_panel.on_open(self.open_paths_from_gui)
+        self.inputs_panel.on_upload(self.handle_upload)
         self._update_inputs_md()
 
     def allowed_roots(self) -> list[Path]:
@@ -225,40 +224,19 @@ class App:
 
     def _update_inputs_md(self) -> None:
         allowed = ", ".join(escape_md(p) for p in self.allowed_roots())
-        self.inputs_md.content = (
+        self.inputs_panel.show_info(
             f"Project: {escape_md(self.project.folder)}  \nPaths may lie under: {allowed}  \n"
             f"Uploads up to {human_size(self.max_upload_bytes)}; upload both inputs, or one and "
             "press *Open paths*."
         )
 
     # ------------------------------------------------------------------ header
-    @staticmethod
-    def mode_of_label(label: str) -> str:
-        """The view a (decorated) view button stands for."""
-        for mode in MODES:
-            if mode in label:
-                return mode
-        return label
-
     def update_header(self) -> None:
         """View buttons (active ▶, done ✓), the checklist and what comes next."""
         with self.state.lock:
             steps = self.state.steps()
             mode = self.state.mode
-        done_views = {m: all(steps[s] for s, v in STEP_VIEWS.items() if v == m) for m in MODES}
-        labels = [("▶ " if m == mode else "") + m + (" ✓" if done_views[m] else "") for m in MODES]
-        if list(self.mode_buttons.options) != labels:
-            self.mode_buttons.options = labels
-        items = []
-        for s in STEPS:
-            mark = "✓" if steps[s] else "○"
-            cls = "done" if steps[s] else ""
-            if STEP_VIEWS[s] == mode:
-                cls += " active"
-            items.append(f'<span class="{cls.strip()}">{mark} {s}</span>')
-        todo = [s for s in STEPS if not steps[s]]
-        nxt = f"**Next:** {NEXT[todo[0]]}." if todo else "All steps done."
-        self.steps_md.content = f'<div class="aerialreg-steps">{" → ".join(items)}</div>\n\n{nxt}'
+        self.header.show_steps(steps, mode)
 
     def state_changed(self) -> None:
         """Shared state changed: refresh the header and every view's texts."""
@@ -280,25 +258,21 @@ class App:
         return started
 
     def _job_started(self, job: Job) -> None:
-        self.job_md.content = f"{job.name} ..."
-        self.job_md.visible = True
-        self.btn_cancel.visible = True
+        self.header.show_job(f"{job.name} ...")
 
     def _job_progress(self, job: Job) -> None:
         now = time.monotonic()
         if now - self._last_progress < 0.25 and job.total and job.done < job.total:
             return
         self._last_progress = now
-        self.job_md.content = escape_md(job.describe())
-        self.job_md.visible = True
+        self.header.show_job_progress(escape_md(job.describe()))
         frac = job.fraction
         if frac is not None:
             self.set_progress(100.0 * frac)
 
     def _job_finished(self, job: Job) -> None:
         if self.jobs.job is job:
-            self.job_md.visible = False
-            self.btn_cancel.visible = False
+            self.header.show_job(None)
             self.set_progress(None)
 
     # ------------------------------------------------------------------ inputs
@@ -329,11 +303,12 @@ class App:
 
         self.run_job("demo", build)
 
-    def open_paths_from_gui(self, client) -> None:
+    def open_paths_from_gui(self, client: Client) -> None:
         """The "Open paths" button: check both paths against the allowed folders, then open."""
+        frames_text, base_text = self.inputs_panel.paths
         try:
-            frames = resolve_allowed(self.frames_text.value, self.allowed_roots())
-            base = resolve_allowed(self.base_text.value, self.allowed_roots())
+            frames = resolve_allowed(frames_text, self.allowed_roots())
+            base = resolve_allowed(base_text, self.allowed_roots())
         except (ValueError, FileNotFoundError) as exc:
             self.notify(client, "Path refused", str(exc), color="red")
             return
@@ -378,7 +353,7 @@ class App:
             return
         path = self.project.write_file(f"uploads/{upload_name(kind, name, content)}", content)
         self._uploaded[kind] = str(path)
-        (self.frames_text if kind == "frames" else self.base_text).value = str(path)
+        self.inputs_panel.show_path(kind, str(path))
         if "frames" in self._uploaded and "base" in self._uploaded:
             frames, base = self._uploaded["frames"], self._uploaded["base"]
             self.worker.submit("open", lambda: self._open_and_report(frames, base, client))
@@ -460,8 +435,8 @@ class App:
             st.revision += 1
         if old is not None:
             old.close()
-        self.frames_text.value = inputs.frames_path
-        self.base_text.value = inputs.base_path
+        self.inputs_panel.show_path("frames", inputs.frames_path)
+        self.inputs_panel.show_path("base", inputs.base_path)
         # Uploads no input refers to any more are removed (they can be hundreds of MB).
         self.project.prune_uploads([inputs.frames_path, inputs.base_path])
         self._update_inputs_md()
@@ -589,15 +564,11 @@ class App:
 
     # ------------------------------------------------------------------ feedback
     def set_status(self, text: str) -> None:
-        if hasattr(self, "status"):
-            self.status.content = text
+        if hasattr(self, "header"):
+            self.header.show_status(text)
 
     def set_progress(self, percent: float | None) -> None:
-        if percent is None:
-            self.progress.visible = False
-            return
-        self.progress.visible = True
-        self.progress.value = float(np.clip(percent, 0.0, 100.0))
+        self.header.show_progress(None if percent is None else float(np.clip(percent, 0.0, 100.0)))
 
     def notify(self, client, title: str, body: str, *, color: str = "blue") -> None:
         """A notification to one client, or to all when ``client`` is None (Python-side calls)."""
@@ -667,9 +638,18 @@ class App:
             if self._save_timer is not None:
                 self._save_timer.cancel()
                 self._save_timer = None
+        # Copied under the state's lock, written (and fsync'ed) after it: callbacks and the
+        # worker never wait for the disk. Writes are serialised by their own lock, and a copy
+        # older than one already written is dropped, so the file always ends with the newest.
         with self.state.lock:
             session = self.state.to_session()
+            self._snapshots += 1
+            snapshot = self._snapshots
+        with self._write_lock:
+            if snapshot < self._written:
+                return
             self.project.save(session)
+            self._written = snapshot
 
     def stop(self) -> None:
         """Cancel the running job, stop timers and the worker, then the server."""

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from app.gui.controlpoints import Edits
+from registration.lens import Camera
 
 MODES = ("Calibrate", "Seed", "Sequence", "Evaluate")
 OVERLAYS = ("blend", "checkerboard", "flicker")
@@ -186,6 +187,17 @@ class AppState:
     @property
     def degree(self) -> int:
         return TRANSFORMS.get(self.transform, 2)
+
+    def camera(self, gamma: float | None = None) -> Camera:
+        """The frames' camera (:class:`registration.lens.Camera`) at γ ``gamma`` (default: the
+        current γ), for the opened frames' size (call under the lock, after inputs are open).
+
+        Raises:
+            ValueError: no inputs are open, or γ is not finite.
+        """
+        if self.frame_size is None:
+            raise ValueError("no frames are open")
+        return Camera(self.gamma if gamma is None else gamma, *self.frame_size)
 
     def reference_key(self) -> dict:
         """What the reference frame's fits depend on besides the inputs (call under the lock)."""

@@ -1,15 +1,14 @@
-"""Base classes of the views: panel (widgets), scene (drawing), view (state and actions)."""
+"""Base classes of the views: scene (drawing) and view (state and actions); each view's panel
+(widgets) is its own class in its folder (``panel.py``)."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from collections.abc import Callable
 
 import numpy as np
 
 from app.gui import scene2d
-
-if TYPE_CHECKING:
-    from app.gui.server import App
+from app.gui.context import Client, ViewContext
 
 GAP_PX = 80
 """Gap in pixels (of the right-hand image) between side-by-side images."""
@@ -74,18 +73,23 @@ class Scene:
 
 
 class View:
-    """One step of the analyst's work. Subclasses set ``MODE`` and build panel and scene."""
+    """One step of the analyst's work. Subclasses set ``MODE`` and build panel and scene.
+
+    A view sees the app only as a :class:`~app.gui.context.ViewContext` (``self.ctx``); it reads
+    and changes ``self.state`` (under its lock), tells its panel and scene what to show, and
+    posts everything slower than a frame to the worker or as a job.
+    """
 
     MODE = ""
     CLICKABLE: tuple[str, ...] = ()
 
-    def __init__(self, app: App) -> None:
-        self.app = app
-        self.state = app.state
-        self.scene = self.make_scene(app.server.scene, f"/{self.MODE.lower()}")
-        self.folder = app.server.gui.add_folder(self.MODE, visible=False)
+    def __init__(self, ctx: ViewContext) -> None:
+        self.ctx = ctx
+        self.state = ctx.state
+        self.scene = self.make_scene(ctx.scene, f"/{self.MODE.lower()}")
+        self.folder = ctx.gui.add_folder(self.MODE, visible=False)
         with self.folder:
-            self.panel = self.make_panel(app.server.gui)
+            self.panel = self.make_panel(ctx.gui)
         self.connect()
 
     # -- to override
@@ -96,7 +100,7 @@ class View:
         raise NotImplementedError
 
     def connect(self) -> None:
-        """Attach the panel's callbacks to this view's actions."""
+        """Register this view's actions as the panel's callbacks."""
 
     def on_inputs(self) -> None:
         """Inputs changed: recreate planes for the new sizes, reset widgets."""
@@ -107,7 +111,7 @@ class View:
     def on_state_changed(self) -> None:
         """Shared state changed elsewhere (another view, a job): refresh texts."""
 
-    def on_click(self, plane: str, xy, client) -> None:
+    def on_click(self, plane: str, xy, client: Client) -> None:
         """A click landed on ``plane`` at pixel ``xy`` (that plane's full-resolution pixels)."""
 
     def shutdown(self) -> None:
@@ -127,9 +131,9 @@ class View:
         with self.state.lock:
             return self.state.mode == self.MODE
 
-    def notify(self, client, title: str, body: str, color: str = "blue") -> None:
-        self.app.notify(client, title, body, color=color)
+    def notify(self, client: Client, title: str, body: str, color: str = "blue") -> None:
+        self.ctx.notify(client, title, body, color=color)
 
-    def submit(self, key: str, fn) -> None:
+    def submit(self, key: str, fn: Callable[[], None]) -> None:
         """Run ``fn`` on the app's worker (latest request per key wins)."""
-        self.app.worker.submit(f"{self.MODE}:{key}", fn)
+        self.ctx.submit(f"{self.MODE}:{key}", fn)

@@ -8,10 +8,14 @@ Clicking a row sends ``("cp-select:<scope>", id)`` through the app's event chann
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
+from app.gui.context import Client
 from app.gui.controlpoints import SORTS, ControlPointTable
 from app.gui.security import escape_md
+from app.gui.views.widgets import ClientCallback, on_change, on_choice, on_press
 
 PAGE_ROWS = 25
 
@@ -74,7 +78,73 @@ class ControlPointPanel:
             )
             self.manual_md = gui.add_markdown("")
         self.export = gui.add_button("Export control points (.points)")
-        self.offset = 0
+        self.offset = 0  # position of the first row shown, in the sorted order
+
+    # ---------------------------------------------------------------- callbacks
+    def on_sort_changed(self, callback: ClientCallback) -> None:
+        self.sort.on_update(lambda event: callback(event.client))
+
+    def on_page(self, callback: Callable[[int, Client], None]) -> None:
+        """``callback(direction, client)``: -1 for the previous page, +1 for the next."""
+        on_choice(
+            self.page,
+            {
+                "◀ previous": lambda client: callback(-1, client),
+                "next ▶": lambda client: callback(1, client),
+            },
+        )
+
+    def on_select(self, callback: Callable[[int, Client], None]) -> None:
+        """``callback(row id, client)`` when the analyst types a point id."""
+        on_change(self.selected, int, callback)
+
+    def on_point_actions(
+        self,
+        *,
+        centre: ClientCallback,
+        toggle: ClientCallback | None = None,
+        delete: ClientCallback | None = None,
+    ) -> None:
+        """The selected point's buttons (``toggle`` and ``delete`` of an editable table)."""
+        actions = {"Centre": centre}
+        if self.editable:
+            actions.update({"Enable / disable": toggle, "Delete": delete})
+        on_choice(self.actions, {k: v for k, v in actions.items() if v is not None})
+
+    def on_edits(
+        self,
+        *,
+        disable_worst: ClientCallback,
+        add_manual: ClientCallback,
+        reset: ClientCallback,
+    ) -> None:
+        """The editable table's buttons for all points."""
+        on_choice(
+            self.bulk,
+            {"Disable worst": disable_worst, "Add manual": add_manual, "Reset edits": reset},
+        )
+
+    def on_export(self, callback: ClientCallback) -> None:
+        on_press(self.export, callback)
+
+    # ---------------------------------------------------------------- values
+    @property
+    def sort_key(self) -> str:
+        """How rows are sorted (one of :data:`app.gui.controlpoints.SORTS`)."""
+        return str(self.sort.value)
+
+    @property
+    def selected_id(self) -> int:
+        """The id in the "Point id" box (-1: none)."""
+        return int(self.selected.value)
+
+    @selected_id.setter
+    def selected_id(self, row_id: int) -> None:
+        self.selected.value = int(row_id)
+
+    def show_manual_hint(self, text: str) -> None:
+        """What to click next while a manual point is being added ("" otherwise)."""
+        self.manual_md.content = text
 
     def show(self, table: ControlPointTable | None, selected: int | None, note: str = "") -> None:
         """Show ``table`` (None: nothing to show) with ``selected`` highlighted."""
@@ -82,7 +152,7 @@ class ControlPointPanel:
             self.summary.content = note or "No control points yet."
             self.table.content = ""
             return
-        order = table.order(str(self.sort.value))
+        order = table.order(self.sort_key)
         n = len(order)
         self.offset = int(np.clip(self.offset, 0, max(n - 1, 0) // PAGE_ROWS * PAGE_ROWS))
         page = order[self.offset : self.offset + PAGE_ROWS]
@@ -91,7 +161,7 @@ class ControlPointPanel:
         text = (
             f"**{n}** points, **{table.n_enabled}** enabled; RMS of the enabled "
             f"**{_fmt(table.rms, 3)} px** ({kind}); rows {self.offset + 1}-"
-            f"{self.offset + len(page)} of {n}, sorted by {escape_md(self.sort.value)}"
+            f"{self.offset + len(page)} of {n}, sorted by {escape_md(self.sort_key)}"
         )
         if table.reason:
             text += f"  \n**Fit failed:** {escape_md(table.reason)}"
@@ -102,7 +172,7 @@ class ControlPointPanel:
 
     def offset_for(self, table: ControlPointTable, row_id: int) -> int | None:
         """The page offset that shows ``row_id`` (the table jumps to a selected point)."""
-        order = table.order(str(self.sort.value))
+        order = table.order(self.sort_key)
         pos = np.flatnonzero(table.ids[order] == int(row_id))
         if not len(pos):
             return None

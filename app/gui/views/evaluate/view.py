@@ -19,143 +19,24 @@ import io
 import numpy as np
 
 from app.gui import scene2d
-from app.gui.security import escape_md
+from app.gui.context import Client
 from app.gui.state import ANCHORS
-from app.gui.views.base import Scene, View
+from app.gui.views.base import View
+from app.gui.views.evaluate.panel import POINT_NAMES, EvaluatePanel, TableFormat
+from app.gui.views.evaluate.scene import EvaluateScene
 from registration import evaluation
 
-# The paper's Table 2 locations first, so the table reads like the paper's.
-POINT_NAMES = ("NW", "NE", "Center", "SW", "SE")
 MARK = (0, 255, 120)
 MARK_CURRENT = (255, 230, 0)
 PROPOSED = (255, 140, 0)
 
 
-class EvaluatePanel:
-    """Widgets of the Evaluate view (and the Table 2 panel)."""
-
-    def __init__(self, gui) -> None:
-        self.frame_slider = gui.add_slider("Frame", 0, 1, 1, 0)
-        self.point_dd = gui.add_dropdown("Point", POINT_NAMES[:1], initial_value=POINT_NAMES[0])
-        self.mark = gui.add_button_group("Mark", ("New point", "Propose next", "Confirm", "Delete"))
-        self.hint_md = gui.add_markdown("")
-        self.marks_html = gui.add_html("")
-        self.anchor = gui.add_dropdown(
-            "Motion measured from",
-            ANCHORS,
-            initial_value=ANCHORS[0],
-            hint="reference: each point's position in the reference frame (needs it marked there); "
-            "mean: its mean position over the marked frames",
-        )
-        self.btn_table = gui.add_button("Compute Table 2")
-        self.table_md = gui.add_markdown("")
-        self.btn_export = gui.add_button("Export POINTS.csv")
-        # Table 2 gets its own wide window (the sidebar is too narrow for 13 columns).
-        self.table_panel = gui.add_panel(visible=False)
-        with self.table_panel.add_tab("Table 2"):
-            self.table2_md = gui.add_markdown("")
-            self.download = gui.add_button_group("Download Table 2", ("CSV", "Markdown"))
-
-    def show_marks(self, rows: list[dict], current: str) -> None:
-        """``rows``: point, frame, x, y, pending (NCC or None), residual (px or None)."""
-        if not rows:
-            self.marks_html.content = ""
-            self.hint_md.content = (
-                "No points yet: click a ground point (e.g. a road marking) in the frame."
-            )
-            return
-        body = []
-        for r in rows:
-            status = "marked" if r["pending"] is None else f"proposed, NCC {r['pending']:.2f}"
-            res = (
-                "–"
-                if r["residual"] is None or not np.isfinite(r["residual"])
-                else f"{r['residual']:.2f}"
-            )
-            cls = "pending" if r["pending"] is not None else ""
-            if r["point"] == current and r["current_frame"]:
-                cls += " selected"
-            body.append(
-                f'<tr data-row="{r["frame"]}" class="{cls}" onclick="window.aerialreg && '
-                f"window.aerialreg.send('eval-mark', [{_js_str(r['point'])}, {r['frame']}])\">"
-                f"<td style='text-align:left'>{escape_md(r['point'])}</td><td>{r['frame']}</td>"
-                f"<td>{r['x']:.1f}</td><td>{r['y']:.1f}</td>"
-                f"<td style='text-align:left'>{status}</td><td>{res}</td></tr>"
-            )
-        n_pending = sum(r["pending"] is not None for r in rows)
-        self.hint_md.content = (
-            f"{len(rows)} marks"
-            + (
-                f", **{n_pending} proposed and not confirmed** (they count nowhere until confirmed)"
-                if n_pending
-                else ""
-            )
-            + ". Residual: distance (base px, local stage) from the point's anchor position."
-        )
-        self.marks_html.content = (
-            '<div class="aerialreg-scroll"><table class="aerialreg-table"><thead><tr><th>point</th>'
-            "<th>frame</th><th>x</th><th>y</th><th>status</th><th>res. (px)</th></tr></thead>"
-            f"<tbody>{''.join(body)}</tbody></table></div>"
-        )
-
-    def show_table2(self, markdown: str | None, summary: str) -> None:
-        self.table_md.content = summary
-        if markdown is None:
-            self.table_panel.visible = False
-            return
-        self.table2_md.content = markdown
-        self.table_panel.visible = True
-        self.table_panel.float(x=16, y=-16, width=820)
-
-
-def _js_str(text: str) -> str:
-    """A JavaScript string literal safe inside a double-quoted HTML attribute."""
-    import json
-
-    return json.dumps(str(text)).replace("&", "&amp;").replace('"', "&quot;").replace("<", "&lt;")
-
-
-class EvaluateScene(Scene):
-    """The raw frame with the marks (crosses; proposals as x) and their names."""
-
-    def __init__(self, scene, root_name: str) -> None:
-        super().__init__(scene, root_name)
-        self.labels: dict[str, object] = {}
-
-    def show_frame(self, rgb) -> None:
-        self.planes["frame"].show(rgb)
-
-    def draw_marks(self, marks: list[tuple[str, np.ndarray, tuple, str]]) -> None:
-        """``marks``: (name, raw xy, colour, shape)."""
-        plane = self.planes["frame"]
-        for shape in ("cross", "x"):
-            sel = [m for m in marks if m[3] == shape]
-            if sel:
-                plane.markers(
-                    f"marks_{shape}",
-                    np.array([m[1] for m in sel]),
-                    np.array([m[2] for m in sel], np.uint8),
-                    shape=shape,
-                    size_px=11,
-                    width=2.5,
-                )
-            else:
-                plane.remove(f"marks_{shape}")
-        for name in list(self.labels):
-            self.labels.pop(name).remove()
-        for name, xy, _, _ in marks:
-            pos = plane.geom.world_from_pixel(np.asarray(xy, float), dz=3 * scene2d.OVERLAY_DZ)
-            self.labels[name] = self.scene.add_label(
-                f"{self.root_name}/label_{len(self.labels)}",
-                name,
-                position=tuple(pos),
-                anchor="bottom-left",
-            )
-
-
 class EvaluateView(View):
     MODE = "Evaluate"
     CLICKABLE = ("frame",)
+
+    panel: EvaluatePanel
+    scene: EvaluateScene
 
     def make_scene(self, scene, root_name):
         return EvaluateScene(scene, root_name)
@@ -165,25 +46,29 @@ class EvaluateView(View):
 
     def connect(self) -> None:
         p = self.panel
-        p.frame_slider.on_update(lambda ev: self.set_frame(int(ev.target.value)))
-        p.point_dd.on_update(lambda ev: self.set_point(str(ev.target.value)))
-        p.mark.on_click(lambda ev: self.mark_action(ev.target.value, ev.client))
-        p.anchor.on_update(lambda ev: self.set_anchor(str(ev.target.value)))
-        p.btn_table.on_click(lambda ev: self.compute_table(ev.client))
-        p.btn_export.on_click(lambda ev: self.export_csv(ev.client))
-        p.download.on_click(lambda ev: self.download_table(ev.target.value, ev.client))
-        self.app.events.on("eval-mark", self._mark_event)
+        p.on_frame_changed(lambda k, client: self.set_frame(k))
+        p.on_point_changed(lambda name, client: self.set_point(name))
+        p.on_mark_actions(
+            new_point=lambda client: self.new_point(),
+            propose_next=self.propose_next,
+            confirm=self.confirm,
+            delete=lambda client: self.delete_mark(),
+        )
+        p.on_anchor_changed(lambda anchor, client: self.set_anchor(anchor))
+        p.on_compute_table(self.compute_table)
+        p.on_export_points(self.export_csv)
+        p.on_download_table(self.download_table)
+        self.ctx.events.on("eval-mark", self._mark_event)
 
     # ---------------------------------------------------------------- state
     def on_inputs(self) -> None:
-        inp = self.app.inputs
+        inp = self.ctx.inputs
         self.scene.make_plane("frame", *inp.frame_size)
         with self.state.lock:
             k, anchor = self.state.eval_frame, self.state.anchor
-        self.panel.frame_slider.max = max(inp.n_frames - 1, 1)
-        self.panel.frame_slider.disabled = inp.n_frames <= 1
-        self.panel.frame_slider.value = k
-        self.panel.anchor.value = anchor
+        self.panel.configure(inp.n_frames)
+        self.panel.frame = k
+        self.panel.show_anchor(anchor)
         self._refresh_points()
 
     def on_show(self) -> None:
@@ -194,10 +79,8 @@ class EvaluateView(View):
         super().set_visible(visible)
         with self.state.lock:
             has_table = self.state.report is not None
-        if not visible:
-            self.panel.table_panel.visible = False
-        elif has_table:
-            self.panel.table_panel.visible = True
+        if not visible or has_table:
+            self.panel.show_table2_window(visible)
 
     def on_state_changed(self) -> None:
         self._refresh_points()
@@ -208,30 +91,28 @@ class EvaluateView(View):
             cur = self.state.point_name
         if cur not in names:
             names.append(cur)
-        self.panel.point_dd.options = tuple(names)
-        if self.panel.point_dd.value != cur:
-            self.panel.point_dd.value = cur
+        self.panel.show_points(tuple(names), cur)
         self.panel.show_marks(self.mark_rows(), cur)
 
     def set_frame(self, k: int) -> None:
         with self.state.lock:
-            if self.app.inputs is None:
+            if self.ctx.inputs is None:
                 return
-            k = int(np.clip(k, 0, self.app.inputs.n_frames - 1))
-            same = k == self.state.eval_frame and self.app.shown.get(self.MODE) == (k,)
+            k = int(np.clip(k, 0, self.ctx.inputs.n_frames - 1))
+            same = k == self.state.eval_frame and self.ctx.shown.get(self.MODE) == (k,)
             self.state.eval_frame = k
         if same:
             return  # e.g. the slider's own callback after we moved it
-        if int(self.panel.frame_slider.value) != k:
-            self.panel.frame_slider.value = k
-        self.app.save(soon=True)
+        if self.panel.frame != k:
+            self.panel.frame = k
+        self.ctx.save(soon=True)
         self._refresh_points()
         self.request_render()
 
     def set_point(self, name: str) -> None:
         with self.state.lock:
             self.state.point_name = name
-        self.app.save()
+        self.ctx.save()
         self._refresh_points()
         self.request_overlays()
 
@@ -240,7 +121,7 @@ class EvaluateView(View):
             return
         with self.state.lock:
             self.state.anchor = anchor
-        self.app.save()
+        self.ctx.save()
         self._refresh_points()
 
     def _mark_event(self, value, client) -> None:
@@ -254,16 +135,6 @@ class EvaluateView(View):
             self.state.point_name = name
         self.set_frame(k)
 
-    def mark_action(self, action: str, client=None) -> None:
-        if action == "New point":
-            self.new_point()
-        elif action == "Propose next":
-            self.propose_next(client)
-        elif action == "Confirm":
-            self.confirm(client)
-        elif action == "Delete":
-            self.delete_mark()
-
     def new_point(self) -> None:
         with self.state.lock:
             used = set(self.state.points) | {self.state.point_name}
@@ -273,7 +144,7 @@ class EvaluateView(View):
                 i += 1
             self.state.point_name = free[0] if free else f"P{i}"
         self._refresh_points()
-        self.app.save()
+        self.ctx.save()
 
     def on_click(self, plane: str, xy, client) -> None:
         """Set (or move) the current point in the shown frame, raw pixels: a confirmed mark."""
@@ -284,7 +155,7 @@ class EvaluateView(View):
             self.state.revision += 1
         self._points_changed()
 
-    def confirm(self, client=None) -> bool:
+    def confirm(self, client: Client = None) -> bool:
         """Accept the proposal for the current point in the shown frame as it is."""
         with self.state.lock:
             key = (self.state.point_name, self.state.eval_frame)
@@ -316,11 +187,11 @@ class EvaluateView(View):
         self._points_changed()
 
     def _points_changed(self) -> None:
-        self.app.save()
+        self.ctx.save()
         self.write_points_csv()
         self._refresh_points()
         self.request_overlays()
-        self.app.state_changed()
+        self.ctx.state_changed()
 
     # ---------------------------------------------------------------- registration calls
     def confirmed_marks(self) -> dict[str, dict[int, tuple[float, float]]]:
@@ -405,33 +276,33 @@ class EvaluateView(View):
 
     def write_points_csv(self) -> str:
         text = self.points_csv()
-        self.app.project.write_file("POINTS.csv", text)
+        self.ctx.project.write_file("POINTS.csv", text)
         return text
 
-    def export_csv(self, client=None) -> bool:
+    def export_csv(self, client: Client = None) -> bool:
         """Save POINTS.csv, check it with the evaluation module's reader, and send it."""
         text = self.write_points_csv()
-        inp = self.app.inputs
+        inp = self.ctx.inputs
         if inp is not None:
             try:
                 evaluation.read_points_csv(
-                    self.app.project.points_path, inp.n_frames, inp.frame_size
+                    self.ctx.project.points_path, inp.n_frames, inp.frame_size
                 )
             except ValueError as exc:
                 self.notify(client, "POINTS.csv saved, but not usable yet", str(exc), "yellow")
-        self.app.send_download(client, "POINTS.csv", text.encode("utf-8"))
+        self.ctx.send_download(client, "POINTS.csv", text.encode("utf-8"))
         self.notify(
-            client, "POINTS.csv", f"saved to {self.app.project.points_path} and sent", "green"
+            client, "POINTS.csv", f"saved to {self.ctx.project.points_path} and sent", "green"
         )
         return True
 
-    def propose_next(self, client=None) -> bool:
+    def propose_next(self, client: Client = None) -> bool:
         """Propose the current point in the next frame, pending until confirmed.
 
         By normalised cross-correlation (``registration.evaluation.points.propose_point``); where that
         finds nothing, from the registration result (frame k -> base -> frame k+1, local stage).
         """
-        inp = self.app.inputs
+        inp = self.ctx.inputs
         with self.state.lock:
             name, k = self.state.point_name, self.state.eval_frame
             xy = self.state.points.get(name, {}).get(k)
@@ -471,7 +342,7 @@ class EvaluateView(View):
         self.submit("propose", work)
         return True
 
-    def compute_table(self, client=None) -> bool:
+    def compute_table(self, client: Client = None) -> bool:
         """Table 2 (paper section 6) from the confirmed marks and the registration result."""
         with self.state.lock:
             result, anchor = self.state.result, self.state.anchor
@@ -509,8 +380,8 @@ class EvaluateView(View):
             exc_frames = sorted({e["frame"] for es in report.excursions.values() for e in es})
             if exc_frames:
                 text += "\nSudden excursions in frames: " + ", ".join(map(str, exc_frames))
-            self.app.project.write_file("TABLE2.csv", report.table.to_csv())
-            self.app.project.write_file("TABLE2.md", text)
+            self.ctx.project.write_file("TABLE2.csv", report.table.to_csv())
+            self.ctx.project.write_file("TABLE2.md", text)
             summary = (
                 f"Table 2 from {sum(len(m) for m in marks.values())} confirmed marks of {len(marks)} "
                 f"points, motion from the {anchor} position"
@@ -521,21 +392,22 @@ class EvaluateView(View):
                 f"**Table 2** (base px; Unregistered in corrected-frame px; anchor: {anchor})\n\n{text}",
                 summary,
             )
-            self.app.state_changed()
+            self.ctx.state_changed()
 
-        return self.app.run_job("table 2", job, client)
+        return self.ctx.run_job("table 2", job, client)
 
-    def download_table(self, which: str, client=None) -> bool:
+    def download_table(self, fmt: TableFormat, client: Client = None) -> bool:
+        """Send Table 2 as ``TABLE2.csv`` (``fmt`` "csv") or ``TABLE2.md`` ("markdown")."""
         with self.state.lock:
             report = self.state.report
         if report is None:
             self.notify(client, "No Table 2", "Compute Table 2 first", "yellow")
             return False
-        if which == "CSV":
+        if fmt == "csv":
             name, data = "TABLE2.csv", report.table.to_csv()
         else:
             name, data = "TABLE2.md", report.table.to_markdown()
-        self.app.send_download(client, name, data.encode("utf-8"))
+        self.ctx.send_download(client, name, data.encode("utf-8"))
         return True
 
     # ---------------------------------------------------------------- drawing (worker)
@@ -546,16 +418,16 @@ class EvaluateView(View):
         self.submit("overlays", self.draw_overlays)
 
     def render(self) -> None:
-        inp = self.app.inputs
+        inp = self.ctx.inputs
         if inp is None or "frame" not in self.scene.planes:
             return
         with self.state.lock:
             k = self.state.eval_frame
-        rgb = scene2d.to_rgb(inp.preview(k, self.app.display_max))
-        with self.app.server.atomic():
+        rgb = scene2d.to_rgb(inp.preview(k, self.ctx.display_max))
+        with self.ctx.atomic():
             self.scene.show_frame(rgb)
         self.draw_overlays()
-        self.app.shown[self.MODE] = (k,)
+        self.ctx.shown[self.MODE] = (k,)
         inp.prefetch([k + 1, k - 1])
 
     def draw_overlays(self) -> None:
@@ -570,7 +442,7 @@ class EvaluateView(View):
                 pending = (p, k) in self.state.pending
                 colour = PROPOSED if pending else (MARK_CURRENT if p == cur else MARK)
                 marks.append((p, np.asarray(m[k], float), colour, "x" if pending else "cross"))
-        with self.app.server.atomic():
+        with self.ctx.atomic():
             self.scene.draw_marks(marks)
 
 

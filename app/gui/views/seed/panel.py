@@ -1,40 +1,51 @@
-"""Seed view: its panel (widgets) and its scene (frame and map side by side, seed markers,
-matches, gate, control points, mid base image); the view itself is ``app/views/seed.py``."""
+"""Seed view: its panel (the seed pairs, heading and scale, the run settings, the fits' results,
+the review options, the magnifier and the reference frame's control-point table)."""
 
 from __future__ import annotations
 
-import cv2
+from collections.abc import Callable
+from dataclasses import dataclass
+
 import numpy as np
 
-from app.gui import scene2d
 from app.gui.calls import TYPED_SEED_DISTANCE_PX
+from app.gui.context import Client
 from app.gui.security import escape_md
 from app.gui.state import TRANSFORMS
-from app.gui.views.base import GAP_PX, Scene
 from app.gui.views.cptable.panel import ControlPointPanel
+from app.gui.views.seed.scene import MAGNIFIER_PX, MAGNIFIER_ZOOM
+from app.gui.views.widgets import ClientCallback, on_any_change, on_change, on_choice, on_press
 from registration.run import config
 
-INLIER = (40, 230, 60)
-OUTLIER = (240, 50, 50)
-UNGATED = (150, 150, 150)
-PAIR_COLOURS = {1: (255, 215, 0), 2: (0, 200, 255)}
-KEPT = (40, 230, 60)
-REMOVED = (240, 50, 50)
-MANUAL = (255, 120, 255)
-RESIDUAL = (255, 220, 0)
-GATE = (255, 0, 255)
-SELECTED = (255, 255, 255)
 ALERT_STYLE = (
     "background:#fff0f0;border-left:4px solid #e03131;color:#8a1c1c;padding:6px 8px;"
     "margin:4px 0;font-size:0.85rem;white-space:normal"
 )
-MAGNIFIER_PX = 48
-"""Half-size (image pixels) of the magnifier's crops around a seed or selected point."""
-MAGNIFIER_ZOOM = 3
+FIT_TARGETS = {"Frame": ("frame",), "Map": ("base",), "Both": ("frame", "base")}
+"""The "Fit view to" buttons: the planes each shows."""
+
+
+@dataclass(frozen=True)
+class ReviewOptions:
+    """What the match review draws.
+
+    Attributes:
+        outliers: matches and control points REQCON or RANSAC rejected, too.
+        ungated: matches outside the seed's location gate, too.
+        gate: the gate's outline on the map.
+        template_lines: control points as lines between frame and map.
+        vector_scale: residual vectors' length per base px of residual (0 = automatic).
+    """
+
+    outliers: bool
+    ungated: bool
+    gate: bool
+    template_lines: bool
+    vector_scale: float
 
 
 class SeedPanel:
-    """Widgets of the Seed view."""
+    """Widgets of the Seed view: typed values and callbacks for the view."""
 
     def __init__(self, gui) -> None:
         self.ref_slider = gui.add_slider("Reference frame", 0, 1, 1, 0)
@@ -88,6 +99,125 @@ class SeedPanel:
         with gui.add_folder("Control points"):
             self.cps = ControlPointPanel(gui, editable=True, scope="seed")
 
+    # ---------------------------------------------------------------- callbacks
+    def on_reference_frame_changed(self, callback: Callable[[int, Client], None]) -> None:
+        on_change(self.ref_slider, int, callback)
+
+    def on_pair_chosen(self, callback: Callable[[int, Client], None]) -> None:
+        """``callback(pair, client)``: which seed pair (1 or 2) the next clicks place."""
+        on_choice(
+            self.pair,
+            {
+                "Pair 1": lambda client: callback(1, client),
+                "Pair 2": lambda client: callback(2, client),
+            },
+        )
+
+    def on_seed_edits(
+        self, *, undo: ClientCallback, clear_pair2: ClientCallback, clear_all: ClientCallback
+    ) -> None:
+        on_choice(self.edit, {"Undo": undo, "Clear pair 2": clear_pair2, "Clear all": clear_all})
+
+    def on_use_typed(self, callback: Callable[[float, float, Client], None]) -> None:
+        """``callback(heading_deg, scale, client)`` with the typed heading and scale."""
+        on_press(
+            self.btn_typed,
+            lambda client: callback(
+                float(self.heading_in.value), float(self.scale_in.value), client
+            ),
+        )
+
+    def on_fit_view(self, callback: Callable[[tuple[str, ...], Client], None]) -> None:
+        """``callback(plane names, client)``: the planes to fit the camera to."""
+        on_choice(
+            self.fit,
+            {
+                label: (lambda client, keys=keys: callback(keys, client))
+                for label, keys in FIT_TARGETS.items()
+            },
+        )
+
+    def on_preset_changed(self, callback: Callable[[str, Client], None]) -> None:
+        on_change(self.preset, str, callback)
+
+    def on_transform_changed(self, callback: Callable[[str, Client], None]) -> None:
+        on_change(self.transform, str, callback)
+
+    def on_local_field_changed(self, callback: Callable[[bool, Client], None]) -> None:
+        on_change(self.local, bool, callback)
+
+    def on_run_coarse(self, callback: ClientCallback) -> None:
+        on_press(self.btn_coarse, callback)
+
+    def on_run_fine(self, callback: ClientCallback) -> None:
+        on_press(self.btn_fine, callback)
+
+    def on_review_changed(self, callback: ClientCallback) -> None:
+        on_any_change(
+            (
+                self.show_outliers,
+                self.show_ungated,
+                self.show_gate,
+                self.show_template_matches,
+                self.vec_scale,
+            ),
+            callback,
+        )
+
+    def on_mid_opacity_changed(self, callback: ClientCallback) -> None:
+        self.mid_opacity.on_update(lambda event: callback(event.client))
+
+    # ---------------------------------------------------------------- values
+    def configure(self, n_frames: int) -> None:
+        self.ref_slider.max = max(n_frames - 1, 1)
+        self.ref_slider.disabled = n_frames <= 1
+
+    @property
+    def reference_frame(self) -> int:
+        return int(self.ref_slider.value)
+
+    @reference_frame.setter
+    def reference_frame(self, k: int) -> None:
+        self.ref_slider.value = int(k)
+
+    def show_settings(self, preset: str, transform: str, run_local: bool) -> None:
+        """The run settings of the session (an unknown preset leaves the dropdown as it is)."""
+        if preset in self.preset.options:
+            self.preset.value = preset
+        self.transform.value = transform
+        self.local.value = run_local
+
+    @property
+    def fit_after_seed_change(self) -> bool:
+        return bool(self.auto_fit.value)
+
+    def review(self) -> ReviewOptions:
+        return ReviewOptions(
+            outliers=bool(self.show_outliers.value),
+            ungated=bool(self.show_ungated.value),
+            gate=bool(self.show_gate.value),
+            template_lines=bool(self.show_template_matches.value),
+            vector_scale=float(self.vec_scale.value),
+        )
+
+    @property
+    def mid_opacity_value(self) -> float:
+        """Opacity of the reference frame warped over the map (0: not drawn)."""
+        return float(self.mid_opacity.value)
+
+    @mid_opacity_value.setter
+    def mid_opacity_value(self, alpha: float) -> None:
+        self.mid_opacity.value = float(alpha)
+
+    def show_typed(self, heading_deg: float, scale: float) -> None:
+        """Where a correction of heading and scale starts from (rounded as the boxes show)."""
+        self.heading_in.value = round(heading_deg, 1)
+        self.scale_in.value = round(scale, 4)
+
+    def show_magnifier(self, image: np.ndarray) -> None:
+        self.magnifier.image = image
+
+    # ---------------------------------------------------------------- texts
     def show_seeds(self, pairs: dict, active: int, typed: bool) -> None:
         rows = ["| pair | frame (raw px) | map (px) |", "|---|---|---|"]
         for i in (1, 2):
@@ -115,9 +245,13 @@ class SeedPanel:
             for title, reason in failures
         )
 
-    def show_coarse(self, c, gate_text: str) -> None:
+    def show_coarse(self, c, gate_text: str, *, stale: bool = False) -> None:
+        """The coarse step's counts (``c``: ``CoarseResult`` or None); ``stale``: a fit exists
+        but for other settings."""
         if c is None:
-            self.coarse_md.content = ""
+            self.coarse_md.content = (
+                "_Settings changed since the last fit: run it again._" if stale else ""
+            )
             return
         self.coarse_md.content = (
             "| keypoints frame | keypoints map | matches | gated | inliers |\n|---|---|---|---|---|\n"
@@ -140,204 +274,3 @@ class SeedPanel:
             f"{n} control points; {how}; residual RMS {fine.residual_rms_px:.2f} px; "
             f"{fine.time_s:.2f} s" + ("" if fine else "; **failed**") + model
         )
-
-
-class SeedScene(Scene):
-    """Frame and map side by side, seed markers, matches, gate, control points, mid base image."""
-
-    def __init__(self, scene, root_name: str) -> None:
-        super().__init__(scene, root_name)
-        self.markers: dict[tuple[str, int], scene2d.DragMarker] = {}
-        self.labels: dict[tuple[str, int], object] = {}
-        self.match_lines = None
-        self.template_lines = None
-        self.on_drag = None  # set by the view: (plane, pair, phase, event) -> None
-
-    def layout(self, frame_size, base_size) -> None:
-        """The frame drawn as tall as the map on its left, a gap, the map."""
-        w, h = frame_size
-        bw, bh = base_size
-        for m in list(self.markers.values()):
-            m.remove()
-        self.markers.clear()
-        scale = scene2d.WORLD_PER_PX * bh / h
-        self.make_plane("frame", w, h, scale=scale)
-        self.make_plane("base", bw, bh, x_offset=w * bh / h + GAP_PX)
-
-    def show_images(self, frame_rgb, base_rgb) -> None:
-        self.planes["frame"].show(frame_rgb)
-        self.planes["base"].show(base_rgb)
-
-    def draw_seeds(self, pairs: dict) -> None:
-        """``pairs[i] = (frame point (corrected px) or None, map point or None)`` for i = 1, 2."""
-        for i, (fxy, bxy) in pairs.items():
-            for plane_name, xy in (("frame", fxy), ("base", bxy)):
-                key = (plane_name, i)
-                plane = self.planes[plane_name]
-                if xy is None or not plane.geom.contains(xy):
-                    if key in self.markers:
-                        self.markers.pop(key).remove()
-                        self.labels.pop(key).remove()
-                    plane.remove(f"seed{i}")
-                    plane.remove(f"seed{i}_cross")
-                    continue
-                self._place(key, plane, xy, PAIR_COLOURS[i], i)
-
-    def _place(self, key, plane, xy, colour, i) -> None:
-        if key in self.markers:
-            self.markers[key].move_to(xy)
-        else:
-            m = scene2d.DragMarker(
-                self.scene,
-                f"{self.root_name}/seed_{key[0]}_{i}",
-                plane,
-                xy,
-                colour,
-                square=key[0] == "base",
-            )
-            self.markers[key] = m
-            if self.on_drag is not None:
-                handler = self.on_drag
-
-                async def on_drag(event, plane_name=key[0], pair=i) -> None:
-                    handler(plane_name, pair, event)
-
-                m.handle.on_drag("left")(on_drag)
-        # Visible marker: a ring (frame) or square (map) with a fine cross at the exact point.
-        ring = "square" if key[0] == "base" else "circle"
-        half = 13.0
-        plane.markers(f"seed{i}", [xy], colour, shape=ring, size_px=half, width=3.0)
-        plane.markers(f"seed{i}_cross", [xy], colour, shape="cross", size_px=half * 0.45, width=1.5)
-        pos = plane.geom.world_from_pixel(np.asarray(xy, float), 5 * scene2d.OVERLAY_DZ)
-        label = self.labels.get(key)
-        if label is None:
-            self.labels[key] = self.scene.add_label(
-                f"{self.root_name}/seed_label_{key[0]}_{i}",
-                str(i),
-                position=tuple(pos),
-                anchor="bottom-left",
-                font_screen_scale=1.3,
-            )
-        else:
-            label.position = tuple(pos)
-
-    def move_marker(self, plane_name: str, pair: int, xy) -> None:
-        """Follow a drag (the marker, its cross and label; the state changes at the drop)."""
-        key = (plane_name, pair)
-        if key in self.markers:
-            self._place(key, self.planes[plane_name], xy, PAIR_COLOURS[pair], pair)
-
-    def set_zoom(self, world_per_screen_px: float) -> None:
-        super().set_zoom(world_per_screen_px)
-        for m in self.markers.values():
-            m.resize()
-
-    def draw_matches(self, frame_xy, base_xy, colours) -> None:
-        if self.match_lines is not None:
-            self.match_lines.remove()
-            self.match_lines = None
-        if len(frame_xy):
-            fp, bp = self.planes["frame"], self.planes["base"]
-            pts = scene2d.segments_between(fp.geom, frame_xy, bp.geom, base_xy)
-            cols = np.repeat(np.asarray(colours, np.uint8)[:, None, :], 2, axis=1)
-            self.match_lines = self.scene.add_line_segments(
-                f"{self.root_name}/matches", pts, cols, thickness=1.5, thickness_units="screen"
-            )
-
-    def draw_gate(self, outlines: list[np.ndarray]) -> None:
-        bp = self.planes["base"]
-        a, b = [], []
-        for poly in outlines:
-            s, e = scene2d.polyline_segments(np.vstack([poly, poly[:1]]))
-            a.append(s)
-            b.append(e)
-        if a:
-            bp.segments("gate", np.concatenate(a), np.concatenate(b), GATE, width=1.0)
-        else:
-            bp.remove("gate")
-
-    def draw_control_points(
-        self, frame_xy, base_xy, colours, vectors, template_lines: bool
-    ) -> None:
-        """Dots on both images; ``vectors`` = (start, end, colours) on the map or None."""
-        fp, bp = self.planes["frame"], self.planes["base"]
-        if self.template_lines is not None:
-            self.template_lines.remove()
-            self.template_lines = None
-        if not len(frame_xy):
-            fp.remove("cps")
-            bp.remove("cps")
-            bp.remove("residuals")
-            return
-        fp.points("cps", frame_xy, colours, size_px=3.5)
-        bp.points("cps", base_xy, colours, size_px=3.5)
-        if template_lines:
-            pts = scene2d.segments_between(fp.geom, frame_xy, bp.geom, base_xy)
-            self.template_lines = self.scene.add_line_segments(
-                f"{self.root_name}/template_matches",
-                pts,
-                np.repeat(np.asarray(colours, np.uint8)[:, None, :], 2, axis=1),
-                thickness=1.0,
-                thickness_units="screen",
-            )
-        if vectors is None:
-            bp.remove("residuals")
-        else:
-            bp.segments("residuals", *vectors, width=2.0)
-
-    def draw_selected(self, frame_xy, base_xy) -> None:
-        for name, xy in (("frame", frame_xy), ("base", base_xy)):
-            plane = self.planes[name]
-            if xy is None:
-                plane.remove("selected")
-            else:
-                plane.markers("selected", [xy], SELECTED, shape="circle", size_px=12, width=2.5)
-
-    def draw_manual_pending(self, frame_xy) -> None:
-        fp = self.planes["frame"]
-        if frame_xy is None:
-            fp.remove("manual_pending")
-        else:
-            fp.markers("manual_pending", [frame_xy], MANUAL, shape="x", size_px=9, width=2.5)
-
-    def draw_mid(self, rgb) -> None:
-        if rgb is None:
-            self.planes["base"].remove("mid")
-        else:
-            self.planes["base"].overlay_image("mid", rgb)
-
-
-def gate_outlines(coarse) -> list[np.ndarray]:
-    """The location gate the coarse step used, as polygons on the map (base px): the region
-    where gated matches could lie (``CoarseResult.gate_outline_base``); none without a seed."""
-    own = getattr(coarse, "gate_outline_base", None)
-    return [] if own is None else [np.asarray(own, np.float64)]
-
-
-def magnifier_side() -> int:
-    return 2 * MAGNIFIER_PX * MAGNIFIER_ZOOM
-
-
-def magnifier_crop(image: np.ndarray, xy, colour) -> np.ndarray:
-    """A ``2*MAGNIFIER_PX`` square around ``xy`` (grey when None), enlarged, with a cross."""
-    side = magnifier_side()
-    if xy is None or not np.isfinite(xy).all():
-        return np.full((side, side, 3), 225, np.uint8)
-    x, y = float(xy[0]), float(xy[1])
-    # Sub-pixel exact: an affine resample centred on the point.
-    m = np.array(
-        [
-            [MAGNIFIER_ZOOM, 0, side / 2 - (x + 0.5) * MAGNIFIER_ZOOM],
-            [0, MAGNIFIER_ZOOM, side / 2 - (y + 0.5) * MAGNIFIER_ZOOM],
-        ]
-    )
-    out = cv2.warpAffine(
-        image, m, (side, side), flags=cv2.INTER_NEAREST, borderValue=(225, 225, 225)
-    )
-    c = side // 2
-    col = tuple(int(v) for v in colour)
-    cv2.line(out, (c - 12, c), (c - 4, c), col, 1)
-    cv2.line(out, (c + 4, c), (c + 12, c), col, 1)
-    cv2.line(out, (c, c - 12), (c, c - 4), col, 1)
-    cv2.line(out, (c, c + 4), (c, c + 12), col, 1)
-    return out

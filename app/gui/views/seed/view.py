@@ -19,7 +19,7 @@ template control points kept by REQCON and their residual vectors scaled automat
 base image over the map. The control-point table lists the
 fine fit's points (id, frame x/y, map x/y, dx, dy, residual, source, enabled): sort, select
 (centres the view and the magnifier on it), enable / disable / delete, add a manual point, and
-the model is re-fitted at once; export as QGIS ``.points``.
+the model is re-fitted at once on the worker; export as QGIS ``.points`` (``points.py``).
 """
 
 from __future__ import annotations
@@ -27,10 +27,14 @@ from __future__ import annotations
 import numpy as np
 
 from app.gui import calls, controlpoints, scene2d
+from app.gui.context import Client
 from app.gui.controlpoints import Edits
+from app.gui.project import REFERENCE_FILE, reference_from_file, reference_to_bytes
 from app.gui.state import ReferenceFit
 from app.gui.views.base import View
-from app.gui.views.seed.panel import (
+from app.gui.views.seed.panel import SeedPanel
+from app.gui.views.seed.points import ReferencePoints
+from app.gui.views.seed.scene import (
     INLIER,
     KEPT,
     MANUAL,
@@ -40,20 +44,24 @@ from app.gui.views.seed.panel import (
     RESIDUAL,
     SELECTED,
     UNGATED,
-    SeedPanel,
     SeedScene,
     gate_outlines,
     magnifier_crop,
     magnifier_side,
 )
-from app.gui.views.seed.points import ControlPointActions
 from registration import global_registration
-from registration.lens import correction, radial
+from registration.lens import Camera
+
+MID_OPACITY_AFTER_FIT = 0.5
+"""The mid base image's opacity once a fine fit succeeded (when the analyst had it off)."""
 
 
-class SeedView(ControlPointActions, View):
+class SeedView(View):
     MODE = "Seed"
     CLICKABLE = ("frame", "base")
+
+    panel: SeedPanel
+    scene: SeedScene
 
     def make_scene(self, scene, root_name):
         return SeedScene(scene, root_name)
@@ -63,53 +71,75 @@ class SeedView(ControlPointActions, View):
 
     def connect(self) -> None:
         p = self.panel
-        p.ref_slider.on_update(lambda ev: self.set_reference(int(ev.target.value)))
-        p.pair.on_click(lambda ev: self.set_pair(2 if ev.target.value.endswith("2") else 1))
-        p.edit.on_click(lambda ev: self.seed_edit(ev.target.value))
-        p.fit.on_click(lambda ev: self.fit_view(ev.target.value, ev.client))
-        p.preset.on_update(lambda ev: self.set_setting("preset", str(ev.target.value)))
-        p.transform.on_update(lambda ev: self.set_setting("transform", str(ev.target.value)))
-        p.local.on_update(lambda ev: self.set_setting("run_local", bool(ev.target.value)))
-        p.btn_typed.on_click(
-            lambda ev: self.use_typed(float(p.heading_in.value), float(p.scale_in.value), ev.client)
+        p.on_reference_frame_changed(lambda k, client: self.set_reference(k))
+        p.on_pair_chosen(lambda pair, client: self.set_pair(pair))
+        p.on_seed_edits(
+            undo=lambda client: self.undo(),
+            clear_pair2=lambda client: self.clear_pair2(),
+            clear_all=lambda client: self.clear_seed(),
         )
-        p.btn_coarse.on_click(lambda ev: self.run_fit(ev.client, fine=False))
-        p.btn_fine.on_click(lambda ev: self.run_fine(ev.client))
-        for h in (
-            p.show_outliers,
-            p.show_ungated,
-            p.show_gate,
-            p.show_template_matches,
-            p.vec_scale,
-        ):
-            h.on_update(lambda ev: self.request_overlays())
-        p.mid_opacity.on_update(lambda ev: self.submit("mid", self.draw_mid))
-        cps = p.cps
-        cps.sort.on_update(lambda ev: self.show_table())
-        cps.page.on_click(lambda ev: self.turn_page(-1 if "previous" in ev.target.value else 1))
-        cps.selected.on_update(lambda ev: self.select_point(int(ev.target.value), ev.client))
-        cps.actions.on_click(lambda ev: self.point_action(ev.target.value, ev.client))
-        cps.bulk.on_click(lambda ev: self.bulk_action(ev.target.value, ev.client))
-        cps.export.on_click(lambda ev: self.export_points(ev.client))
-        self.app.events.on("cp-select:seed", lambda v, client: self.select_point(int(v), client))
+        p.on_fit_view(self.fit_view)
+        p.on_preset_changed(lambda value, client: self.set_setting("preset", value))
+        p.on_transform_changed(lambda value, client: self.set_setting("transform", value))
+        p.on_local_field_changed(lambda value, client: self.set_setting("run_local", value))
+        p.on_use_typed(self.use_typed)
+        p.on_run_coarse(lambda client: self.run_fit(client, fine=False))
+        p.on_run_fine(self.run_fine)
+        p.on_review_changed(lambda client: self.request_overlays())
+        p.on_mid_opacity_changed(lambda client: self.submit("mid", self.draw_mid))
+        self.points = ReferencePoints(
+            self.ctx,
+            p.cps,
+            self.scene,
+            submit=self.submit,
+            on_fit_changed=self._fit_changed,
+            redraw_overlays=lambda: self.submit("overlays", self.draw_overlays),
+            on_selected=self._point_selected,
+        )
         self.scene.on_drag = self.on_marker_drag
         self._mid_cache: tuple | None = None
-        self.table: controlpoints.ControlPointTable | None = None
-        self.selected: int | None = None
-        self.manual_mode = False
-        self.manual_frame: tuple[float, float] | None = None  # raw px of a manual point's 1st click
         self._grab: dict[tuple[str, int], np.ndarray] = {}  # drag: marker - pointer, px
-        self._corrected_full: tuple | None = (
-            None  # ((k, γ), full-size corrected frame) for the magnifier
-        )
+        # ((k, γ), full-size corrected frame) for the magnifier
+        self._corrected_full: tuple | None = None
+
+    # ---------------------------------------------------------------- the control points
+    @property
+    def table(self) -> controlpoints.ControlPointTable | None:
+        """The reference frame's control-point table (None before a fine fit)."""
+        return self.points.table
+
+    @property
+    def selected(self) -> int | None:
+        return self.points.cp.selected
+
+    def select_point(self, row_id: int, client: Client = None) -> None:
+        self.points.cp.select(row_id, client)
+
+    def disable_worst(self) -> int | None:
+        return self.points.disable_worst()
+
+    def export_points(self, client: Client = None) -> bool:
+        return self.points.export(client)
+
+    def _point_selected(self) -> None:
+        self.request_overlays()
+        self.submit("magnifier", self.draw_magnifier)
+
+    def _fit_changed(self) -> None:
+        """The fit the run uses changed (worker or job thread): texts, overlays, mid image."""
+        self._mid_cache = None
+        self.refresh_text()
+        self.ctx.state_changed()
+        self.request_overlays()
+        self.submit("mid", self.draw_mid)
 
     # ---------------------------------------------------------------- inputs and state
     def on_inputs(self) -> None:
-        inp = self.app.inputs
+        inp = self.ctx.inputs
         self.scene.layout(inp.frame_size, inp.base_size)
         self._mid_cache = None
-        self.table = None
-        self.selected = None
+        self.points.cp.table = None
+        self.points.cp.selected = None
         with self.state.lock:
             st = self.state
             ref, preset, transform, local = (
@@ -118,14 +148,9 @@ class SeedView(ControlPointActions, View):
                 st.transform,
                 st.run_local,
             )
-        p = self.panel
-        if preset in p.preset.options:
-            p.preset.value = preset
-        p.transform.value = transform
-        p.local.value = local
-        p.ref_slider.max = max(inp.n_frames - 1, 1)
-        p.ref_slider.disabled = inp.n_frames <= 1
-        p.ref_slider.value = ref
+        self.panel.show_settings(preset, transform, local)
+        self.panel.configure(inp.n_frames)
+        self.panel.reference_frame = ref
         self.restore_reference()
         self.refresh_text()
 
@@ -141,9 +166,7 @@ class SeedView(ControlPointActions, View):
 
     def restore_reference(self) -> None:
         """Bring back the fits saved for exactly the current γ, seeds, frame, preset, degree."""
-        from app.gui.project import REFERENCE_FILE, reference_from_file
-
-        path = self.app.project.folder / REFERENCE_FILE
+        path = self.ctx.project.folder / REFERENCE_FILE
         loaded = reference_from_file(path) if path.exists() else None
         with self.state.lock:
             if loaded is None or loaded[0] != self.state.reference_key():
@@ -151,31 +174,29 @@ class SeedView(ControlPointActions, View):
             key, coarse, fine = loaded
             self.state.reference = ReferenceFit(key, coarse, fine, fine)
         if fine is not None:
-            self.refit(save=False)
+            self.points.refit(save=False)
 
     def save_reference(self) -> None:
-        from app.gui.project import REFERENCE_FILE, reference_to_bytes
-
         with self.state.lock:
             ref = self.state.reference
         if ref is None:
             return
-        self.app.project.write_file(
+        self.ctx.project.write_file(
             REFERENCE_FILE, reference_to_bytes(ref.key, ref.coarse, ref.fine_auto)
         )
 
     def set_reference(self, k: int) -> None:
         with self.state.lock:
-            if self.app.inputs is None or k == self.state.reference_frame:
+            if self.ctx.inputs is None or k == self.state.reference_frame:
                 return
-            self.state.reference_frame = int(np.clip(k, 0, self.app.inputs.n_frames - 1))
+            self.state.reference_frame = int(np.clip(k, 0, self.ctx.inputs.n_frames - 1))
             self.state.push_undo()
             self.state.seed_frame = self.state.seed2_frame = None
             self._follow_typed()
             self.state.revision += 1
         self._mid_cache = None
-        self.app.save()
-        self.app.state_changed()
+        self.ctx.save()
+        self.ctx.state_changed()
         self.submit("images", self.draw_images)
 
     def set_setting(self, name: str, value) -> None:
@@ -184,8 +205,8 @@ class SeedView(ControlPointActions, View):
                 return
             setattr(self.state, name, value)
             self.state.revision += 1
-        self.app.save()
-        self.app.state_changed()
+        self.ctx.save()
+        self.ctx.state_changed()
         self.request_overlays()
 
     def set_pair(self, pair: int) -> None:
@@ -193,39 +214,54 @@ class SeedView(ControlPointActions, View):
             self.state.seed_pair = pair
         self.refresh_text()
 
-    def seed_edit(self, action: str) -> None:
+    # ---------------------------------------------------------------- seeds (callbacks)
+    def undo(self) -> None:
+        """Take back the last change of the seeds or of the control points."""
         with self.state.lock:
-            if action == "Undo":
-                if not self.state.pop_undo():
-                    return
-            else:
-                self.state.push_undo()
-                self.state.seed2_frame = self.state.seed2_base = None
-                self.state.seed2_typed = None
-                if action == "Clear all":
-                    self.state.seed_frame = self.state.seed_base = None
-                self.state.revision += 1
-        self._seeds_changed(refit_reference=action == "Undo")
+            if not self.state.pop_undo():
+                return
+        self._seeds_changed(refit_reference=True)
+
+    def clear_pair2(self) -> None:
+        with self.state.lock:
+            self.state.push_undo()
+            self.state.seed2_frame = self.state.seed2_base = None
+            self.state.seed2_typed = None
+            self.state.revision += 1
+        self._seeds_changed()
 
     def clear_seed(self) -> None:
-        self.seed_edit("Clear all")
-
-    def on_click(self, plane: str, xy, client) -> None:
-        """Frame clicks are corrected pixels (stored raw); map clicks base pixels."""
-        xy = np.asarray(xy, float)
+        """Clear both seed pairs (undoable)."""
         with self.state.lock:
-            model = radial.HarrisModel(self.state.gamma, *self.app.inputs.frame_size)
-        if plane == "frame":
-            raw = model.raw_from_corrected(xy[None])[0]
-            if not np.isfinite(raw).all():
-                return
-            point = (float(raw[0]), float(raw[1]))
-        elif plane == "base":
-            point = (float(xy[0]), float(xy[1]))
-        else:
+            self.state.push_undo()
+            self.state.seed2_frame = self.state.seed2_base = None
+            self.state.seed2_typed = None
+            self.state.seed_frame = self.state.seed_base = None
+            self.state.revision += 1
+        self._seeds_changed()
+
+    def _point_from_click(self, plane: str, xy) -> tuple[float, float] | None:
+        """A click's point: raw frame px for the frame (clicks land in corrected px), base px
+        for the map; None off the frame's valid region."""
+        xy = np.asarray(xy, float)
+        if plane != "frame":
+            return (float(xy[0]), float(xy[1]))
+        with self.state.lock:
+            camera = self.state.camera()
+        raw = camera.raw_from_corrected(xy[None])[0]
+        if not np.isfinite(raw).all():
+            return None
+        return (float(raw[0]), float(raw[1]))
+
+    def on_click(self, plane: str, xy, client: Client) -> None:
+        """Frame clicks are corrected pixels (stored raw); map clicks base pixels."""
+        if plane not in ("frame", "base"):
             return
-        if self.manual_mode:
-            self.manual_click(plane, point, client)
+        point = self._point_from_click(plane, xy)
+        if point is None:
+            return
+        if self.points.manual_mode:
+            self.points.manual_click(plane, point, client)
             return
         self.place_seed(plane, point)
 
@@ -254,7 +290,7 @@ class SeedView(ControlPointActions, View):
         p2 = calls.second_seed_from_similarity(st.seed, *st.seed2_typed, st.gamma, st.frame_size)
         st.seed2_frame, st.seed2_base = p2[:2], p2[2:]
 
-    def use_typed(self, heading_deg: float, scale: float, client=None) -> bool:
+    def use_typed(self, heading_deg: float, scale: float, client: Client = None) -> bool:
         """Fix heading and scale to typed values: the coarse step gets them as a second seed
         pair (:func:`app.gui.calls.second_seed_from_similarity`), shown as pair 2."""
         problem = None
@@ -281,15 +317,16 @@ class SeedView(ControlPointActions, View):
         return True
 
     def _seeds_changed(self, refit_reference: bool = False) -> None:
-        self.app.save()
+        self.ctx.save()
         self.refresh_text()
-        self.app.state_changed()
+        self.ctx.state_changed()
         self.submit("seeds", self.draw_seeds)
         if refit_reference:
-            self.refit()
+            # The restored edits' least-squares re-fit: on the worker, never on a callback.
+            self.submit("refit", self.points.refit)
         with self.state.lock:
             ready = self.state.seed is not None and self.state.current_reference() is None
-        if ready and self.panel.auto_fit.value:
+        if ready and self.panel.fit_after_seed_change:
             self.run_fit(None, fine=True)
 
     def on_marker_drag(self, plane: str, pair: int, event) -> None:
@@ -297,12 +334,7 @@ class SeedView(ControlPointActions, View):
 
         The marker keeps its offset from the pointer where it was grabbed (the ring is grabbed
         off its centre), and follows the pointer; the seed changes when it is dropped."""
-        client = event.client
-        cam = (
-            client.camera.position
-            if client is not None
-            else self.app.server.initial_camera.position
-        )
+        cam = self.ctx.camera_position(event.client)
         geom = self.scene.planes[plane].geom
         pointer = scene2d.pixel_under_pointer(geom, cam, event.end_position)
         if pointer is None:
@@ -324,46 +356,39 @@ class SeedView(ControlPointActions, View):
 
     def on_drop(self, plane: str, pair: int, xy) -> None:
         """A dragged marker was dropped at pixel ``xy`` of ``plane`` (corrected px on the frame)."""
-        xy = np.asarray(xy, float)
-        if plane == "frame":
-            with self.state.lock:
-                model = radial.HarrisModel(self.state.gamma, *self.app.inputs.frame_size)
-            raw = model.raw_from_corrected(xy[None])[0]
-            if not np.isfinite(raw).all():
-                return
-            point = (float(raw[0]), float(raw[1]))
-        else:
-            point = (float(xy[0]), float(xy[1]))
-        self.app.worker.submit("seed-drop", lambda: self.place_seed(plane, point, pair))
+        point = self._point_from_click(plane, xy)
+        if point is None:
+            return
+        self.ctx.submit("seed-drop", lambda: self.place_seed(plane, point, pair))
 
     def seed_pairs_corrected(self) -> dict:
         """``{pair: (frame point in corrected px or None, map point or None)}``."""
         with self.state.lock:
             st = self.state
-            model = radial.HarrisModel(st.gamma, *st.frame_size)
+            camera = st.camera()
             raw = {1: (st.seed_frame, st.seed_base), 2: (st.seed2_frame, st.seed2_base)}
         out = {}
         for i, (f, b) in raw.items():
-            fc = None if f is None else model.corrected_from_raw(np.array([f], float))[0]
+            fc = None if f is None else camera.corrected_from_raw(np.array([f], float))[0]
             out[i] = (fc, None if b is None else np.asarray(b, float))
         return out
 
     def refresh_text(self) -> None:
-        if self.app.inputs is None:
+        if self.ctx.inputs is None:
             return
         with self.state.lock:
             st = self.state
             pairs = {1: (st.seed_frame, st.seed_base), 2: (st.seed2_frame, st.seed2_base)}
-            active, seed, seed2, gamma = st.seed_pair, st.seed, st.seed2, st.gamma
+            active, seed, seed2 = st.seed_pair, st.seed, st.seed2
             typed = st.seed2_typed
+            gamma, frame_size = st.gamma, st.frame_size
             ref = st.current_reference()
-            key_ok = ref is not None
+            stale = ref is None and st.reference is not None
             coarse = ref.coarse if ref is not None else None
             fine = ref.fine if ref is not None else None
             edited = not st.cp_edits.empty
-        size = self.app.inputs.frame_size
         lines = []
-        hp = calls.heading_from_pairs(seed, seed2, gamma, size)
+        hp = calls.heading_from_pairs(seed, seed2, gamma, frame_size)
         if hp is not None and typed is not None:
             hp = calls.HeadingScale(hp.heading_deg, hp.scale, "typed: pair 2 is made from it")
         if hp is not None:
@@ -385,17 +410,12 @@ class SeedView(ControlPointActions, View):
             gate = "no location gate (no seed)" if seed is None else "gated around the seed"
             self.panel.show_coarse(coarse, gate)
         else:
-            self.panel.show_coarse(None, "")
-            if not key_ok and self.state.reference is not None:
-                self.panel.coarse_md.content = (
-                    "_Settings changed since the last fit: run it again._"
-                )
+            self.panel.show_coarse(None, "", stale=stale)
         self.panel.show_fine(fine, edited)
 
-    def fit_view(self, which: str, client) -> None:
-        keys = {"Frame": ("frame",), "Map": ("base",), "Both": ("frame", "base")}.get(which)
-        if keys:
-            self.app.focus(self.scene.geoms(keys), client)
+    def fit_view(self, planes: tuple[str, ...], client: Client = None) -> None:
+        """Point the camera at the named planes (``"frame"``, ``"base"``)."""
+        self.ctx.focus(self.scene.geoms(planes), client)
 
     # ---------------------------------------------------------------- fits (job thread)
     def _config(self):
@@ -403,10 +423,10 @@ class SeedView(ControlPointActions, View):
             st = self.state
             return calls.pipeline_config(st.preset, st.degree, st.run_local)
 
-    def run_fit(self, client=None, *, fine: bool) -> bool:
+    def run_fit(self, client: Client = None, *, fine: bool) -> bool:
         """The coarse step (and the fine step when ``fine``) for the current seed, as a job;
         while another fit runs, the newest request waits and runs after it."""
-        inp = self.app.inputs
+        inp = self.ctx.inputs
         if inp is None:
             return False
 
@@ -429,18 +449,17 @@ class SeedView(ControlPointActions, View):
                 self.state.cp_edits = Edits()
                 self.state.revision += 1
             self._mid_cache = None
-            self.table = None
+            self.points.cp.table = None
             self.save_reference()
-            self.app.save()
+            self.ctx.save()
             self.refresh_text()
-            self.app.state_changed()
+            self.ctx.state_changed()
             self.request_overlays()
             self.submit("magnifier", self.draw_magnifier)
             hc = calls.heading_from_coarse(coarse)
             if hc is not None and seed2 is None:
                 # The estimate is where a correction starts from.
-                self.panel.heading_in.value = round(hc.heading_deg, 1)
-                self.panel.scale_in.value = round(hc.scale, 4)
+                self.panel.show_typed(hc.heading_deg, hc.scale)
             if not coarse:
                 self.notify(client, "Coarse step failed", coarse.reason, "red")
                 return
@@ -448,10 +467,10 @@ class SeedView(ControlPointActions, View):
                 progress(1, 2, "fine step")
                 self._fine(inp, k, gamma, coarse, key, cfg, client)
 
-        return self.app.run_job("reference fit", job, client, queue=True)
+        return self.ctx.run_job("reference fit", job, client, queue=True)
 
-    def run_fine(self, client=None) -> bool:
-        inp = self.app.inputs
+    def run_fine(self, client: Client = None) -> bool:
+        inp = self.ctx.inputs
         with self.state.lock:
             ref = self.state.current_reference()
             k, gamma = self.state.reference_frame, self.state.gamma
@@ -466,13 +485,13 @@ class SeedView(ControlPointActions, View):
             )
             return False
         cfg = self._config()
-        return self.app.run_job(
+        return self.ctx.run_job(
             "fine step",
             lambda progress: self._fine(inp, k, gamma, ref.coarse, ref.key, cfg, client),
             client,
         )
 
-    def _fine(self, inp, k, gamma, coarse, key, cfg, client) -> None:
+    def _fine(self, inp, k, gamma, coarse, key, cfg, client: Client) -> None:
         fine = global_registration.fine_register_reference(
             inp.frame(k), inp.base, gamma, coarse, cfg.fine, match_in=cfg.match_in,
             base_valid=inp.base_valid,
@@ -486,12 +505,12 @@ class SeedView(ControlPointActions, View):
             self.state.revision += 1
         self._mid_cache = None
         self.save_reference()
-        self.app.save()
+        self.ctx.save()
         if not fine:
             self.notify(client, "Fine step failed", fine.reason, "red")
-        self.refit(save=False)
-        if fine and self.panel.mid_opacity.value == 0.0:
-            self.panel.mid_opacity.value = 0.5
+        self.points.refit(save=False)
+        if fine and self.panel.mid_opacity_value == 0.0:
+            self.panel.mid_opacity_value = MID_OPACITY_AFTER_FIT  # its callback draws it
         else:
             self.submit("mid", self.draw_mid)
 
@@ -500,52 +519,52 @@ class SeedView(ControlPointActions, View):
         self.submit("overlays", self.draw_overlays)
 
     def draw_images(self) -> None:
-        inp = self.app.inputs
+        inp = self.ctx.inputs
         if inp is None or "frame" not in self.scene.planes:
             return
         with self.state.lock:
             ref, g = self.state.reference_frame, self.state.gamma
         frame_rgb = self.corrected_preview(ref, g)
-        with self.app.server.atomic():
-            self.scene.show_images(frame_rgb, inp.base_preview(2 * self.app.display_max))
-        self.app.shown[self.MODE] = (ref, g)
+        with self.ctx.atomic():
+            self.scene.show_images(frame_rgb, inp.base_preview(2 * self.ctx.display_max))
+        self.ctx.shown[self.MODE] = (ref, g)
         self.draw_overlays()
         self.draw_mid()
         self.draw_magnifier()
 
     def corrected_preview(self, k: int, gamma: float, max_side: int | None = None) -> np.ndarray:
-        img = self.app.inputs.preview(k, max_side or self.app.display_max)
-        h, w = img.shape[:2]
-        corrected, _ = correction.undistort_image(
-            img, radial.HarrisModel(gamma, w, h), canvas="same"
-        )
-        return scene2d.to_rgb(corrected)
+        """Frame ``k`` corrected for ``gamma`` (RGB), its longer side at most ``max_side``."""
+        img = self.ctx.inputs.preview(k, max_side or self.ctx.display_max)
+        # The camera of the image drawn (a preview has its own size, the same γ).
+        return scene2d.to_rgb(Camera.of(img, gamma).undistort(img))
 
     def draw_seeds(self) -> None:
         if "frame" not in self.scene.planes:
             return
-        with self.app.server.atomic():
+        with self.ctx.atomic():
             self.scene.draw_seeds(self.seed_pairs_corrected())
         self.draw_magnifier()
 
     def draw_overlays(self) -> None:
-        if "frame" not in self.scene.planes or self.app.inputs is None:
+        if "frame" not in self.scene.planes or self.ctx.inputs is None:
             return
-        p = self.panel
+        review = self.panel.review()
         with self.state.lock:
             ref = self.state.current_reference()
             coarse = ref.coarse if ref is not None else None
+            camera = self.state.camera()
         pairs = self.seed_pairs_corrected()
-        with self.app.server.atomic():
+        manual = self.points.manual_frame
+        with self.ctx.atomic():
             self.scene.draw_seeds(pairs)
             # Matches: inliers; outliers and matches outside the gate on request.
             if coarse is None or coarse.n_matches == 0:
                 self.scene.draw_matches(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 3)))
             else:
                 show = coarse.inliers.copy()
-                if p.show_outliers.value:
+                if review.outliers:
                     show |= coarse.gated
-                if p.show_ungated.value:
+                if review.ungated:
                     show |= ~coarse.gated
                 cols = np.where(
                     coarse.inliers[:, None],
@@ -554,20 +573,16 @@ class SeedView(ControlPointActions, View):
                 ).astype(np.uint8)
                 self.scene.draw_matches(coarse.frame_xy[show], coarse.base_xy[show], cols[show])
             outlines = []
-            if p.show_gate.value and coarse is not None:
+            if review.gate and coarse is not None:
                 outlines = gate_outlines(coarse)
             self.scene.draw_gate(outlines)
-            self._draw_control_points()
+            self._draw_control_points(review)
             self.scene.draw_manual_pending(
-                None
-                if self.manual_frame is None
-                else radial.HarrisModel(
-                    self.state.gamma, *self.app.inputs.frame_size
-                ).corrected_from_raw(np.array([self.manual_frame]))[0]
+                None if manual is None else camera.corrected_from_raw(np.array([manual]))[0]
             )
-        self.app.shown[f"{self.MODE}:overlays"] = self.state.revision
+        self.ctx.shown[f"{self.MODE}:overlays"] = self.state.revision
 
-    def _draw_control_points(self) -> None:
+    def _draw_control_points(self, review) -> None:
         t = self.table
         if t is None or not len(t.ids):
             self.scene.draw_control_points(
@@ -575,7 +590,7 @@ class SeedView(ControlPointActions, View):
             )
             self.scene.draw_selected(None, None)
             return
-        show = t.enabled | bool(self.panel.show_outliers.value)
+        show = t.enabled | review.outliers
         manual = np.array([s == controlpoints.MANUAL for s in t.source])
         cols = np.where(
             manual[:, None], MANUAL, np.where(t.enabled[:, None], KEPT, REMOVED)
@@ -583,7 +598,7 @@ class SeedView(ControlPointActions, View):
         vectors = None
         ok = show & np.isfinite(t.residual)
         if t.model is not None and ok.any():
-            scale = float(self.panel.vec_scale.value) or scene2d.auto_vector_scale(
+            scale = review.vector_scale or scene2d.auto_vector_scale(
                 t.residual[t.enabled], self.scene.planes["base"].geom.width
             )
             self.vector_scale_used = scale
@@ -591,13 +606,9 @@ class SeedView(ControlPointActions, View):
             vcols = np.where(t.enabled[ok][:, None], RESIDUAL, REMOVED).astype(np.uint8)
             vectors = (start, start + scale * t.residual_xy[ok], vcols)
         self.scene.draw_control_points(
-            t.corrected_xy[show],
-            t.base_xy[show],
-            cols[show],
-            vectors,
-            bool(self.panel.show_template_matches.value),
+            t.corrected_xy[show], t.base_xy[show], cols[show], vectors, review.template_lines
         )
-        i = None if self.selected is None else t.row(self.selected)
+        i = self.points.cp.selected_row()
         if i is None:
             self.scene.draw_selected(None, None)
         else:
@@ -605,7 +616,7 @@ class SeedView(ControlPointActions, View):
 
     def draw_magnifier(self) -> None:
         """Crops around the selected control point, else the active seed pair: frame | map."""
-        inp = self.app.inputs
+        inp = self.ctx.inputs
         if inp is None:
             return
         with self.state.lock:
@@ -613,7 +624,7 @@ class SeedView(ControlPointActions, View):
         pairs = self.seed_pairs_corrected()
         fxy, bxy = pairs[active]
         t = self.table
-        i = None if t is None or self.selected is None else t.row(self.selected)
+        i = self.points.cp.selected_row()
         if i is not None:
             fxy, bxy = t.corrected_xy[i], t.base_xy[i]
         if self._corrected_full is None or self._corrected_full[0] != (k, g):
@@ -621,13 +632,15 @@ class SeedView(ControlPointActions, View):
         frame = self._corrected_full[1]
         base = inp.base_preview(max(inp.base_size))
         colour = PAIR_COLOURS[active] if i is None else SELECTED
-        self.panel.magnifier.image = np.concatenate(
-            [
-                magnifier_crop(frame, fxy, colour),
-                np.full((magnifier_side(), 8, 3), 255, np.uint8),
-                magnifier_crop(base, bxy, colour),
-            ],
-            axis=1,
+        self.panel.show_magnifier(
+            np.concatenate(
+                [
+                    magnifier_crop(frame, fxy, colour),
+                    np.full((magnifier_side(), 8, 3), 255, np.uint8),
+                    magnifier_crop(base, bxy, colour),
+                ],
+                axis=1,
+            )
         )
 
     def draw_mid(self) -> None:
@@ -636,27 +649,27 @@ class SeedView(ControlPointActions, View):
         from registration.geometry import warp_image
         from registration.render import viz
 
-        if "base" not in self.scene.planes or self.app.inputs is None:
+        if "base" not in self.scene.planes or self.ctx.inputs is None:
             return
         with self.state.lock:
             ref = self.state.current_reference()
             fine = ref.fine if ref is not None else None
             k, g = self.state.reference_frame, self.state.gamma
-        alpha = float(self.panel.mid_opacity.value)
+            camera = self.state.camera()
+        alpha = self.panel.mid_opacity_value
         if fine is None or not fine or alpha <= 0.0:
             self.scene.draw_mid(None)
             return
-        inp = self.app.inputs
-        base_rgb = inp.base_preview(2 * self.app.display_max)
+        inp = self.ctx.inputs
+        base_rgb = inp.base_preview(2 * self.ctx.display_max)
         key = (id(fine), k, g)
         if self._mid_cache is None or self._mid_cache[0] != key:
             hp, wp = base_rgb.shape[:2]
             fx = inp.base_size[0] / wp
             model = fine.base_from_corrected
-            harris = radial.HarrisModel(g, *inp.frame_size)
 
             def raw_from_preview(xy):
-                return harris.raw_from_corrected(model.inverse(rescale(xy, fx)))
+                return camera.raw_from_corrected(model.inverse(rescale(xy, fx)))
 
             warped, valid = warp_image(
                 scene2d.to_rgb(inp.frame(k)), raw_from_preview, wp, hp, step=8

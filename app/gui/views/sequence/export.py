@@ -21,90 +21,27 @@ import time
 import zipfile
 from pathlib import Path
 
+from app.gui.context import Client, ViewContext
 from app.gui.security import escape_md
+from app.gui.views.sequence.export_panel import ExportPanel
 from app.progress import human_size as _size
 
-FORMAT_LABELS = {
-    "geotiff": "GeoTIFF frames",
-    "cog": "COG frames",
-    "png": "PNG + world files",
-    "mosaic": "Mosaic (COG)",
-    "mp4": "Video (mp4)",
-    "points": "QGIS .points",
-    "transforms": "Transforms (JSON)",
-    "geojson": "GeoJSON",
-    "gpkg": "GeoPackage",
-}
-"""Format (``registration.gis.export.FORMATS``) -> checkbox label, in the panel's order."""
-DEFAULT_FORMATS = ("mp4", "transforms")
 EXPORT_DIR = "exports"
 log = logging.getLogger(__name__)
 NO_GEOREF = (
     "GeoTIFF, COG, mosaic, .points, GeoJSON and GeoPackage need map coordinates: this base map "
     "has no georeference (open a GeoTIFF, or a PNG/JPEG with a world file)."
 )
-VECTOR_CRS = {"the map's CRS": None, "WGS 84 (longitude, latitude)": "EPSG:4326"}
 STORED = (".tif", ".png", ".mp4", ".gpkg", ".jpg")
 """Already compressed: stored in a download zip as they are."""
-NO_DOWNLOAD = "(nothing exported yet)"
-
-
-class ExportPanel:
-    """Widgets of the export (built inside the Sequence view's "Export" folder)."""
-
-    def __init__(self, gui) -> None:
-        from registration.gis import FORMATS
-
-        self.intro = gui.add_markdown("")
-        self.formats = {
-            f: gui.add_checkbox(
-                label, f in DEFAULT_FORMATS, hint=FORMATS[f].replace("--marks", "marks")
-            )
-            for f, label in FORMAT_LABELS.items()
-        }
-        gui.add_markdown(
-            "_Frames are registered into the map's pixel grid, each cropped to its footprint; "
-            "GeoJSON and GeoPackage hold the control points, the frames' footprints and the "
-            "evaluation marks._"
-        )
-        self.georef_md = gui.add_markdown("")
-        with gui.add_folder("Export options", expand_by_default=False):
-            self.stage = gui.add_dropdown(
-                "Export stage", ("local", "global"), initial_value="local"
-            )
-            self.mosaic = gui.add_dropdown(
-                "Mosaic",
-                ("median", "mean"),
-                initial_value="median",
-                hint="median of up to 15 frames spread over the sequence (moving vehicles "
-                "vanish), or the mean of all",
-            )
-            self.video_scale = gui.add_slider("Video scale", 0.25, 1.0, 0.25, 0.5)
-            self.fps = gui.add_number("Video frames per second", 5.0, min=0.5, max=60.0, step=0.5)
-            self.vector_crs = gui.add_dropdown(
-                "GeoJSON / GeoPackage coordinates", tuple(VECTOR_CRS), initial_value="the map's CRS"
-            )
-            self.marks = gui.add_checkbox("Include the evaluation marks", True)
-            gui.add_markdown(
-                "_The video is the registered sequence in the map's pixel grid over the "
-                "sequence's footprint; with a georeferenced base it gets a world file (.wld, "
-                ".prj) that places it in map coordinates._"
-            )
-        self.btn_export = gui.add_button("Export the ticked formats")
-        self.result_md = gui.add_markdown("")
-        self.download_pick = gui.add_dropdown("Exported files", (NO_DOWNLOAD,))
-        self.btn_download = gui.add_button("Download", disabled=True)
-
-    def chosen(self) -> list[str]:
-        return [f for f, box in self.formats.items() if box.value and not box.disabled]
 
 
 class Exporter:
     """The export's actions (the Sequence view owns one)."""
 
-    def __init__(self, app, panel: ExportPanel) -> None:
-        self.app = app
-        self.state = app.state
+    def __init__(self, ctx: ViewContext, panel: ExportPanel) -> None:
+        self.ctx = ctx
+        self.state = ctx.state
         self.panel = panel
         self.written: dict[str, list[Path]] = {}
         self.out_dir: Path | None = None
@@ -112,17 +49,15 @@ class Exporter:
         self.modal = None
         self._pending: tuple | None = None  # a request waiting for the overwrite answer
         self._lock = threading.Lock()
-        panel.btn_export.on_click(lambda ev: self.request(ev.client))
-        panel.btn_download.on_click(
-            lambda ev: self.download(str(panel.download_pick.value), ev.client)
-        )
+        panel.on_export(self.request)
+        panel.on_download(self.download)
 
     # ------------------------------------------------------------------ texts
     def georef(self):
         """The georeference of the result's base: recorded in the result, else the open base's."""
         with self.state.lock:
             r = self.state.result
-        inp = self.app.inputs
+        inp = self.ctx.inputs
         if r is not None and r.georef is not None:
             return r.georef
         return None if inp is None else inp.base_georef
@@ -134,18 +69,16 @@ class Exporter:
         with self.state.lock:
             r = self.state.result
         georef = self.georef()
-        for f, box in self.panel.formats.items():
-            box.disabled = f in MAP_FORMATS and georef is None
-        self.panel.georef_md.content = (
+        ok = r is not None and any(r.is_ok(k) for k in range(r.n_frames))
+        self.panel.show_availability(set(MAP_FORMATS) if georef is None else set(), ok)
+        self.panel.show_georef(
             f"_{NO_GEOREF}_"
             if georef is None
             else f"Map coordinates: {escape_md(_crs_name(georef))}, "
             f"{georef.pixel_size[0]:.3g} {escape_md(georef.units or 'units')} per map pixel."
         )
-        ok = r is not None and any(r.is_ok(k) for k in range(r.n_frames))
-        self.panel.btn_export.disabled = not ok
-        where = escape_md(self.app.project.folder / EXPORT_DIR)
-        self.panel.intro.content = (
+        where = escape_md(self.ctx.project.folder / EXPORT_DIR)
+        self.panel.show_intro(
             f"Into {where} (existing files are never replaced without asking)."
             if ok
             else "_Register the sequence first: exports are made from its result._"
@@ -155,13 +88,13 @@ class Exporter:
     def options(self, force: bool = False):
         from registration.gis import ExportOptions
 
-        p = self.panel
+        c = self.panel.choices()
         return ExportOptions(
-            stage=str(p.stage.value),
-            mosaic=str(p.mosaic.value),
-            fps=float(p.fps.value),
-            video_scale=float(p.video_scale.value),
-            vector_crs=VECTOR_CRS.get(str(p.vector_crs.value)),
+            stage=c.stage,
+            mosaic=c.mosaic,
+            fps=c.fps,
+            video_scale=c.video_scale,
+            vector_crs=c.vector_crs,
             force=force,
         )
 
@@ -170,7 +103,7 @@ class Exporter:
         there are none or they are not wanted)."""
         from registration.evaluation import PointMarks
 
-        if not self.panel.marks.value:
+        if not self.panel.choices().marks:
             return None
         with self.state.lock:
             marks = self.state.confirmed_marks()
@@ -191,11 +124,11 @@ class Exporter:
     def next_free_folder(self) -> Path:
         """``exports-2``, ``exports-3``, ...: the first that does not exist."""
         n = 2
-        while (self.app.project.folder / f"{EXPORT_DIR}-{n}").exists():
+        while (self.ctx.project.folder / f"{EXPORT_DIR}-{n}").exists():
             n += 1
-        return self.app.project.folder / f"{EXPORT_DIR}-{n}"
+        return self.ctx.project.folder / f"{EXPORT_DIR}-{n}"
 
-    def request(self, client=None, *, formats=None, answer: str | None = None) -> bool:
+    def request(self, client: Client = None, *, formats=None, answer: str | None = None) -> bool:
         """Export ``formats`` (default: the ticked ones) into ``exports/``.
 
         When files would be replaced, asks first (a dialog; ``answer`` = ``"overwrite"``,
@@ -205,13 +138,13 @@ class Exporter:
             r = self.state.result
         formats = list(formats) if formats is not None else self.panel.chosen()
         if r is None:
-            self.app.notify(client, "Nothing to export", "Register the sequence first", "yellow")
+            self.ctx.notify(client, "Nothing to export", "Register the sequence first", "yellow")
             return False
         if not formats:
-            self.app.notify(client, "Nothing to export", "Tick at least one format", "yellow")
+            self.ctx.notify(client, "Nothing to export", "Tick at least one format", "yellow")
             return False
         marks = self.marks()
-        folder = self.app.project.folder / EXPORT_DIR
+        folder = self.ctx.project.folder / EXPORT_DIR
         try:
             existing = self.target(r, formats, marks, folder)
         except ValueError as exc:
@@ -232,26 +165,12 @@ class Exporter:
                 return False
         return self.start(r, formats, marks, folder, force, client)
 
-    def ask(self, existing: list[Path], folder: Path, client) -> None:
+    def ask(self, existing: list[Path], folder: Path, client: Client) -> None:
         """The overwrite dialog (to the browser that asked, or to all)."""
-        gui = client.gui if client is not None else self.app.server.gui
         self.close_modal()
-        names = ", ".join(escape_md(p.relative_to(folder)) for p in existing[:3])
-        more = f" and {len(existing) - 3} more" if len(existing) > 3 else ""
-        with gui.add_modal("Files exist") as modal:
-            gui.add_markdown(
-                f"{len(existing)} of the files to write exist in {escape_md(folder)}: "
-                f"{names}{more}."
-            )
-            for answer in ("overwrite", "new folder", "cancel"):
-                label = {
-                    "overwrite": "Overwrite them",
-                    "new folder": f"Write into {self.next_free_folder().name}",
-                    "cancel": "Cancel",
-                }[answer]
-                btn = gui.add_button(label, color="red" if answer == "overwrite" else None)
-                btn.on_click(lambda ev, a=answer: self.answer(a))
-        self.modal = modal
+        self.modal = self.panel.ask_overwrite(
+            self.ctx.gui_for(client), existing, folder, self.next_free_folder().name, self.answer
+        )
 
     def close_modal(self) -> None:
         if self.modal is not None:
@@ -276,7 +195,7 @@ class Exporter:
         from registration.io import frames as io_frames
 
         options = self.options(force)
-        inp = self.app.inputs
+        inp = self.ctx.inputs
         georef = self.georef()
 
         def job(progress) -> None:
@@ -307,16 +226,16 @@ class Exporter:
 
         # Shown before the job starts: a job that fails at once must not have its reason
         # overwritten by this line.
-        previous = self.panel.result_md.content
-        self.panel.result_md.content = f"_Exporting {', '.join(formats)} ..._"
-        started = self.app.run_job("export", job, client)
+        previous = self.panel.result_text
+        self.panel.result_text = f"_Exporting {', '.join(formats)} ..._"
+        started = self.ctx.run_job("export", job, client)
         if not started:
-            self.panel.result_md.content = previous
+            self.panel.result_text = previous
         return started
 
     def show_error(self, message: str, client) -> None:
-        self.panel.result_md.content = f"**Export failed:** {escape_md(message)}"
-        self.app.notify(client, "Export failed", message, color="red")
+        self.panel.result_text = f"**Export failed:** {escape_md(message)}"
+        self.ctx.notify(client, "Export failed", message, color="red")
 
     def finished(self, summary: dict, folder: Path, seconds: float, client) -> None:
         files = {f: [Path(p) for p in ps] for f, ps in summary["files"].items() if ps}
@@ -332,17 +251,14 @@ class Exporter:
         state = "cancelled; the files written so far are kept" if summary["cancelled"] else "done"
         failed = summary.get("n_failed") or 0
         note = f" {failed} failed frame(s) left out (black in the video)." if failed else ""
-        self.panel.result_md.content = (
+        self.panel.result_text = (
             f"Export {state} in {seconds:.1f} s into {escape_md(folder)}.{note}\n\n"
             + ("\n".join(rows) if files else "_No file written._")
         )
-        options = tuple(self.download_label(f) for f in files) or (NO_DOWNLOAD,)
-        self.panel.download_pick.options = options
-        self.panel.download_pick.value = options[0]
-        self.panel.btn_download.disabled = not files
+        self.panel.offer_downloads(tuple(self.download_label(f) for f in files))
         title = "Export cancelled" if summary["cancelled"] else "Export finished"
         n = sum(len(ps) for ps in files.values())
-        self.app.notify(
+        self.ctx.notify(
             client,
             title,
             f"{n} files in {folder}",
@@ -357,35 +273,33 @@ class Exporter:
             return f"{fmt}: {ps[0].name} ({size})"
         return f"{fmt}: {len(ps)} files as zip ({size})"
 
-    def download(self, label: str, client=None) -> bool:
+    def download(self, label: str, client: Client = None) -> bool:
         """Send the exported files of the picked format: one file as is, several as a zip."""
         fmt = label.split(":", 1)[0]
         with self._lock:
             paths, folder = list(self.written.get(fmt, [])), self.out_dir
         paths = [p for p in paths if p.exists()]
         if not paths or folder is None:
-            self.app.notify(client, "Nothing to download", "Export first", "yellow")
+            self.ctx.notify(client, "Nothing to download", "Export first", "yellow")
             return False
         if len(paths) == 1:
-            return self.app.offer_file(paths[0], client)
+            return self.ctx.offer_file(paths[0], client)
         size = sum(p.stat().st_size for p in paths)
         name = f"{folder.name}_{fmt}.zip"
-        if size > self.app.max_download_bytes:
-            self.app.notify(
+        if size > self.ctx.max_download_bytes:
+            self.ctx.notify(
                 client,
                 f"{fmt}: {len(paths)} files saved",
                 f"{_size(size)} is over the download limit: copy them from {folder}",
                 color="yellow",
             )
             return False
-        self.app.worker.submit(
-            "export-download", lambda: self._send_zip(name, folder, paths, client)
-        )
+        self.ctx.submit("export-download", lambda: self._send_zip(name, folder, paths, client))
         return True
 
     def _send_zip(self, name: str, folder: Path, paths: list[Path], client) -> None:
-        self.app.send_download(client, name, zip_files(folder, paths))
-        self.app.notify(client, name, f"{len(paths)} files from {folder} sent", color="green")
+        self.ctx.send_download(client, name, zip_files(folder, paths))
+        self.ctx.notify(client, name, f"{len(paths)} files from {folder} sent", color="green")
 
 
 def zip_files(folder: Path, paths: list[Path]) -> bytes:

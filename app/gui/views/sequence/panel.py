@@ -1,45 +1,49 @@
-"""Sequence view: its panel (widgets, the per-frame chart, failed frames) and its scene (the map
-with the registered frame, outline, vectors, heat map); the view itself is ``app/views/sequence.py``."""
+"""Sequence view: its panel (the run, the scrubber and play, the per-frame chart, failed frames,
+display options, the frame's control points and the export)."""
 
 from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 import viser.uplot as up
 
-from app.gui import scene2d
+from app.gui.context import Client
 from app.gui.security import escape_md
 from app.gui.state import OVERLAYS
-from app.gui.views.base import Scene
 from app.gui.views.cptable.panel import ControlPointPanel
-from app.gui.views.sequence.export import ExportPanel
-from registration import evaluation
+from app.gui.views.sequence.export_panel import ExportPanel
+from app.gui.views.widgets import ClientCallback, on_any_change, on_change, on_choice, on_press
 
-RESIDUAL_OK = (255, 220, 0)
-RESIDUAL_REMOVED = (240, 50, 50)
-OUTLINE = (0, 200, 255)
-SELECTED = (255, 255, 255)
-FLICKER_S = 0.5
-PLAY_S = 0.4
-SETTLE_S = 0.35
-"""After this long on one frame, it is drawn again at the map preview's full resolution."""
-WARP_CACHE_FRAMES = 16
 PLOT_TITLE = "Per-frame residual RMS (px): hover for values, click a frame to show it"
 
 
-def excursion_flags(values: np.ndarray) -> np.ndarray:
-    """Frames ``registration.evaluation.report.find_excursions`` flags as sudden excursions (bool (N,))."""
-    flags = np.zeros(len(values), bool)
-    finite = np.isfinite(values)
-    if finite.sum() < 3:
-        return flags
-    idx = np.flatnonzero(finite)
-    for e in evaluation.find_excursions(idx, values[finite]):
-        flags[int(e["frame"])] = True
-    return flags
+@dataclass(frozen=True)
+class DisplayOptions:
+    """How the frame under the scrubber is drawn over the map.
+
+    Attributes:
+        stage: ``"local"`` (with the displacement field) or ``"global"``.
+        overlay: one of :data:`app.gui.state.OVERLAYS` (blend, checkerboard, flicker).
+        opacity: of the frame in the blend, 0..1.
+        vectors: draw the control points' residual vectors.
+        outliers: include the vectors of points REQCON removed.
+        vector_scale: vector length per base px of residual (0 = automatic).
+        field: draw the local displacement field's magnitude (Fig. 5).
+    """
+
+    stage: str
+    overlay: str
+    opacity: float
+    vectors: bool
+    outliers: bool
+    vector_scale: float
+    field: bool
 
 
 class SequencePanel:
-    """Widgets of the Sequence view."""
+    """Widgets of the Sequence view: typed values and callbacks for the view."""
 
     def __init__(self, gui) -> None:
         self.run_md = gui.add_markdown("")
@@ -102,6 +106,92 @@ class SequencePanel:
         with gui.add_folder("Export", expand_by_default=False):
             self.export = ExportPanel(gui)
 
+    # ---------------------------------------------------------------- callbacks
+    def on_register_all(self, callback: ClientCallback) -> None:
+        on_press(self.btn_run, callback)
+
+    def on_frame_changed(self, callback: Callable[[int, Client], None]) -> None:
+        on_change(self.scrub, int, callback)
+
+    def on_jumps(self, *, worst: ClientCallback, next_failed: ClientCallback) -> None:
+        on_choice(self.jump, {"worst frame": worst, "next failed": next_failed})
+
+    def on_register_frame_again(self, callback: ClientCallback) -> None:
+        on_press(self.btn_rerun, callback)
+
+    def on_display_changed(self, callback: ClientCallback) -> None:
+        on_any_change(
+            (
+                self.stage,
+                self.overlay,
+                self.opacity,
+                self.show_vectors,
+                self.show_outliers,
+                self.vec_scale,
+                self.show_field,
+            ),
+            callback,
+        )
+
+    # ---------------------------------------------------------------- values
+    def configure(self, n_frames: int) -> None:
+        self.scrub.max = max(n_frames - 1, 1)
+        self.scrub.disabled = n_frames <= 1
+
+    @property
+    def frame(self) -> int:
+        return int(self.scrub.value)
+
+    @frame.setter
+    def frame(self, k: int) -> None:
+        self.scrub.value = int(k)
+
+    @property
+    def playing(self) -> bool:
+        return bool(self.play.value)
+
+    @property
+    def flickering(self) -> bool:
+        return self.overlay.value == "flicker"
+
+    def display(self) -> DisplayOptions:
+        return DisplayOptions(
+            stage=str(self.stage.value),
+            overlay=str(self.overlay.value),
+            opacity=float(self.opacity.value),
+            vectors=bool(self.show_vectors.value),
+            outliers=bool(self.show_outliers.value),
+            vector_scale=float(self.vec_scale.value),
+            field=bool(self.show_field.value),
+        )
+
+    def show_display(
+        self, *, opacity: float, vector_scale: float, overlay: str, stage: str
+    ) -> None:
+        """The saved display settings (an unknown overlay leaves the dropdown as it is)."""
+        self.opacity.value = opacity
+        self.vec_scale.value = vector_scale
+        if overlay in OVERLAYS:
+            self.overlay.value = overlay
+        self.stage.value = stage
+
+    # ---------------------------------------------------------------- texts and images
+    def show_run(self, text: str) -> None:
+        """The result's state and the run settings (markdown)."""
+        self.run_md.content = text
+
+    def show_frame_info(self, text: str) -> None:
+        """The frame under the scrubber: status, statistics, stage times (markdown)."""
+        self.frame_md.content = text
+
+    def show_colourbar(self, image: np.ndarray | None) -> None:
+        """The heat map's colour bar (None: hidden)."""
+        if image is None:
+            self.colourbar.visible = False
+            return
+        self.colourbar.image = image
+        self.colourbar.visible = True
+
     def show_plot(self, values, flags, failed, current) -> None:
         """The chart: RMS per frame, excursions, failed frames, the frame shown.
 
@@ -144,79 +234,4 @@ class SequencePanel:
             f"<b>{len(failed)} failed frame(s)</b> (click to show)"
             '<div class="aerialreg-scroll"><table class="aerialreg-table">'
             f"<thead><tr><th>frame</th><th>reason</th></tr></thead><tbody>{rows}</tbody></table></div>"
-        )
-
-
-class SequenceScene(Scene):
-    """The map with the registered frame over its footprint, outline, vectors, heat map."""
-
-    def __init__(self, scene, root_name: str) -> None:
-        super().__init__(scene, root_name)
-        self.field_handle = None
-        self.base_shown = False
-
-    def layout(self, base_size) -> None:
-        self.make_plane("base", *base_size)
-        self.base_shown = False
-
-    def show_base(self, rgb) -> None:
-        if not self.base_shown:
-            self.planes["base"].show(rgb)
-            self.base_shown = True
-
-    def show_registered(self, patch, box, visible: bool = True) -> None:
-        bp = self.planes["base"]
-        if patch is None:
-            bp.remove("registered")
-            return
-        bp.overlay_image("registered", patch, box=box)
-        bp.set_visible("registered", visible)
-
-    def set_registered_visible(self, visible: bool) -> None:
-        self.planes["base"].set_visible("registered", visible)
-
-    def draw_outline(self, border) -> None:
-        bp = self.planes["base"]
-        if border is None or len(border) < 2:
-            bp.remove("outline")
-            return
-        s, e = scene2d.polyline_segments(border)
-        bp.segments("outline", s, e, OUTLINE, width=2.0)
-
-    def draw_vectors(self, vectors) -> None:
-        bp = self.planes["base"]
-        if vectors is None:
-            bp.remove("residuals")
-        else:
-            bp.segments("residuals", *vectors, width=2.0)
-
-    def draw_selected(self, xy) -> None:
-        bp = self.planes["base"]
-        if xy is None:
-            bp.remove("selected")
-        else:
-            bp.markers("selected", [xy], SELECTED, shape="circle", size_px=12, width=2.5)
-
-    def draw_field(self, rgba, extent) -> None:
-        if self.field_handle is not None:
-            self.field_handle.remove()
-            self.field_handle = None
-        if rgba is None:
-            return
-        x0, y0, x1, y1 = extent
-        geom = self.planes["base"].geom
-        s = geom.scale
-        centre = geom.world_from_pixel(
-            np.array([(x0 + x1) / 2.0, (y0 + y1) / 2.0]), dz=scene2d.OVERLAY_DZ * 0.75
-        )
-        big = np.repeat(np.repeat(rgba, 8, axis=0), 8, axis=1)  # crisp cells
-        self.field_handle = self.scene.add_image(
-            f"{self.root_name}/field",
-            big,
-            (x1 - x0) * s,
-            (y1 - y0) * s,
-            format="png",
-            position=tuple(centre),
-            cast_shadow=False,
-            receive_shadow=False,
         )

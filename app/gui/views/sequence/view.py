@@ -9,10 +9,11 @@ vectors (scaled automatically); the local displacement field's magnitude as a he
 paper's Fig. 5) with a colour bar. The per-frame residual RMS is an interactive chart: hover shows
 the values, a click jumps to the frame. Failed frames are listed with their reasons; one frame can
 be registered again; the frame's control points are listed (read-only) and exported. The
-*Export* folder writes the result as GIS files and video (``app/views/export.py``).
+*Export* folder writes the result as GIS files and video (``export.py``).
 
 Scrubbing is fast because the frame is warped at display resolution from a preview of the frame
-(decoded ahead by :meth:`app.gui.inputs.Inputs.prefetch`) and only its footprint is encoded and sent.
+(decoded ahead by :meth:`app.gui.inputs.Inputs.prefetch`) and only its footprint is encoded and sent
+(``frames.py``).
 """
 
 from __future__ import annotations
@@ -20,34 +21,42 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from collections import OrderedDict
 
 import numpy as np
 
 from app.gui import calls, controlpoints, scene2d
+from app.gui.context import Client
 from app.gui.security import escape_md
-from app.gui.state import OVERLAYS
 from app.gui.views.base import View
+from app.gui.views.cptable.table import ControlPointTableView
 from app.gui.views.sequence.export import Exporter
-from app.gui.views.sequence.panel import (
-    FLICKER_S,
-    PLAY_S,
-    RESIDUAL_OK,
-    RESIDUAL_REMOVED,
-    SETTLE_S,
-    WARP_CACHE_FRAMES,
-    SequencePanel,
-    SequenceScene,
-    excursion_flags,
-)
+from app.gui.views.sequence.frames import RegisteredFrames, excursion_flags, frame_preview_side
+from app.gui.views.sequence.panel import DisplayOptions, SequencePanel
+from app.gui.views.sequence.scene import RESIDUAL_OK, RESIDUAL_REMOVED, SequenceScene
 from registration.run import pipeline
 
 log = logging.getLogger(__name__)
+
+FLICKER_S = 0.5
+PLAY_S = 0.4
+SETTLE_S = 0.35
+"""After this long on one frame, it is drawn again at the map preview's full resolution."""
+SELECT_RADIUS_PX = 20
+"""A click on the map selects the nearest control point within this many screen pixels."""
+SELECTED_REGION_PX = (300, 225)
+"""Map pixels the camera shows around a selected control point."""
+READ_ONLY_NOTE = (
+    "Read-only: edit the reference frame's points in the Seed view; a frame can be registered "
+    "again."
+)
 
 
 class SequenceView(View):
     MODE = "Sequence"
     CLICKABLE = ("base",)
+
+    panel: SequencePanel
+    scene: SequenceScene
 
     def make_scene(self, scene, root_name):
         return SequenceScene(scene, root_name)
@@ -57,63 +66,83 @@ class SequenceView(View):
 
     def connect(self) -> None:
         p = self.panel
-        p.btn_run.on_click(lambda ev: self.run(ev.client))
-        p.scrub.on_update(lambda ev: self.set_frame(int(ev.target.value)))
-        p.jump.on_click(lambda ev: self.jump(ev.target.value))
-        p.btn_rerun.on_click(lambda ev: self.rerun_frame(ev.client))
-        for h in (
-            p.stage,
-            p.overlay,
-            p.opacity,
-            p.show_vectors,
-            p.show_outliers,
-            p.vec_scale,
-            p.show_field,
-        ):
-            h.on_update(lambda ev: self._view_changed())
-        cps = p.cps
-        cps.sort.on_update(lambda ev: self.show_table())
-        cps.page.on_click(lambda ev: self.turn_page(-1 if "previous" in ev.target.value else 1))
-        cps.selected.on_update(lambda ev: self.select_point(int(ev.target.value), ev.client))
-        cps.actions.on_click(lambda ev: self.centre_on_selected(ev.client))
-        cps.export.on_click(lambda ev: self.export_points(ev.client))
-        self.exporter = Exporter(self.app, p.export)
-        self.app.events.on("cp-select:seq", lambda v, client: self.select_point(int(v), client))
-        self.app.events.on("plot-frame", lambda v, client: self.set_frame(int(v)))
-        self.app.events.on("seq-frame", lambda v, client: self.set_frame(int(v)))
-        # Recently shown frames at display size (a played loop then costs no warping).
-        self._warp_cache: OrderedDict[tuple, tuple] = OrderedDict()
-        self._cache_lock = threading.Lock()  # the worker and the settle thread both warp
+        p.on_register_all(self.run)
+        p.on_frame_changed(lambda k, client: self.set_frame(k))
+        p.on_jumps(
+            worst=lambda client: self.jump_to_worst(),
+            next_failed=lambda client: self.jump_to_next_failed(),
+        )
+        p.on_register_frame_again(self.rerun_frame)
+        p.on_display_changed(lambda client: self._view_changed())
+        self.frames = RegisteredFrames(self.ctx, self.result)
+        self.cp = ControlPointTableView(
+            self.ctx,
+            p.cps,
+            scope="seq",
+            note=READ_ONLY_NOTE,
+            empty_note="No control points for this frame.",
+            region=self._region,
+            on_selected=self._point_selected,
+        )
+        p.cps.on_point_actions(centre=self.cp.centre_on_selected)
+        p.cps.on_export(self.export_points)
+        self.exporter = Exporter(self.ctx, p.export)
+        self.ctx.events.on("plot-frame", lambda v, client: self.set_frame(int(v)))
+        self.ctx.events.on("seq-frame", lambda v, client: self.set_frame(int(v)))
         self._threads_stop = threading.Event()
         self._flicker_on = True
         self._settle_timer: threading.Timer | None = None
         self._settle_lock = threading.Lock()
         self._requested: int | None = None  # the frame last asked to be drawn
-        self._tables: OrderedDict[tuple, object] = OrderedDict()  # (k, id(result)) -> table
-        self.table: controlpoints.ControlPointTable | None = None
-        self.table_frame: int | None = None
-        self.selected: int | None = None
+        self.table_frame: int | None = None  # the frame whose control points are listed
         threading.Thread(target=self._ticker, name="sequence-ticker", daemon=True).start()
+
+    # ---------------------------------------------------------------- the control points
+    @property
+    def table(self) -> controlpoints.ControlPointTable | None:
+        """The control-point table of the frame shown (None: it has none)."""
+        return self.cp.table
+
+    @property
+    def selected(self) -> int | None:
+        return self.cp.selected
+
+    def select_point(self, row_id: int, client: Client = None) -> None:
+        self.cp.select(row_id, client)
+
+    def _point_selected(self, row_id: int, client: Client) -> None:
+        t = self.cp.table
+        self.submit("selected", lambda: self.scene.draw_selected(t.base_xy[t.row(row_id)]))
+
+    def _region(self, table, i: int) -> list[scene2d.PlaneGeometry]:
+        """The map around row ``i``'s map point."""
+        geom = self.scene.planes["base"].geom
+        c = geom.world_from_pixel(table.base_xy[i])
+        w, h = SELECTED_REGION_PX
+        return [scene2d.PlaneGeometry(w, h, position=(c[0], c[1], 0.0), scale=geom.scale)]
+
+    def export_points(self, client: Client = None) -> bool:
+        """This frame's table as QGIS ``.points`` (see the Seed view's), sent to the browser."""
+        with self.state.lock:
+            k = self.state.seq_frame
+        path = self.ctx.project.folder / f"frame_{k:06d}.points"
+        return self.cp.export(path, client, when_empty="This frame has none")
 
     # ---------------------------------------------------------------- inputs and state
     def on_inputs(self) -> None:
-        inp = self.app.inputs
+        inp = self.ctx.inputs
         self.scene.layout(inp.base_size)
         self.clear_cache()
-        self.table = None
+        self.cp.table = None
         with self.state.lock:
             st = self.state
             k, result_dir = st.seq_frame, st.result_dir
             st.result = None
-            p = self.panel
-            p.opacity.value = st.opacity
-            p.vec_scale.value = st.vector_scale
-            if st.overlay in OVERLAYS:
-                p.overlay.value = st.overlay
-            p.stage.value = st.stage
-        p.scrub.max = max(inp.n_frames - 1, 1)
-        p.scrub.disabled = inp.n_frames <= 1
-        p.scrub.value = k
+            self.panel.show_display(
+                opacity=st.opacity, vector_scale=st.vector_scale, overlay=st.overlay, stage=st.stage
+            )
+        self.panel.configure(inp.n_frames)
+        self.panel.frame = k
         if result_dir:
             self.load_result(result_dir)
         self.refresh_text()
@@ -131,26 +160,24 @@ class SequenceView(View):
         try:
             result = registration.load(out_dir)
         except (OSError, ValueError) as exc:
-            self.app.record_error(f"could not open result {out_dir}: {exc}")
+            self.ctx.record_error(f"could not open result {out_dir}: {exc}")
             result = None
-        inp = self.app.inputs
+        inp = self.ctx.inputs
         if (
             result is not None
             and inp is not None
             and (result.n_frames != inp.n_frames or tuple(result.frame_size) != inp.frame_size)
         ):
-            self.app.record_error(f"result {out_dir} does not match the inputs; ignored")
+            self.ctx.record_error(f"result {out_dir} does not match the inputs; ignored")
             result = None
         with self.state.lock:
             self.state.result = result
         self.clear_cache()
-        self.table = None
+        self.cp.table = None
 
     def clear_cache(self) -> None:
         """Forget the frames warped so far (benchmarks measure the cold path)."""
-        with self._cache_lock:
-            self._warp_cache.clear()
-        self._tables.clear()
+        self.frames.clear()
 
     def result(self):
         with self.state.lock:
@@ -158,27 +185,27 @@ class SequenceView(View):
 
     def set_frame(self, k: int) -> None:
         with self.state.lock:
-            if self.app.inputs is None:
+            if self.ctx.inputs is None:
                 return
-            k = int(np.clip(k, 0, self.app.inputs.n_frames - 1))
+            k = int(np.clip(k, 0, self.ctx.inputs.n_frames - 1))
             if k == self.state.seq_frame and self._requested == k:
                 return  # e.g. the scrubber's own callback after we moved it
             self.state.seq_frame = k
             self._requested = k
             self.state.revision += 1
-        if int(self.panel.scrub.value) != k:
-            self.panel.scrub.value = k  # runs set_frame again, which then returns early
-        self.app.save(soon=True)
+        if self.panel.frame != k:
+            self.panel.frame = k  # runs set_frame again, which then returns early
+        self.ctx.save(soon=True)
         self.request_render()
 
     def _view_changed(self) -> None:
-        p = self.panel
+        display = self.panel.display()
         with self.state.lock:
-            self.state.opacity = float(p.opacity.value)
-            self.state.vector_scale = float(p.vec_scale.value)
-            self.state.overlay = str(p.overlay.value)
-            self.state.stage = str(p.stage.value)
-        self.app.save()
+            self.state.opacity = display.opacity
+            self.state.vector_scale = display.vector_scale
+            self.state.overlay = display.overlay
+            self.state.stage = display.stage
+        self.ctx.save()
         self.request_render()
 
     def shutdown(self) -> None:
@@ -191,21 +218,22 @@ class SequenceView(View):
         """Play and flicker clocks (post render requests; never draw themselves)."""
         last_play = last_flicker = time.monotonic()
         while not self._threads_stop.wait(0.05):
-            if not self.visible or self.app.inputs is None:
+            if not self.visible or self.ctx.inputs is None:
                 continue
             now = time.monotonic()
-            if self.panel.play.value and now - last_play >= PLAY_S:
+            if self.panel.playing and now - last_play >= PLAY_S:
                 last_play = now
                 with self.state.lock:
-                    k = (self.state.seq_frame + 1) % max(self.app.inputs.n_frames, 1)
+                    k = (self.state.seq_frame + 1) % max(self.ctx.inputs.n_frames, 1)
                 self.set_frame(k)
-            if self.panel.overlay.value == "flicker" and now - last_flicker >= FLICKER_S:
+            if self.panel.flickering and now - last_flicker >= FLICKER_S:
                 last_flicker = now
                 self._flicker_on = not self._flicker_on
                 self.submit("flicker", lambda: self.scene.set_registered_visible(self._flicker_on))
 
     # ---------------------------------------------------------------- running
-    def refresh_text(self) -> None:
+    def run_text(self) -> tuple[str, str]:
+        """The result's state and what the next run uses: two lines of markdown."""
         with self.state.lock:
             st = self.state
             seed, r, transform, local = st.seed, st.result, st.transform, st.run_local
@@ -223,11 +251,16 @@ class SequenceView(View):
         ref_txt = (
             "reference fitted in the Seed view" if ref_ok else "the reference frame is fitted first"
         )
-        self.panel.run_md.content = (
-            f"Result: {done}; {seed_txt}; {ref_txt}.  \nRun settings: preset {escape_md(preset)}, "
-            f"{escape_md(transform)}, local field {'on' if local else 'off'} (Seed view)."
+        return (
+            f"Result: {done}; {seed_txt}; {ref_txt}.",
+            f"Run settings: preset {escape_md(preset)}, {escape_md(transform)}, local field "
+            f"{'on' if local else 'off'} (Seed view).",
         )
+
+    def refresh_text(self) -> None:
+        self.panel.show_run("  \n".join(self.run_text()))
         self.exporter.refresh()
+        r = self.result()
         if r is not None:
             failed = [
                 (k, str(rec.get("reason", "")))
@@ -238,8 +271,8 @@ class SequenceView(View):
         else:
             self.panel.show_failed([])
 
-    def run(self, client=None) -> bool:
-        inp = self.app.inputs
+    def run(self, client: Client = None) -> bool:
+        inp = self.ctx.inputs
         if inp is None:
             return False
         with self.state.lock:
@@ -256,9 +289,9 @@ class SequenceView(View):
                 (fit.coarse, fit.fine) if fit is not None and fit.coarse and fit.fine else None
             )
             cfg = calls.pipeline_config(preset, st.degree, st.run_local)
-            out_dir = str(self.app.project.result_dir)
+            out_dir = str(self.ctx.project.result_dir)
             st.result_dir = out_dir
-        self.app.save()
+        self.ctx.save()
 
         def job(progress) -> None:
             last = [0.0]
@@ -294,7 +327,7 @@ class SequenceView(View):
                         raise
                     # γ, seed, reference frame or settings changed since the folder was made:
                     # keep the old result beside it and start a fresh one.
-                    old = self.app.project.archive_result()
+                    old = self.ctx.project.archive_result()
                     self.notify(
                         client,
                         "Starting a new result",
@@ -307,7 +340,7 @@ class SequenceView(View):
             finally:
                 self.load_result(out_dir)
                 self.refresh_text()
-                self.app.state_changed()
+                self.ctx.state_changed()
                 self.request_render()
             if progress.cancel.is_set():
                 self.notify(
@@ -317,19 +350,14 @@ class SequenceView(View):
                     "yellow",
                 )
             else:
-                self.notify(
-                    client,
-                    "Registration finished",
-                    self.panel.run_md.content.split("  \n")[0],
-                    "green",
-                )
+                self.notify(client, "Registration finished", self.run_text()[0], "green")
 
-        return self.app.run_job("register", job, client)
+        return self.ctx.run_job("register", job, client)
 
-    def rerun_frame(self, client=None) -> bool:
+    def rerun_frame(self, client: Client = None) -> bool:
         """Register the frame under the scrubber again with its result's own settings."""
         r = self.result()
-        inp = self.app.inputs
+        inp = self.ctx.inputs
         with self.state.lock:
             k = self.state.seq_frame
         if r is None or inp is None:
@@ -366,7 +394,7 @@ class SequenceView(View):
             )
             self.load_result(out_dir)
             self.refresh_text()
-            self.app.state_changed()
+            self.ctx.state_changed()
             self.request_render()
             rec = self.result().records[k]
             self.notify(
@@ -376,16 +404,18 @@ class SequenceView(View):
                 "green",
             )
 
-        return self.app.run_job(f"register frame {k}", job, client)
+        return self.ctx.run_job(f"register frame {k}", job, client)
 
-    def jump(self, which: str) -> None:
+    def jump_to_worst(self) -> None:
+        """Show the frame with the largest residual RMS."""
+        vals = self.error_values()
+        if vals is not None and np.isfinite(vals).any():
+            self.set_frame(int(np.nanargmax(vals)))
+
+    def jump_to_next_failed(self) -> None:
+        """Show the next failed frame after the one shown (wrapping round)."""
         r = self.result()
         if r is None:
-            return
-        if which.startswith("worst"):
-            vals = self.error_values()
-            if vals is not None and np.isfinite(vals).any():
-                self.set_frame(int(np.nanargmax(vals)))
             return
         with self.state.lock:
             k0 = self.state.seq_frame
@@ -394,104 +424,20 @@ class SequenceView(View):
             later = [k for k in failed if k > k0]
             self.set_frame(later[0] if later else failed[0])
 
-    def jump_to_worst(self) -> None:
-        self.jump("worst frame")
-
     def error_values(self) -> np.ndarray | None:
         """Residual RMS (base px) per frame from the result records; NaN where not ok."""
-        r = self.result()
-        if r is None:
-            return None
-        out = np.full(r.n_frames, np.nan)
-        for k, rec in enumerate(r.records):
-            v = (rec.get("stats") or {}).get("residual_rms_px")
-            if rec.get("status") == "ok" and v is not None:
-                out[k] = float(v)
-        return out
+        return self.frames.error_values()
 
-    def on_click(self, plane: str, xy, client) -> None:
+    def on_click(self, plane: str, xy, client: Client) -> None:
         """A click on the map selects the nearest control point of the frame shown."""
-        t = self.table
+        t = self.cp.table
         if t is None or not len(t.ids):
             return
         d = np.hypot(*(t.base_xy - np.asarray(xy, float)).T)
         i = int(np.nanargmin(d))
-        limit = 20 * self.scene.planes["base"].px_per_screen
+        limit = SELECT_RADIUS_PX * self.scene.planes["base"].px_per_screen
         if d[i] <= limit:
-            self.select_point(int(t.ids[i]), client)
-
-    # ---------------------------------------------------------------- control points
-    def control_point_table(self, k: int):
-        """The read-only table of frame ``k``'s control points from the result, or None."""
-        from registration.run import records
-
-        r = self.result()
-        if r is None or not r.is_ok(k):
-            return None
-        cps = r.control_points(k)
-        if cps is None:
-            return None
-        src, dst, kept, _ = cps
-        source = None
-        path = records.frame_record_path(r.out_dir, k, ".npz")
-        try:
-            with np.load(path) as z:
-                source = z["source"] if "source" in z.files else None
-        except (OSError, ValueError):
-            source = None
-        kind = (
-            "reference"
-            if k == r.reference_frame
-            else str(r.config.get("intra", {}).get("control_points", "template"))
-        )
-        return controlpoints.table_from_points(src, dst, kept, source, kind, r.lens, r.model(k))
-
-    def show_table(self) -> None:
-        note = "Read-only: edit the reference frame's points in the Seed view; a frame can be registered again."
-        if self.table is None:
-            self.panel.cps.show(None, None, "No control points for this frame.")
-        else:
-            self.panel.cps.show(self.table, self.selected, note)
-
-    def turn_page(self, direction: int) -> None:
-        if self.table is not None:
-            self.panel.cps.turn(direction, len(self.table.ids))
-            self.show_table()
-
-    def select_point(self, row_id: int, client=None) -> None:
-        t = self.table
-        if t is None or row_id < 0 or t.row(row_id) is None:
-            return
-        self.selected = int(row_id)
-        offset = self.panel.cps.offset_for(t, row_id)
-        if offset is not None:
-            self.panel.cps.offset = offset
-        if int(self.panel.cps.selected.value) != row_id:
-            self.panel.cps.selected.value = row_id
-        self.show_table()
-        self.submit("selected", lambda: self.scene.draw_selected(t.base_xy[t.row(row_id)]))
-        self.centre_on_selected(client)
-
-    def centre_on_selected(self, client=None) -> None:
-        t = self.table
-        i = None if t is None or self.selected is None else t.row(self.selected)
-        if i is None:
-            return
-        geom = self.scene.planes["base"].geom
-        c = geom.world_from_pixel(t.base_xy[i])
-        region = scene2d.PlaneGeometry(300, 225, position=(c[0], c[1], 0.0), scale=geom.scale)
-        self.app.focus([region], client)
-
-    def export_points(self, client=None) -> bool:
-        """This frame's table as QGIS ``.points`` (see the Seed view's), sent to the browser."""
-        if self.table is None:
-            self.notify(client, "No control points", "This frame has none", "yellow")
-            return False
-        with self.state.lock:
-            k = self.state.seq_frame
-        path = self.app.project.folder / f"frame_{k:06d}.points"
-        controlpoints.write_qgis_points(self.table, path, self.app.inputs.base_georef)
-        return self.app.offer_file(path, client)
+            self.cp.select(int(t.ids[i]), client)
 
     # ---------------------------------------------------------------- drawing (worker)
     def request_render(self) -> None:
@@ -518,120 +464,45 @@ class SequenceView(View):
                 return
             k, stage = self.state.seq_frame, self.state.stage
         try:
-            self.registered(k, stage, 2 * self.app.display_max)
+            self.frames.registered(k, stage, 2 * self.ctx.display_max)
         except Exception:  # drawn (and reported) by the worker's render instead
             log.debug("settle warp of frame %d failed", k, exc_info=True)
         # Its own key: a stale settle render must never replace a newer scrub's request.
         self.submit("render-full", lambda: self.render(full=True, rev=rev))
 
-    def frame_border_in_base(self, k: int, stage: str) -> np.ndarray:
-        """The raw frame's border mapped into base pixels, ``(M, 2)`` (finite points only)."""
-        from registration.coords import frame_outline
-
-        r = self.result()
-        b = r.frame_to_base(k, frame_outline(*r.frame_size), stage)
-        return b[np.isfinite(b).all(axis=1)]
-
-    def registered(self, k: int, stage: str, side: int | None = None):
-        """Frame ``k`` warped into a preview of the map whose longer side is ``side`` px
-        (default: the map shown, twice the display size): ``(rgb, valid, box)`` with ``box`` =
-        the frame's footprint ``(x0, y0, x1, y1)`` in full base pixels (edges, floats), or None.
-
-        Only the footprint is rendered, from a preview of the frame of about its size there
-        (decoded ahead by the read-ahead), so a new frame costs a small warp."""
-        from registration.coords import rescale
-        from registration.geometry import warp_image
-        from registration.render import render_registered
-
-        r = self.result()
-        if r is None or not r.is_ok(k):
-            return None
-        side = side or 2 * self.app.display_max
-        key = (k, stage, side, id(r))
-        with self._cache_lock:
-            if key in self._warp_cache:
-                self._warp_cache.move_to_end(key)
-                return self._warp_cache[key]
-        inp = self.app.inputs
-        hp, wp = inp.base_preview(side).shape[:2]
-        f = (inp.base_size[0] / wp, inp.base_size[1] / hp)  # full base px per preview px
-        border = self.frame_border_in_base(k, stage)
-        if not len(border):
-            return None
-        lo = rescale(border.min(axis=0, keepdims=True), (1.0 / f[0], 1.0 / f[1]))[0]
-        hi = rescale(border.max(axis=0, keepdims=True), (1.0 / f[0], 1.0 / f[1]))[0]
-        pad = 4  # preview px: bilinear support and the local field's small shifts
-        x0, y0 = (int(max(0, np.floor(v) - pad)) for v in lo)
-        x1 = int(min(wp, np.ceil(hi[0]) + pad + 1))
-        y1 = int(min(hp, np.ceil(hi[1]) + pad + 1))
-        if x1 <= x0 or y1 <= y0:
-            return None
-        frame = inp.preview(k, self.frame_preview_side(x1 - x0, y1 - y0))
-        f_frame = (frame.shape[1] / r.frame_size[0], frame.shape[0] / r.frame_size[1])
-
-        def frame_from_base(xy):
-            raw = r.base_to_frame(k, rescale(xy, f), stage)
-            return rescale(raw, f_frame)
-
-        rgb = scene2d.to_rgb(frame)
-        if side >= 2 * self.app.display_max:
-            crop, mask = render_registered(
-                rgb, frame_from_base, (x1 - x0, y1 - y0), origin=(x0, y0), step=8, return_mask=True
-            )
-        else:
-            # Scrubbing: the mapping on a 16 px lattice and no exact evaluation of the frame's
-            # border band (up to 16 preview px of the border stay empty until the settle render).
-            crop, mask = warp_image(
-                rgb, frame_from_base, x1 - x0, y1 - y0, origin=(x0, y0), step=16
-            )
-        # Corner coordinates scale linearly: preview edge x0 is full-base edge x0 * f.
-        box = (x0 * f[0], y0 * f[1], x1 * f[0], y1 * f[1])
-        out = (crop, mask, box)
-        with self._cache_lock:
-            self._warp_cache[key] = out
-            while len(self._warp_cache) > WARP_CACHE_FRAMES:
-                self._warp_cache.popitem(last=False)
-        return out
-
-    def frame_preview_side(self, width: int, height: int) -> int:
-        """Longer side of the frame preview to warp into a ``width x height`` footprint: a
-        little more than the footprint (in steps of 256 px, so the read-ahead can guess it)."""
-        need = int(np.ceil(max(width, height) * 1.2 / 256.0)) * 256
-        return max(need, 512)
-
     def render(self, full: bool = False, rev: int | None = None) -> None:
         from registration.render import viz
 
-        inp = self.app.inputs
+        inp = self.ctx.inputs
         if inp is None or "base" not in self.scene.planes:
             return
+        display = self.panel.display()
         with self.state.lock:
             st = self.state
             k, stage, overlay = st.seq_frame, st.stage, st.overlay
             alpha, cur = st.opacity, st.revision
         if rev is not None and rev != cur:
             return  # the scrubber moved on: this settle render is stale
-        fine_side = 2 * self.app.display_max
-        r0 = self.result()
-        have_fine = r0 is not None and (k, stage, fine_side, id(r0)) in self._warp_cache
-        side = fine_side if (full or have_fine) else self.app.display_max
+        fine_side = 2 * self.ctx.display_max
+        have_fine = self.frames.has_warp(k, stage, fine_side)
+        side = fine_side if (full or have_fine) else self.ctx.display_max
         if (
             full
-            and self.app.shown.get(self.MODE, (None,) * 5)[:2] == (k, stage)
-            and self.app.shown[self.MODE][4] == side
+            and self.ctx.shown.get(self.MODE, (None,) * 5)[:2] == (k, stage)
+            and self.ctx.shown[self.MODE][4] == side
         ):
             return  # already shown at full resolution
         base_rgb = inp.base_preview(fine_side)
-        reg = self.registered(k, stage, side)
+        reg = self.frames.registered(k, stage, side)
         under_rgb = inp.base_preview(side)
-        with self.app.server.atomic():
+        with self.ctx.atomic():
             self.scene.show_base(base_rgb)
             if reg is None:
                 self.scene.show_registered(None, None)
             else:
                 crop, mask, box = reg
                 hp, wp = under_rgb.shape[:2]
-                f = (self.app.inputs.base_size[0] / wp, self.app.inputs.base_size[1] / hp)
+                f = (self.ctx.inputs.base_size[0] / wp, self.ctx.inputs.base_size[1] / hp)
                 x0, y0 = int(round(box[0] / f[0])), int(round(box[1] / f[1]))
                 under = under_rgb[y0 : y0 + crop.shape[0], x0 : x0 + crop.shape[1]]
                 if overlay == "checkerboard":
@@ -646,39 +517,33 @@ class SequenceView(View):
                 )
             r = self.result()
             ok = r is not None and r.is_ok(k)
-            self.scene.draw_outline(self.frame_border_in_base(k, stage) if ok else None)
+            self.scene.draw_outline(self.frames.border_in_base(k, stage) if ok else None)
             self._frame_table(k)
-            self._draw_vectors()
-            self._draw_field(k)
+            self._draw_vectors(display)
+            self._draw_field(k, display)
         self.draw_plot()
         self._update_frame_md(k)
-        self.app.shown[self.MODE] = (k, stage, overlay, reg is not None, side)
+        self.ctx.shown[self.MODE] = (k, stage, overlay, reg is not None, side)
         if not full:
             footprint = (0, 0) if reg is None else (reg[0].shape[1], reg[0].shape[0])
-            guess = self.frame_preview_side(*footprint) if reg is not None else self.app.display_max
+            guess = frame_preview_side(*footprint) if reg is not None else self.ctx.display_max
             inp.prefetch([k + 1, k - 1, k + 2], preview_sides=(guess,))
 
     def _frame_table(self, k: int) -> None:
-        if self.table_frame != k or self.table is None:
-            key = (k, id(self.result()))
-            if key not in self._tables:
-                self._tables[key] = self.control_point_table(k)
-                while len(self._tables) > WARP_CACHE_FRAMES:
-                    self._tables.popitem(last=False)
-            self.table = self._tables[key]
+        """List frame ``k``'s control points (a new frame: no selection, first page)."""
+        if self.table_frame != k or self.cp.table is None:
+            table = self.frames.table(k)
             self.table_frame = k
-            self.selected = None
-            self.panel.cps.offset = 0
             self.scene.draw_selected(None)
-            self.show_table()
+            self.cp.set_table(table, fresh=True)
 
-    def _draw_vectors(self) -> None:
-        t = self.table
-        if t is None or not self.panel.show_vectors.value or t.model is None:
+    def _draw_vectors(self, display: DisplayOptions) -> None:
+        t = self.cp.table
+        if t is None or not display.vectors or t.model is None:
             self.scene.draw_vectors(None)
             return
-        ok = np.isfinite(t.residual) & (t.enabled | bool(self.panel.show_outliers.value))
-        scale = float(self.panel.vec_scale.value) or scene2d.auto_vector_scale(
+        ok = np.isfinite(t.residual) & (t.enabled | display.outliers)
+        scale = display.vector_scale or scene2d.auto_vector_scale(
             t.residual[t.enabled], self.scene.planes["base"].geom.width
         )
         self.vector_scale_used = scale
@@ -686,21 +551,18 @@ class SequenceView(View):
         start = t.base_xy[ok]
         self.scene.draw_vectors((start, start + scale * t.residual_xy[ok], cols[ok]))
 
-    def _draw_field(self, k: int) -> None:
+    def _draw_field(self, k: int, display: DisplayOptions) -> None:
         from registration.render import viz
 
         r = self.result()
-        fld = r.field(k) if (r is not None and r.is_ok(k) and self.panel.show_field.value) else None
+        fld = r.field(k) if (r is not None and r.is_ok(k) and display.field) else None
         if fld is None:
             self.scene.draw_field(None, None)
-            self.panel.colourbar.visible = False
+            self.panel.show_colourbar(None)
             return
         rgba, vmax = viz.field_cells_image(fld.vectors, fld.valid)
         self.scene.draw_field(rgba, fld.extent)
-        self.panel.colourbar.image = viz.colorbar(
-            0.0, vmax, label="local displacement |d| (base px)"
-        )
-        self.panel.colourbar.visible = True
+        self.panel.show_colourbar(viz.colorbar(0.0, vmax, label="local displacement |d| (base px)"))
 
     def draw_plot(self) -> None:
         vals = self.error_values()
@@ -713,10 +575,13 @@ class SequenceView(View):
         self.panel.show_plot(vals, excursion_flags(vals), failed, k)
 
     def _update_frame_md(self, k: int) -> None:
+        self.panel.show_frame_info(self.frame_text(k))
+
+    def frame_text(self, k: int) -> str:
+        """Frame ``k``'s status, statistics, lens note and stage times (markdown)."""
         r = self.result()
         if r is None:
-            self.panel.frame_md.content = f"Frame {k}: no registration result yet."
-            return
+            return f"Frame {k}: no registration result yet."
         rec = r.records[k]
         stats = rec.get("stats") or {}
         parts = [f"Frame {k}: **{escape_md(rec.get('status'))}**"]
@@ -747,4 +612,4 @@ class SequenceView(View):
             ]
             if stages:
                 parts.append("time: " + ", ".join(stages))
-        self.panel.frame_md.content = "; ".join(parts)
+        return "; ".join(parts)
