@@ -962,7 +962,7 @@ def test_upload_does_not_open_an_unchecked_path(tmp_path, small_seq, make_app):
 
 
 def test_serve_allows_only_named_folders(tmp_path, small_seq, monkeypatch):
-    from app.gui.server import serve
+    from app.gui.launch import serve
 
     monkeypatch.chdir(tmp_path)
     app = serve(

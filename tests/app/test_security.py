@@ -248,7 +248,7 @@ def test_upload_limit_enforced_while_receiving(guarded):
 
 
 def test_bound_address_names_the_wildcard():
-    from app.gui.server import bound_address
+    from app.gui.launch import bound_address
 
     assert bound_address("127.0.0.1", 8080) == "serving http://127.0.0.1:8080"
     text = bound_address("0.0.0.0", 8080)

@@ -23,6 +23,13 @@ HELP = "Register every frame of a video, image folder or glob to an orthorectifi
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
+    _input_arguments(p)
+    _registration_arguments(p)
+    _run_arguments(p)
+
+
+def _input_arguments(p: argparse.ArgumentParser) -> None:
+    """The base map, the frames and where the result goes."""
     p.add_argument(
         "--base",
         required=True,
@@ -48,6 +55,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="video file, directory of images (sorted by name) or glob pattern",
     )
     p.add_argument("--out", required=True, help="result folder (created; written frame by frame)")
+
+
+def _registration_arguments(p: argparse.ArgumentParser) -> None:
+    """γ, the seed, the reference frame and the preset."""
     p.add_argument(
         "--gamma",
         default="0.7",
@@ -86,6 +97,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="skip the local displacement field (stage 'local' then equals 'global')",
     )
+
+
+def _run_arguments(p: argparse.ArgumentParser) -> None:
+    """Resuming, chunks and scale-out, what is written."""
     p.add_argument(
         "--resume",
         action="store_true",
@@ -199,15 +214,7 @@ def run(args: argparse.Namespace) -> int:
     # A file, another tool's folder or a result without --resume/--force: refused before any work.
     state = check_out_dir(Path(args.out), resume=args.resume, force=args.force)
     config = replace(config, chunk_frames=chunk_frames(args, state))
-    nodata = args.base_nodata
-    if nodata not in ("auto", "file"):
-        try:
-            nodata = float(nodata)
-        except ValueError:
-            raise UsageError(
-                f"--base-nodata must be 'auto', 'file' or a number, got {nodata!r}"
-            ) from None
-    base_map = read_base_map(args.base, crs=args.base_crs, nodata=nodata)
+    base_map = read_base_map(args.base, crs=args.base_crs, nodata=parse_nodata(args.base_nodata))
     base = base_map.image
     frames = open_frames(args.frames)
     if gamma is None:
@@ -254,6 +261,24 @@ def run(args: argparse.Namespace) -> int:
             written = write_registered_sequence(
                 result, frames, progress=lambda d, t: bar.update(d - bar.done)
             )
+    report(args, result, base_map, config, elapsed, written)
+    return 0
+
+
+def parse_nodata(text: str) -> str | float:
+    """``--base-nodata``: ``"auto"``, ``"file"`` or a number; UsageError for anything else."""
+    if text in ("auto", "file"):
+        return text
+    try:
+        return float(text)
+    except ValueError:
+        raise UsageError(
+            f"--base-nodata must be 'auto', 'file' or a number, got {text!r}"
+        ) from None
+
+
+def report(args: argparse.Namespace, result, base_map, config, elapsed: float, written) -> None:
+    """The run's summary: one JSON object (``--json``) or a few lines, on standard output."""
     failed = [
         {"frame": k, "reason": r.get("reason", "")}
         for k, r in enumerate(result.records)
@@ -288,7 +313,6 @@ def run(args: argparse.Namespace) -> int:
             sys.stdout.write(f"  lens: {summary['lens']['reason']}\n")
         for f in failed:
             sys.stdout.write(f"  frame {f['frame']} failed: {f['reason']}\n")
-    return 0
 
 
 def chunk_frames(args: argparse.Namespace, state: str) -> int:

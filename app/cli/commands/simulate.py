@@ -73,6 +73,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         sys.exit(2)
 
     p.error = one_line_error
+    _scene_arguments(p)
+    _flight_arguments(p)
+    _output_arguments(p)
+
+
+def _scene_arguments(p: argparse.ArgumentParser) -> None:
+    """The output, the profile, the scene and the base map."""
     p.add_argument("out", nargs="?", metavar="OUT", help="output folder (omit with --demo)")
     p.add_argument(
         "--profile",
@@ -107,6 +114,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="copy the simulated sequence SRC to OUT with a new base (--base-heading, "
         "--base-scale); frames are hard-linked, the truth stays exact",
     )
+
+
+def _flight_arguments(p: argparse.ArgumentParser) -> None:
+    """The frames, the lens and the flight."""
     p.add_argument("--frames", type=int, help="number of frames (default 25)")
     p.add_argument("--size", help="raw frame size WxH (default 1280x960; paper 2560x1920)")
     p.add_argument("--gamma", type=float, help="Harris distortion gamma of the lens (default 0.7)")
@@ -152,6 +163,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         metavar="S",
         help="base pixels per scene pixel, e.g. 0.5 or 2 (default 1; area-averaged when < 1)",
     )
+
+
+def _output_arguments(p: argparse.ArgumentParser) -> None:
+    """Timing, randomness, what is written, the demo."""
     p.add_argument("--fps", type=float, help="frames per second (default 5)")
     p.add_argument("--seed", type=int, help="random seed (default 0); same seed, same files")
     p.add_argument(

@@ -86,13 +86,22 @@ class EvaluateView(View):
         self._refresh_points()
 
     def _refresh_points(self) -> None:
+        """The point dropdown now; the marks' table (residuals through the result: tens of ms
+        and more) on the worker."""
         with self.state.lock:
             names = sorted(self.state.points, key=_natural) or [POINT_NAMES[0]]
             cur = self.state.point_name
         if cur not in names:
             names.append(cur)
         self.panel.show_points(tuple(names), cur)
-        self.panel.show_marks(self.mark_rows(), cur)
+        self.submit("marks", self.show_marks)
+
+    def show_marks(self) -> None:
+        """The marks' table with each mark's residual (worker)."""
+        rows = self.mark_rows()
+        with self.state.lock:
+            cur = self.state.point_name
+        self.panel.show_marks(rows, cur)
 
     def set_frame(self, k: int) -> None:
         with self.state.lock:

@@ -320,23 +320,7 @@ class SequenceView(View):
             if reference is not None:
                 kwargs["reference"] = reference
             try:
-                try:
-                    pipeline.register_sequence(inp.frames, inp.base, gamma, out_dir, **kwargs)
-                except ValueError as exc:
-                    if "cannot resume" not in str(exc):
-                        raise
-                    # γ, seed, reference frame or settings changed since the folder was made:
-                    # keep the old result beside it and start a fresh one.
-                    old = self.ctx.project.archive_result()
-                    self.notify(
-                        client,
-                        "Starting a new result",
-                        f"{exc}; the old one is kept in {old}",
-                        "yellow",
-                    )
-                    with self.state.lock:
-                        self.state.result = None
-                    pipeline.register_sequence(inp.frames, inp.base, gamma, out_dir, **kwargs)
+                self._register_or_start_afresh(inp, gamma, out_dir, kwargs, client)
             finally:
                 self.load_result(out_dir)
                 self.refresh_text()
@@ -353,6 +337,24 @@ class SequenceView(View):
                 self.notify(client, "Registration finished", self.run_text()[0], "green")
 
         return self.ctx.run_job("register", job, client)
+
+    def _register_or_start_afresh(self, inp, gamma: float, out_dir: str, kwargs, client) -> None:
+        """``pipeline.register_sequence`` resuming ``out_dir``; when the folder was made for
+        other settings, it is kept beside (``result.prev-N``) and a fresh result started."""
+        try:
+            pipeline.register_sequence(inp.frames, inp.base, gamma, out_dir, **kwargs)
+        except ValueError as exc:
+            if "cannot resume" not in str(exc):
+                raise
+            # γ, seed, reference frame or settings changed since the folder was made:
+            # keep the old result beside it and start a fresh one.
+            old = self.ctx.project.archive_result()
+            self.notify(
+                client, "Starting a new result", f"{exc}; the old one is kept in {old}", "yellow"
+            )
+            with self.state.lock:
+                self.state.result = None
+            pipeline.register_sequence(inp.frames, inp.base, gamma, out_dir, **kwargs)
 
     def rerun_frame(self, client: Client = None) -> bool:
         """Register the frame under the scrubber again with its result's own settings."""
