@@ -890,14 +890,22 @@ def test_app_is_what_the_views_see(tmp_path, small_seq, make_app):
     assert all(view.ctx is app for view in app.views.values())
 
 
-def test_nothing_is_written_while_the_state_lock_is_held(
-    tmp_path, small_seq, make_app, monkeypatch
-):
+def test_nothing_is_written_while_the_state_lock_is_held(tmp_path, small_seq, monkeypatch):
     """Every file the app writes (project.json, LINES.json, POINTS.csv, ...) is written with the
     state's lock free: callbacks and the worker never wait for the disk."""
     from app.gui import project as project_module
 
-    app = make_app(tmp_path / "proj", small_seq)
+    # A session that sets every view's widgets when the inputs open (their callbacks save).
+    Project(tmp_path / "proj").save(
+        {"overlay": "checkerboard", "opacity": 0.3, "stage": "global", "seq_frame": 2}
+    )
+    app = App(
+        make_server("127.0.0.1", 0, verbose=False),
+        Project(tmp_path / "proj"),
+        frames=str(small_seq / "frames"),
+        base=str(small_seq / "base.png"),
+        allowed_dirs=[tmp_path, small_seq],
+    )
     writes: list[tuple[str, bool]] = []
     write_atomic_ = project_module.write_atomic
 
@@ -906,6 +914,19 @@ def test_nothing_is_written_while_the_state_lock_is_held(
         write_atomic_(path, data)
 
     monkeypatch.setattr(project_module, "write_atomic", watched)
+    try:
+        app.start()
+        _use_every_view(app)
+    finally:
+        app.stop()
+    names = {name for name, _ in writes}
+    assert {"project.json", "LINES.json", "POINTS.csv"} <= names, names
+    assert [name for name, held in writes if held] == []
+
+
+def _use_every_view(app) -> None:
+    """Decisions in every view that save something (no fits: quick)."""
+    app.worker.wait_idle()
     cal = app.views["Calibrate"]
     cal.panel.gamma_number.value = 0.7
     for xy in ([60.0, 40.0], [160.0, 60.0], [250.0, 80.0]):
@@ -921,11 +942,9 @@ def test_nothing_is_written_while_the_state_lock_is_held(
     ev = app.views["Evaluate"]
     click(app, ev.scene.planes["frame"], (50.0, 60.0))
     ev.set_frame(1)
+    app.set_mode("Sequence")
+    app.views["Sequence"].set_frame(1)
     app.worker.wait_idle()
-    app.stop()
-    names = {name for name, _ in writes}
-    assert {"project.json", "LINES.json", "POINTS.csv"} <= names, names
-    assert [name for name, held in writes if held] == []
 
 
 def test_undo_restores_seeds_and_edits():

@@ -44,6 +44,7 @@ class Exporter:
         self.state = ctx.state
         self.panel = panel
         self.written: dict[str, list[Path]] = {}
+        self.format_of_label: dict[str, str] = {}  # the download list's entries -> format
         self.out_dir: Path | None = None
         self.summary: dict | None = None
         self.modal = None
@@ -239,8 +240,10 @@ class Exporter:
 
     def finished(self, summary: dict, folder: Path, seconds: float, client) -> None:
         files = {f: [Path(p) for p in ps] for f, ps in summary["files"].items() if ps}
+        labels = {self.download_label(f, ps): f for f, ps in files.items()}
         with self._lock:
             self.written, self.out_dir, self.summary = files, folder, summary
+            self.format_of_label = labels
         rows = ["| format | files | size | time |", "|---|---:|---:|---:|"]
         for f, ps in files.items():
             size = sum(p.stat().st_size for p in ps if p.exists())
@@ -255,7 +258,7 @@ class Exporter:
             f"Export {state} in {seconds:.1f} s into {escape_md(folder)}.{note}\n\n"
             + ("\n".join(rows) if files else "_No file written._")
         )
-        self.panel.offer_downloads(tuple(self.download_label(f) for f in files))
+        self.panel.offer_downloads(tuple(labels))
         title = "Export cancelled" if summary["cancelled"] else "Export finished"
         n = sum(len(ps) for ps in files.values())
         self.ctx.notify(
@@ -266,17 +269,19 @@ class Exporter:
         )
 
     # ------------------------------------------------------------------ downloads
-    def download_label(self, fmt: str) -> str:
-        ps = self.written.get(fmt, [])
+    @staticmethod
+    def download_label(fmt: str, ps: list[Path]) -> str:
+        """The download list's entry for the files ``ps`` of format ``fmt``."""
         size = _size(sum(p.stat().st_size for p in ps if p.exists()))
         if len(ps) == 1:
             return f"{fmt}: {ps[0].name} ({size})"
         return f"{fmt}: {len(ps)} files as zip ({size})"
 
     def download(self, label: str, client: Client = None) -> bool:
-        """Send the exported files of the picked format: one file as is, several as a zip."""
-        fmt = label.split(":", 1)[0]
+        """Send the exported files of the picked entry (:meth:`download_label`): one file as is,
+        several as a zip."""
         with self._lock:
+            fmt = self.format_of_label.get(label, "")
             paths, folder = list(self.written.get(fmt, [])), self.out_dir
         paths = [p for p in paths if p.exists()]
         if not paths or folder is None:

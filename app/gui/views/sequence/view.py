@@ -138,9 +138,11 @@ class SequenceView(View):
             st = self.state
             k, result_dir = st.seq_frame, st.result_dir
             st.result = None
-            self.panel.show_display(
+            display = dict(
                 opacity=st.opacity, vector_scale=st.vector_scale, overlay=st.overlay, stage=st.stage
             )
+        # Outside the lock: the widgets' callbacks save the session.
+        self.panel.show_display(**display)
         self.panel.configure(inp.n_frames)
         self.panel.frame = k
         if result_dir:
