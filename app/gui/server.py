@@ -19,7 +19,7 @@ Structure (``notes/viser.md``, ``notes/style.md`` practice 12):
 * Clicks on the scene arrive as rays; :meth:`App.handle_click` intersects them with the current
   view's image planes and hands pixel coordinates to the view. The browser's zoom is followed so
   markers keep their size on screen.
-* Security (``app/security.py``): paths checked against allowed folders, handshakes checked,
+* Security (``app/gui/security.py``): paths checked against allowed folders, handshakes checked,
   share tunnel refused, uploads limited while they arrive and kept in the project.
 
 Nothing here computes registration results: every number and image comes from ``registration``.

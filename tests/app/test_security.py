@@ -1,4 +1,4 @@
-"""In-process tests of the app's security guards (app/security.py), one per finding of issue 12.
+"""In-process tests of the app's security guards (app/gui/security.py), one per finding of issue 12.
 
 The viser hooks are exercised through the real wire: a websockets client speaking viser's
 protocol (msgpack messages), raw HTTP requests with chosen headers, a real ``ViserServer``.
