@@ -92,7 +92,7 @@ def _old_scrub(app, k: int, stage: str) -> None:
     map preview's footprint box, blended over the whole map preview, encoded as one JPEG."""
     import cv2
 
-    from app import scene2d
+    from app.gui import scene2d
     from registration.coords import frame_outline, rescale
     from registration.render import render_registered, viz
 
@@ -127,9 +127,9 @@ def _old_scrub(app, k: int, stage: str) -> None:
 def run(args) -> dict:
     import cv2
 
-    from app.project import Project
-    from app.security import make_server
-    from app.server import App
+    from app.gui.project import Project
+    from app.gui.security import make_server
+    from app.gui.server import App
     from registration.lens import HarrisModel
     from registration.synth import SimConfig, load_truth, simulate
 
@@ -256,7 +256,7 @@ def run(args) -> dict:
     for _ in range(5):
         rms0 = seed.table.rms
         t = time.perf_counter()
-        seed.bulk_action("Disable worst")
+        seed.points.disable_worst()
         app.worker.wait_idle()
         refit.append(time.perf_counter() - t)
         assert seed.table.rms <= rms0 + 1e-9
@@ -269,7 +269,7 @@ def run(args) -> dict:
             "",
         )
     )
-    seed.bulk_action("Reset edits")
+    seed.points.reset_edits()
     app.worker.wait_idle()
 
     # Register the sequence, then scrub.

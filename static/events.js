@@ -1,4 +1,4 @@
-// aerialreg's browser-to-Python event channel and chart clicks (loaded by app/assets.py).
+// aerialreg's browser-to-Python event channel and chart clicks (loaded by app/gui/assets.py).
 //
 // window.aerialreg.send(kind, value) delivers {kind, value} to the app: it sets the value of a
 // hidden text widget (uuid __CHANNEL__) through the viser client's private

@@ -17,12 +17,12 @@ import pytest
 
 viser = pytest.importorskip("viser")
 
-from app import scene2d  # noqa: E402
-from app.project import Project, write_atomic  # noqa: E402
-from app.security import make_server  # noqa: E402
-from app.server import App  # noqa: E402
-from app.state import AppState  # noqa: E402
-from app.worker import LatestWorker  # noqa: E402
+from app.gui import scene2d  # noqa: E402
+from app.gui.project import Project, write_atomic  # noqa: E402
+from app.gui.security import make_server  # noqa: E402
+from app.gui.server import App  # noqa: E402
+from app.gui.state import AppState  # noqa: E402
+from app.gui.worker import LatestWorker  # noqa: E402
 from registration.lens import HarrisModel  # noqa: E402
 from registration.render import viz  # noqa: E402
 
@@ -338,9 +338,9 @@ def test_seed_clicks_are_raw_pixels_replace_and_undo(tmp_path, small_seq, make_a
     assert fg.render_size[1] == pytest.approx(bg.render_size[1])
     assert set(seed.scene.markers) == {("frame", 1), ("base", 1)}
     # Undo takes back the last click, then the one before.
-    seed.seed_edit("Undo")
+    seed.undo()
     assert app.state.seed_base == pytest.approx((300.5, 250.0))
-    seed.seed_edit("Undo")
+    seed.undo()
     assert app.state.seed_base is None and app.state.seed_frame is not None
     # A second pair: heading and scale from the two pairs are shown at once.
     click(app, seed.scene.planes["base"], (300.0, 250.0))
@@ -410,14 +410,14 @@ def test_seed_heading_typed_correction_and_failure_reason(tmp_path, small_seq, m
     seed.place_seed("base", tuple(np.array(app.state.seed2_base) + (0.0, 30.0)), pair=2)
     assert app.state.seed2_typed is None and "(typed)" not in seed.panel.seed_md.content
     # A click that contradicts the registration found: the reason, prominently.
-    seed.seed_edit("Clear pair 2")
+    seed.clear_pair2()
     seed.place_seed("base", tuple(bxy + (150.0, 0.0)), pair=1)
     c = coarse()
     assert not c and "check the click" in c.reason
     assert "Coarse step failed" in seed.panel.alert.content
     assert "check the click" in seed.panel.alert.content
     # The saved fit keeps what the panel shows (heading, gate outline) across a restart.
-    from app.project import REFERENCE_FILE, reference_from_file
+    from app.gui.project import REFERENCE_FILE, reference_from_file
 
     seed.place_seed("base", tuple(bxy), pair=1)
     good = coarse()
@@ -441,7 +441,7 @@ def test_seed_drop_moves_the_fit(fitted):
     assert after is not before and after.key["seed"][2:] == pytest.approx(list(bxy + (6.0, -4.0)))
     assert after.coarse and after.fine
     # The drop can be undone, which brings the earlier seed back.
-    seed.seed_edit("Undo")
+    seed.undo()
     assert app.state.seed_base == pytest.approx(tuple(bxy))
     assert np.isfinite(b0).all()
 
@@ -469,7 +469,7 @@ def test_control_points_disable_worst_manual_and_export(fitted):
     # A manual point at the true position of a frame point joins the fit.
     w, h = app.inputs.frame_size
     fxy = np.array([[200.0, 150.0]])
-    seed.bulk_action("Add manual")
+    seed.points.toggle_manual()
     corrected = HarrisModel(truth.gamma, w, h).corrected_from_raw(fxy)[0]
     click(app, seed.scene.planes["frame"], corrected)
     click(app, seed.scene.planes["base"], truth.frame_to_base(0, fxy)[0])
@@ -478,7 +478,7 @@ def test_control_points_disable_worst_manual_and_export(fitted):
     assert "manual" in t2.source and t2.n_enabled == t1.n_enabled + 1
     assert t2.residual[t2.source.index("manual")] < 2.0
     # Undo removes the manual point again.
-    seed.seed_edit("Undo")
+    seed.undo()
     app.worker.wait_idle()
     assert "manual" not in seed.table.source
     # Export as QGIS .points: the header, and raw (x, y) -> (x + 0.5, -(y + 0.5)).
@@ -566,7 +566,7 @@ def test_sequence_plot_jump_failed_list_and_rerun(registered):
     seq.load_result(app.project.result_dir)
     seq.refresh_text()
     assert "too few matches &lt;b&gt;" in seq.panel.failed_html.content
-    seq.jump("next failed")
+    seq.jump_to_next_failed()
     assert app.state.seq_frame == 3
     # The frame's control points (read-only) are listed for the frame shown.
     seq.set_frame(1)
@@ -588,7 +588,7 @@ def test_sequence_text_follows_the_seed(tmp_path, small_seq, make_app):
     click(app, seed.scene.planes["frame"], (100.0, 100.0))
     click(app, seed.scene.planes["base"], (300.0, 300.0))
     assert "no seed" not in seq.panel.run_md.content and "seeded" in seq.panel.run_md.content
-    assert "✓ seeded" in app.steps_md.content and "▶ Seed" in app.mode_buttons.options
+    assert "✓ seeded" in app.header.steps_md.content and "▶ Seed" in app.header.mode_buttons.options
 
 
 def test_evaluate_pending_proposals_count_nowhere(registered):
@@ -628,11 +628,11 @@ def test_evaluate_pending_proposals_count_nowhere(registered):
     res = ev.mark_residuals()
     assert res[("NW", 0)] == pytest.approx(0.0) and res[("NW", 2)] < 3.0
     # Table 2 is downloadable (CSV and markdown) and saved.
-    assert ev.download_table("CSV") and ev.download_table("Markdown")
+    assert ev.download_table("csv") and ev.download_table("markdown")
     assert (app.project.folder / "TABLE2.csv").exists() and (
         app.project.folder / "TABLE2.md"
     ).exists()
-    assert "✓ evaluated" in app.steps_md.content
+    assert "✓ evaluated" in app.header.steps_md.content
     # The mean anchor is a control of the app (the library's hint names it).
     ev.panel.anchor.value = "mean"
     assert app.state.anchor == "mean"
@@ -822,7 +822,7 @@ def test_one_project_per_opening(tmp_path, small_seq):
     the uploads; the upload alone does not open anything."""
     data = tmp_path / "data"
     server = make_server("127.0.0.1", 0, verbose=False)
-    from app.project import default_project_dir
+    from app.gui.project import default_project_dir
 
     app = App(
         server,
@@ -862,7 +862,7 @@ def test_one_project_per_opening(tmp_path, small_seq):
 
 
 def test_job_progress_reports_time_left():
-    from app.worker import Job
+    from app.gui.worker import Job
 
     seen = []
     job = Job("register", seen.append)
@@ -878,8 +878,77 @@ def test_job_progress_reports_time_left():
     assert len(seen) == 2 and job.fraction == pytest.approx(0.2)
 
 
+def test_app_is_what_the_views_see(tmp_path, small_seq, make_app):
+    """The app offers every member of the views' context protocol (views type against it and
+    never import the server)."""
+    from app.gui.context import ViewContext
+
+    app = make_app(tmp_path / "proj", small_seq)
+    members = [n for n in vars(ViewContext) if not n.startswith("_")]
+    members += list(ViewContext.__annotations__)
+    assert len(members) > 15 and [n for n in members if not hasattr(app, n)] == []
+    assert all(view.ctx is app for view in app.views.values())
+
+
+def test_nothing_is_written_while_the_state_lock_is_held(tmp_path, small_seq, monkeypatch):
+    """Every file the app writes (project.json, LINES.json, POINTS.csv, ...) is written with the
+    state's lock free: callbacks and the worker never wait for the disk."""
+    from app.gui import project as project_module
+
+    # A session that sets every view's widgets when the inputs open (their callbacks save).
+    Project(tmp_path / "proj").save(
+        {"overlay": "checkerboard", "opacity": 0.3, "stage": "global", "seq_frame": 2}
+    )
+    app = App(
+        make_server("127.0.0.1", 0, verbose=False),
+        Project(tmp_path / "proj"),
+        frames=str(small_seq / "frames"),
+        base=str(small_seq / "base.png"),
+        allowed_dirs=[tmp_path, small_seq],
+    )
+    writes: list[tuple[str, bool]] = []
+    write_atomic_ = project_module.write_atomic
+
+    def watched(path, data):
+        writes.append((Path(path).name, app.state.lock._is_owned()))
+        write_atomic_(path, data)
+
+    monkeypatch.setattr(project_module, "write_atomic", watched)
+    try:
+        app.start()
+        _use_every_view(app)
+    finally:
+        app.stop()
+    names = {name for name, _ in writes}
+    assert {"project.json", "LINES.json", "POINTS.csv"} <= names, names
+    assert [name for name, held in writes if held] == []
+
+
+def _use_every_view(app) -> None:
+    """Decisions in every view that save something (no fits: quick)."""
+    app.worker.wait_idle()
+    cal = app.views["Calibrate"]
+    cal.panel.gamma_number.value = 0.7
+    for xy in ([60.0, 40.0], [160.0, 60.0], [250.0, 80.0]):
+        click(app, cal.scene.planes["frame"], xy)
+    cal.finish_line()
+    app.set_mode("Seed")
+    seed = app.views["Seed"]
+    seed.panel.auto_fit.value = False
+    click(app, seed.scene.planes["frame"], (100.0, 80.0))
+    click(app, seed.scene.planes["base"], (300.0, 250.0))
+    seed.undo()
+    app.set_mode("Evaluate")
+    ev = app.views["Evaluate"]
+    click(app, ev.scene.planes["frame"], (50.0, 60.0))
+    ev.set_frame(1)
+    app.set_mode("Sequence")
+    app.views["Sequence"].set_frame(1)
+    app.worker.wait_idle()
+
+
 def test_undo_restores_seeds_and_edits():
-    from app.controlpoints import Edits
+    from app.gui.controlpoints import Edits
 
     st = AppState()
     st.push_undo()
@@ -896,7 +965,7 @@ def test_upload_does_not_open_an_unchecked_path(tmp_path, small_seq, make_app):
     outside = tmp_path / "outside"
     outside.mkdir()
     (outside / "f.png").write_bytes((small_seq / "base.png").read_bytes())
-    app.frames_text.value = str(outside / "*.png")
+    app.inputs_panel.frames_text.value = str(outside / "*.png")
 
     class Upload:
         name = "base.png"
@@ -912,7 +981,7 @@ def test_upload_does_not_open_an_unchecked_path(tmp_path, small_seq, make_app):
 
 
 def test_serve_allows_only_named_folders(tmp_path, small_seq, monkeypatch):
-    from app.server import serve
+    from app.gui.launch import serve
 
     monkeypatch.chdir(tmp_path)
     app = serve(
@@ -926,7 +995,7 @@ def test_serve_allows_only_named_folders(tmp_path, small_seq, monkeypatch):
         roots = app.allowed_roots()
         assert Path.cwd().resolve() not in roots and small_seq.resolve() in roots
         assert app.server.origin_policy is not None  # handshakes are checked
-        app.frames_text.value = str(tmp_path / "x.png")
+        app.inputs_panel.frames_text.value = str(tmp_path / "x.png")
         (tmp_path / "x.png").write_bytes(b"x")
         app.open_paths_from_gui(None)
         assert "outside the allowed folders" in app.errors[-1]

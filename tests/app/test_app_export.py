@@ -27,7 +27,7 @@ CRS = "EPSG:32643"
 @pytest.fixture(scope="module")
 def registered_dir(small_seq, tmp_path_factory):  # noqa: F811
     """The small sequence registered with a seed at the truth (plain base)."""
-    from app import calls
+    from app.gui import calls
     from registration.io import frames, images
     from registration.run import pipeline
     from registration.synth import load_truth
@@ -63,9 +63,9 @@ def tif_base(small_seq, tmp_path_factory):  # noqa: F811
 def open_registered(tmp_path, small_seq, registered_dir):  # noqa: F811
     """``open(base)``: an app on the frames and ``base`` whose project holds the registered
     result, Sequence view shown."""
-    from app.project import Project
-    from app.security import make_server
-    from app.server import App
+    from app.gui.project import Project
+    from app.gui.security import make_server
+    from app.gui.server import App
 
     apps = []
 

@@ -8,8 +8,8 @@ import json
 import numpy as np
 import pytest
 
-from app import assets, controlpoints, scene2d
-from app.controlpoints import Edits
+from app.gui import assets, controlpoints, scene2d
+from app.gui.controlpoints import Edits
 from registration.geometry import PolyProjective, Projective
 from registration.lens import HarrisModel
 
@@ -177,7 +177,7 @@ def test_static_assets_and_event_channel():
 
 
 def test_second_seed_from_typed_heading_round_trips():
-    from app import calls
+    from app.gui import calls
 
     rng = np.random.default_rng(5)
     size = (640, 480)
@@ -198,7 +198,7 @@ def test_second_seed_from_typed_heading_round_trips():
 def test_job_runner_reports_start_before_a_job_that_ends_at_once():
     """A job that finishes before ``start`` returns (an export refused at once) must not have
     its finish overtaken by its start: the app's header would show a job that is not running."""
-    from app.worker import JobRunner
+    from app.gui.worker import JobRunner
 
     events = []
     runner = JobRunner(

@@ -1,4 +1,4 @@
-"""In-process tests of the app's security guards (app/security.py), one per finding of issue 12.
+"""In-process tests of the app's security guards (app/gui/security.py), one per finding of issue 12.
 
 The viser hooks are exercised through the real wire: a websockets client speaking viser's
 protocol (msgpack messages), raw HTTP requests with chosen headers, a real ``ViserServer``.
@@ -18,8 +18,8 @@ viser = pytest.importorskip("viser")
 msgspec = pytest.importorskip("msgspec")
 ws_client = pytest.importorskip("websockets.sync.client")
 
-from app import security  # noqa: E402
-from app.security import OriginPolicy, escape_md, resolve_allowed  # noqa: E402
+from app.gui import security  # noqa: E402
+from app.gui.security import OriginPolicy, escape_md, resolve_allowed  # noqa: E402
 
 SUBPROTOCOL = f"viser-v{viser.__version__}"
 
@@ -248,7 +248,7 @@ def test_upload_limit_enforced_while_receiving(guarded):
 
 
 def test_bound_address_names_the_wildcard():
-    from app.server import bound_address
+    from app.gui.launch import bound_address
 
     assert bound_address("127.0.0.1", 8080) == "serving http://127.0.0.1:8080"
     text = bound_address("0.0.0.0", 8080)
@@ -256,7 +256,7 @@ def test_bound_address_names_the_wildcard():
 
 
 def test_uploads_are_pruned_when_no_input_refers_to_them(tmp_path):
-    from app.project import Project
+    from app.gui.project import Project
 
     project = Project(tmp_path / "proj")
     old = project.write_file("uploads/frames-old.mp4", b"x")

@@ -1,7 +1,11 @@
 """The house's rules, read from the code's own import statements (every ``import`` and ``from ...
 import``, also those inside functions): ``registration``'s packages are layered, lower layers
 never import higher ones, no module imports itself back through others, and the library never
-imports the app or viser."""
+imports the app or viser. In the app: the browser app (``app.gui``) never imports the command
+line (``app.cli``), which starts it only from its ``app`` subcommand; views see the app only
+through the context protocol (never the server), never import each other, and touch widgets
+only through their panels. Each rule is checked by a function that a planted breach makes fail.
+"""
 
 from __future__ import annotations
 
@@ -168,3 +172,136 @@ def test_the_library_never_imports_the_app_or_viser():
         [sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, check=True
     )
     assert out.stdout.strip() == "[]"
+
+
+# ------------------------------------------------------------------------------------------
+# The app: the command line and the browser app apart, views behind the context protocol.
+
+SHARED_VIEW_PARTS = ("base", "widgets", "cptable")
+"""Modules of ``app.gui.views`` every view may use (not views themselves)."""
+PANEL_MODULES = ("panel", "export_panel", "widgets")
+"""Modules of ``app.gui.views`` that own viser widgets (the only ones that read their values)."""
+
+
+def _under(module: str, package: str) -> bool:
+    return module == package or module.startswith(package + ".")
+
+
+def _app_graph() -> dict[str, set[str]]:
+    mods = _modules("app")
+    return {name: set(_imports(path, mods)) for name, path in mods.items()}
+
+
+def _breaches(
+    graph: dict[str, set[str]], importer: str, forbidden: str, allowed: tuple[str, ...] = ()
+) -> list[str]:
+    """``"a imports b"`` for modules ``a`` under ``importer`` (but not in ``allowed``) that
+    import a module under ``forbidden``."""
+    return sorted(
+        f"{a} imports {b}"
+        for a, targets in graph.items()
+        if _under(a, importer) and a not in allowed
+        for b in targets
+        if _under(b, forbidden)
+    )
+
+
+def _view_of(module: str) -> str | None:
+    """The view a module belongs to (``app.gui.views.seed.panel`` -> ``seed``); None for the
+    shared parts and modules outside the views."""
+    parts = module.split(".")
+    if parts[:3] != ["app", "gui", "views"] or len(parts) < 4 or parts[3] in SHARED_VIEW_PARTS:
+        return None
+    return parts[3]
+
+
+def _views_importing_views(graph: dict[str, set[str]]) -> list[str]:
+    return sorted(
+        f"{a} imports {b}"
+        for a, targets in graph.items()
+        if _view_of(a) is not None
+        for b in targets
+        if _view_of(b) is not None and _view_of(b) != _view_of(a)
+    )
+
+
+def _widget_values(source: str) -> list[int]:
+    """Lines where ``source`` reads or writes an attribute ``value`` or ``content`` (a raw viser
+    handle's)."""
+    return sorted(
+        node.lineno
+        for node in ast.walk(ast.parse(source))
+        if isinstance(node, ast.Attribute) and node.attr in ("value", "content")
+    )
+
+
+def test_the_gui_never_imports_the_cli():
+    graph = _app_graph()
+    assert _breaches(graph, "app.gui", "app.cli") == []
+    # The command line starts the browser app from its ``app`` subcommand only.
+    assert _breaches(graph, "app.cli", "app.gui", allowed=("app.cli.commands.app",)) == []
+    # What both share imports neither.
+    shared = {
+        m: t for m, t in graph.items() if not _under(m, "app.cli") and not _under(m, "app.gui")
+    }
+    assert _breaches(shared, "app", "app.cli") + _breaches(shared, "app", "app.gui") == []
+
+
+def _views_importing_the_app(graph: dict[str, set[str]]) -> list[str]:
+    """Views importing the server, or the package that hands it out (``from app.gui import
+    App``): they see the app only as ``app.gui.context.ViewContext``."""
+    wrong = _breaches(graph, "app.gui.views", "app.gui.server")
+    wrong += [
+        f"{a} imports app.gui"
+        for a, targets in graph.items()
+        if _under(a, "app.gui.views") and "app.gui" in targets
+    ]
+    return sorted(wrong)
+
+
+def test_views_see_the_app_only_through_the_context():
+    graph = _app_graph()
+    assert _views_importing_the_app(graph) == []
+    assert "app.gui.context" in graph["app.gui.views.base"]
+
+
+def test_views_never_import_each_other():
+    assert _views_importing_views(_app_graph()) == []
+
+
+def test_views_touch_widgets_only_through_their_panels():
+    wrong = [
+        f"{path.relative_to(REPO)}:{line}"
+        for name, path in _modules("app/gui/views").items()
+        if name.split(".")[-1] not in PANEL_MODULES
+        for line in _widget_values(path.read_text())
+    ]
+    assert wrong == []
+
+
+def test_app_rules_find_planted_breaches():
+    graph = {
+        "app.gui.server": {"app.gui.views.seed.view", "app.cli.common"},
+        "app.gui.views.seed.view": {"app.gui.server", "app.gui.views.sequence.frames"},
+        "app.gui.views.seed.panel": {"app.gui.views.cptable.panel", "app.gui.views.widgets"},
+        "app.cli.commands.app": {"app.gui"},
+        "app.cli.commands.register": {"app.gui.project"},
+        "app.client": {"app.gui"},
+    }
+    assert _breaches(graph, "app.gui", "app.cli") == ["app.gui.server imports app.cli.common"]
+    assert _breaches(graph, "app.cli", "app.gui", allowed=("app.cli.commands.app",)) == [
+        "app.cli.commands.register imports app.gui.project"
+    ]
+    assert _views_importing_the_app(graph) == ["app.gui.views.seed.view imports app.gui.server"]
+    assert _views_importing_the_app({"app.gui.views.evaluate.view": {"app.gui"}}) == [
+        "app.gui.views.evaluate.view imports app.gui"
+    ]
+    assert _views_importing_views(graph) == [
+        "app.gui.views.seed.view imports app.gui.views.sequence.frames"
+    ]
+    assert _widget_values(
+        "x = panel.gamma_slider.value\npanel.md.content = 'a'\ny = panel.gamma\n"
+    ) == [
+        1,
+        2,
+    ]

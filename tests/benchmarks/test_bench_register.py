@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from app.cli import main as cli_main
-from app.commands.bench import PROFILE_RUNS
+from app.cli.commands.bench import PROFILE_RUNS
 from benchmarks.register import our_runs, tenths
 from registration.run import get_preset
 from registration.synth import PROFILES

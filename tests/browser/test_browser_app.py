@@ -32,9 +32,9 @@ pytestmark = [
 viser = pytest.importorskip("viser")
 playwright_api = pytest.importorskip("playwright.sync_api")
 
-from app.project import Project  # noqa: E402
-from app.security import make_server  # noqa: E402
-from app.server import App  # noqa: E402
+from app.gui.project import Project  # noqa: E402
+from app.gui.security import make_server  # noqa: E402
+from app.gui.server import App  # noqa: E402
 from registration.lens import HarrisModel  # noqa: E402
 from tests.app.test_app import small_seq  # noqa: E402,F401  (session fixture: 4 frames 640x480)
 
@@ -239,7 +239,7 @@ JS_CANVAS_CENTRE = """() => { const r = window.__viserMutable.canvas.getBounding
 def zoom_to(app: App, geom, xy, span_px: float = 200.0, page=None, node=None) -> None:
     """Point every client's camera at pixel ``xy`` of a plane, ``span_px`` image px across;
     with ``page`` and the plane's ``node``, wait until that browser shows ``xy`` at the centre."""
-    from app import scene2d
+    from app.gui import scene2d
 
     centre = geom.world_from_pixel(np.asarray(xy, float))
     region = scene2d.PlaneGeometry(int(span_px), int(span_px * 0.75), position=tuple(centre))
@@ -454,7 +454,7 @@ def turned_seq(small_seq, tmp_path_factory):  # noqa: F811
 def test_one_click_on_a_turned_map_shows_heading_and_second_pair_fixes_it(
     browser, turned_seq, tmp_path
 ):
-    from app import calls
+    from app.gui import calls
     from registration.synth import load_truth
     from tests.app.test_app import angle_gap, heading_shown, true_heading
 

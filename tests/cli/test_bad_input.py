@@ -968,8 +968,8 @@ def test_app_register_all_after_opening_other_inputs_recomputes(sims, tmp_path):
     """Register A, open B (same shape) in the same project, "Register all frames": B's frames are
     registered, not A's result shown as B's (issue 12)."""
     viser = pytest.importorskip("viser")
-    from app.project import Project
-    from app.server import App
+    from app.gui.project import Project
+    from app.gui.server import App
 
     a, b = sims
     server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)

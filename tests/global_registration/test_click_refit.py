@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 import pytest
 
-from app.project import reference_from_file, reference_to_bytes
+from app.gui.project import reference_from_file, reference_to_bytes
 from registration.global_registration import FineConfig, coarse_register, fine_register_reference
 from registration.run import get_preset
 from tests.conftest import shared_data

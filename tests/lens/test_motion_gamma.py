@@ -119,7 +119,7 @@ def test_calibrate_command_from_frames(sim_seq, capsys):
 def test_register_gamma_auto_estimates_from_the_frames(global_shutter_sim, capsys):
     """``register --gamma auto``: γ from the flight's motion, reported on standard error."""
     from app.cli import UsageError
-    from app.commands.register import gamma_from_motion, parse_gamma
+    from app.cli.commands.register import gamma_from_motion, parse_gamma
     from registration.io import open_frames
 
     assert parse_gamma("auto") is None and parse_gamma(" AUTO ") is None

@@ -74,7 +74,7 @@ def test_chunk_plan_zero_is_one_chain_in_processing_order():
 
 def test_default_chunk_size_and_suites_agree_with_their_sources():
     import benchmarks
-    from app.commands import bench, register
+    from app.cli.commands import bench, register
     from registration.run import dask_executor
 
     assert register.DEFAULT_CHUNK_FRAMES == dask_executor.DEFAULT_CHUNK_FRAMES

@@ -62,7 +62,7 @@ def test_installed_layout_finds_its_assets_outside_the_checkout(wheel, tmp_path)
     zipfile.ZipFile(wheel).extractall(site)
     env = dict(os.environ, PYTHONPATH=str(site))
     probe = (
-        "import app, app.assets as a, app.server, app.views.export;"
+        "import app, app.gui.assets as a, app.gui.server, app.gui.views.sequence.export;"
         "print(app.__file__); print(a.STATIC_DIR);"
         "print(all(len(a.read_asset(n)) > 0 for n in a.ASSETS))"
     )

@@ -1,0 +1,183 @@
+"""The control-point table's widgets (Seed view: the reference frame, editable; Sequence view: the
+frame under the scrubber, read-only): a summary, a page of rows as a clickable HTML table, the
+selected point's actions, export as QGIS ``.points``.
+
+Clicking a row sends ``("cp-select:<scope>", id)`` through the app's event channel
+(``static/events.js``); the "Point id" box does the same without the script.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from app.gui.context import Client
+from app.gui.controlpoints import SORTS, ControlPointTable
+from app.gui.security import escape_md
+from app.gui.views.widgets import ClientCallback, on_change, on_choice, on_press
+
+PAGE_ROWS = 25
+
+
+def _fmt(v: float, digits: int = 1) -> str:
+    return "–" if not np.isfinite(v) else f"{v:.{digits}f}"
+
+
+def table_html(table: ControlPointTable, positions, selected: int | None, scope: str) -> str:
+    """An HTML table of the rows at ``positions`` (clickable; the selected row highlighted)."""
+    head = "".join(
+        f"<th>{h}</th>"
+        for h in ("id", "frame x", "frame y", "map x", "map y", "dx", "dy", "res.", "source", "on")
+    )
+    rows = []
+    res = table.residual
+    for i in positions:
+        rid = int(table.ids[i])
+        cls = []
+        if rid == selected:
+            cls.append("selected")
+        if not table.enabled[i]:
+            cls.append("off")
+        fx, fy = table.frame_xy[i]
+        bx, by = table.base_xy[i]
+        dx, dy = table.residual_xy[i]
+        cells = (
+            f"<td>{rid}</td><td>{_fmt(fx)}</td><td>{_fmt(fy)}</td><td>{_fmt(bx)}</td>"
+            f"<td>{_fmt(by)}</td><td>{_fmt(dx, 2)}</td><td>{_fmt(dy, 2)}</td>"
+            f"<td>{_fmt(res[i], 2)}</td><td style='text-align:left'>{escape_md(table.source[i])}</td>"
+            f"<td>{'✓' if table.enabled[i] else '✗'}</td>"
+        )
+        rows.append(
+            f'<tr data-row="{rid}" class="{" ".join(cls)}" '
+            f"onclick=\"window.aerialreg && window.aerialreg.send('cp-select:{scope}', {rid})\">"
+            f"{cells}</tr>"
+        )
+    return (
+        '<div class="aerialreg-scroll"><table class="aerialreg-table">'
+        f"<thead><tr>{head}</tr></thead><tbody>{''.join(rows)}</tbody></table></div>"
+    )
+
+
+class ControlPointPanel:
+    """Widgets of one control-point table (build inside a folder)."""
+
+    def __init__(self, gui, *, editable: bool, scope: str) -> None:
+        self.scope = scope
+        self.editable = editable
+        self.summary = gui.add_markdown("No control points yet.")
+        self.sort = gui.add_dropdown("Sort by", SORTS, initial_value=SORTS[0])
+        self.page = gui.add_button_group("Rows", ("◀ previous", "next ▶"))
+        self.table = gui.add_html("")
+        self.selected = gui.add_number("Point id", -1, min=-1, step=1)
+        options = ("Centre", "Enable / disable", "Delete") if editable else ("Centre",)
+        self.actions = gui.add_button_group("Selected point", options)
+        if editable:
+            self.bulk = gui.add_button_group(
+                "Points", ("Disable worst", "Add manual", "Reset edits")
+            )
+            self.manual_md = gui.add_markdown("")
+        self.export = gui.add_button("Export control points (.points)")
+        self.offset = 0  # position of the first row shown, in the sorted order
+
+    # ---------------------------------------------------------------- callbacks
+    def on_sort_changed(self, callback: ClientCallback) -> None:
+        self.sort.on_update(lambda event: callback(event.client))
+
+    def on_page(self, callback: Callable[[int, Client], None]) -> None:
+        """``callback(direction, client)``: -1 for the previous page, +1 for the next."""
+        on_choice(
+            self.page,
+            {
+                "◀ previous": lambda client: callback(-1, client),
+                "next ▶": lambda client: callback(1, client),
+            },
+        )
+
+    def on_select(self, callback: Callable[[int, Client], None]) -> None:
+        """``callback(row id, client)`` when the analyst types a point id."""
+        on_change(self.selected, int, callback)
+
+    def on_point_actions(
+        self,
+        *,
+        centre: ClientCallback,
+        toggle: ClientCallback | None = None,
+        delete: ClientCallback | None = None,
+    ) -> None:
+        """The selected point's buttons (``toggle`` and ``delete`` of an editable table)."""
+        actions = {"Centre": centre}
+        if self.editable:
+            actions.update({"Enable / disable": toggle, "Delete": delete})
+        on_choice(self.actions, {k: v for k, v in actions.items() if v is not None})
+
+    def on_edits(
+        self,
+        *,
+        disable_worst: ClientCallback,
+        add_manual: ClientCallback,
+        reset: ClientCallback,
+    ) -> None:
+        """The editable table's buttons for all points."""
+        on_choice(
+            self.bulk,
+            {"Disable worst": disable_worst, "Add manual": add_manual, "Reset edits": reset},
+        )
+
+    def on_export(self, callback: ClientCallback) -> None:
+        on_press(self.export, callback)
+
+    # ---------------------------------------------------------------- values
+    @property
+    def sort_key(self) -> str:
+        """How rows are sorted (one of :data:`app.gui.controlpoints.SORTS`)."""
+        return str(self.sort.value)
+
+    @property
+    def selected_id(self) -> int:
+        """The id in the "Point id" box (-1: none)."""
+        return int(self.selected.value)
+
+    @selected_id.setter
+    def selected_id(self, row_id: int) -> None:
+        self.selected.value = int(row_id)
+
+    def show_manual_hint(self, text: str) -> None:
+        """What to click next while a manual point is being added ("" otherwise)."""
+        self.manual_md.content = text
+
+    def show(self, table: ControlPointTable | None, selected: int | None, note: str = "") -> None:
+        """Show ``table`` (None: nothing to show) with ``selected`` highlighted."""
+        if table is None or not len(table.ids):
+            self.summary.content = note or "No control points yet."
+            self.table.content = ""
+            return
+        order = table.order(self.sort_key)
+        n = len(order)
+        self.offset = int(np.clip(self.offset, 0, max(n - 1, 0) // PAGE_ROWS * PAGE_ROWS))
+        page = order[self.offset : self.offset + PAGE_ROWS]
+        model = getattr(table.model, "degree", None)
+        kind = {1: "projective"}.get(model, f"polyprojective {model}") if model else "no model"
+        text = (
+            f"**{n}** points, **{table.n_enabled}** enabled; RMS of the enabled "
+            f"**{_fmt(table.rms, 3)} px** ({kind}); rows {self.offset + 1}-"
+            f"{self.offset + len(page)} of {n}, sorted by {escape_md(self.sort_key)}"
+        )
+        if table.reason:
+            text += f"  \n**Fit failed:** {escape_md(table.reason)}"
+        if note:
+            text += f"  \n{note}"
+        self.summary.content = text
+        self.table.content = table_html(table, page, selected, self.scope)
+
+    def offset_for(self, table: ControlPointTable, row_id: int) -> int | None:
+        """The page offset that shows ``row_id`` (the table jumps to a selected point)."""
+        order = table.order(self.sort_key)
+        pos = np.flatnonzero(table.ids[order] == int(row_id))
+        if not len(pos):
+            return None
+        return int(pos[0]) // PAGE_ROWS * PAGE_ROWS
+
+    def turn(self, direction: int, n_rows: int) -> None:
+        self.offset = int(np.clip(self.offset + direction * PAGE_ROWS, 0, max(n_rows - 1, 0)))
+        self.offset -= self.offset % PAGE_ROWS
