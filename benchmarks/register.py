@@ -46,9 +46,9 @@ def _stat_times(result) -> dict[str, float]:
     out = {}
     for stage in STAGES:
         values = [
-            r["stats"]["time_s"].get(stage)
+            r.stats["time_s"].get(stage)
             for k, r in enumerate(result.records)
-            if r.get("status") == "ok" and k != result.reference_frame
+            if r.status == "ok" and k != result.reference_frame
         ]
         values = [v for v in values if v is not None]
         out[stage] = float(np.mean(values)) if values else float("nan")
@@ -101,9 +101,9 @@ def _evaluate(result, truth) -> dict:
 def _kept_share(result) -> dict[str, float]:
     """Share of its control points REQCON kept, mean and lowest over the registered frames."""
     shares = [
-        r["stats"]["n_inliers"] / r["stats"]["n_control_points"]
+        r.stats["n_inliers"] / r.stats["n_control_points"]
         for r in result.records
-        if r.get("status") == "ok" and r["stats"].get("n_control_points")
+        if r.status == "ok" and r.stats.get("n_control_points")
     ]
     if not shares:
         return {"mean": float("nan"), "min": float("nan")}
@@ -142,13 +142,13 @@ def _run_ours(key, config, overlap, seq, out) -> dict:
     )  # fmt: skip
     elapsed = time.perf_counter() - t1
     sys.stderr.write(f"bench register: {key} {elapsed:.1f} s\n")
-    paths = [r.get("stats", {}).get("coarse_path") for r in result.records]
+    paths = [r.stats.get("coarse_path") for r in result.records]
     return {
         "times": _stat_times(result) | {"marginal": _marginal(stamps, result)},
         **_evaluate(result, seq.truth),
         "wall_s": elapsed,
         "fast_coarse_frames": sum(p == "fast" for p in paths),
-        "failed_frames": sum(1 for r in result.records if r.get("status") != "ok"),
+        "failed_frames": sum(1 for r in result.records if r.status != "ok"),
         "reqcon_kept": _kept_share(result),
     }
 

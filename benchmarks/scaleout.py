@@ -87,7 +87,7 @@ def run(args) -> dict:
             "fps": n / (t2 - t1),
             "fps_after_reference": (n - 1) / after_ref if after_ref > 0 else float("nan"),
             "error_px": _error(result, truth, grid),
-            "n_failed": sum(r.get("status") != "ok" for r in result.records),
+            "n_failed": sum(r.status != "ok" for r in result.records),
             "result": result,
         }
         sys.stderr.write(f"bench scaleout: {name} {row['wall_s']:.1f} s\n")

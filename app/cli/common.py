@@ -72,11 +72,31 @@ def _json_default(o):
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
+# What the user can do about a library error (registration.errors.REMEDIES), in the command
+# line's words.
+CLI_REMEDIES = {
+    "another_folder": "give a new or empty folder for --out",
+    "continue_or_restart": (
+        "pass --resume to continue it, --force to start over, or choose another folder"
+    ),
+    "restart": "use another --out or --force to start over",
+    "wait": "wait for it or use another --out",
+    "another_reference_frame": "choose another --reference-frame",
+    "georeference": "give its georeference (a GeoTIFF or world file) with --georef",
+    "overwrite": "pass --force to overwrite",
+    "resume": "`aerialreg register --resume` redoes them",
+    "click": "give one with --seed FX,FY,BX,BY",
+}
+
+
 def error_line(exc: BaseException) -> str:
-    """One line describing ``exc`` (an OSError as ``strerror: filename``)."""
+    """One line describing ``exc`` (an OSError as ``strerror: filename``; a library error with
+    what to do about it in the command line's words)."""
     text = str(exc).strip()
     if isinstance(exc, OSError) and exc.strerror and exc.filename:
         text = f"{exc.strerror}: {exc.filename}"
     elif isinstance(exc, OSError) and exc.strerror:
         text = exc.strerror
-    return text.splitlines()[0] if text else type(exc).__name__
+    line = text.splitlines()[0] if text else type(exc).__name__
+    remedy = CLI_REMEDIES.get(getattr(exc, "remedy", ""))
+    return f"{line}; {remedy}" if remedy else line

@@ -41,6 +41,7 @@ from app.gui import assets, scene2d, security
 from app.gui.context import Client
 from app.gui.header import HeaderPanel, InputsPanel
 from app.gui.inputs import Inputs
+from app.gui.messages import browser_message
 from app.gui.project import Project, default_project_dir, input_identity, upload_name
 from app.gui.security import escape_md, resolve_allowed
 from app.gui.state import MODES, AppState
@@ -614,7 +615,7 @@ class App:
         del self.errors[:-20]
 
     def _report_error(self, key: str, exc: BaseException) -> None:
-        self.notify(None, f"{key} failed", f"{type(exc).__name__}: {exc}", color="red")
+        self.notify(None, f"{key} failed", browser_message(exc), color="red")
 
     # ------------------------------------------------------------------ persistence
     def save(self, *, soon: bool = False) -> None:

@@ -227,7 +227,7 @@ class AppState:
         """Which of :data:`STEPS` are done."""
         ref = self.current_reference()
         r = self.result
-        statuses = [rec.get("status") for rec in r.records] if r is not None else []
+        statuses = [rec.status for rec in r.records] if r is not None else []
         return {
             "calibrated": bool(self.gamma_set),
             "seeded": self.seed is not None,

@@ -182,8 +182,8 @@ class EvaluationReport:
         if damaged:
             out.append("")
             out.append(
-                f"Frames with a damaged record (not evaluated; `aerialreg register --resume` "
-                f"redoes them): {', '.join(map(str, damaged))}"
+                f"Frames with a damaged record (not evaluated; resuming the registration redoes "
+                f"them): {', '.join(map(str, damaged))}"
             )
         return "\n".join(out) + "\n"
 
@@ -240,7 +240,7 @@ def _status(result: Any, k: int) -> str:
     if records is not None:
         try:
             return records[k].status
-        except (IndexError, AttributeError, TypeError):
+        except IndexError:
             return "ok"
     return "ok"
 

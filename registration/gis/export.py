@@ -44,6 +44,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from registration.errors import FilesExist, NotGeoreferenced
 from registration.gis.georef import GeoReference, aux_xml_text, esri_wkt, parse_crs, world_file_text
 from registration.gis.vector import (
     control_point_layer,
@@ -480,9 +481,10 @@ def _check_request(result, out: Path, formats: list[str], marks, options) -> Non
     """ValueError for a request that cannot be served, before anything is written."""
     needs_map = [f for f in formats if f in MAP_FORMATS]
     if needs_map and result.georef is None:
-        raise ValueError(
+        raise NotGeoreferenced(
             f"format {needs_map[0]!r} needs a georeferenced base map, and this result's base "
-            "is a plain image; give its georeference (a GeoTIFF or world file) with --georef"
+            "is a plain image",
+            out,
         )
     if not any(result.is_ok(k) for k in range(result.n_frames)):
         raise ValueError("no frame of the result is registered; nothing to export")
@@ -490,10 +492,7 @@ def _check_request(result, out: Path, formats: list[str], marks, options) -> Non
     if not options.force:
         existing = [f for f in files if f.exists()]
         if existing:
-            raise ValueError(
-                f"{existing[0]} exists ({len(existing)} of the {len(files)} files to write); "
-                "pass --force to overwrite"
-            )
+            raise FilesExist(existing[0], len(existing), len(files))
 
 
 def _check_frames(result, frames):

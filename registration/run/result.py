@@ -27,6 +27,7 @@ from numpy.typing import ArrayLike, NDArray
 from registration.coords import as_points
 from registration.gis import GeoReference
 from registration.lens import Camera
+from registration.errors import NotGeoreferenced
 from registration.mapping import _check_stage
 from registration.run.identity import _base_difference, _frames_difference, base_identity
 from registration.run.records import (
@@ -276,9 +277,10 @@ class RegistrationResult:
     # -- map coordinates (georeferenced base) --------------------------------------------------
     def _require_georef(self):
         if self.georef is None:
-            raise ValueError(
+            raise NotGeoreferenced(
                 f"the base map of {self.out_dir} is not georeferenced: no map coordinates "
-                "(register with a GeoTIFF or a world-file base, or export with --georef)"
+                "(register with a GeoTIFF or a world-file base)",
+                self.out_dir,
             )
         return self.georef
 

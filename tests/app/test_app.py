@@ -245,7 +245,7 @@ def registered(fitted):
     app.jobs.join(300)
     app.worker.wait_idle()
     r = app.state.result
-    assert r is not None and all(rec["status"] == "ok" for rec in r.records), app.errors
+    assert r is not None and all(rec.status == "ok" for rec in r.records), app.errors
     return app, truth, bxy
 
 
@@ -783,7 +783,7 @@ def test_sequence_cancel_resume_play_and_flicker(tmp_path, small_seq, make_app):
     app.jobs.request_cancel()
     app.jobs.join(120)
     app.worker.wait_idle()
-    statuses = [r["status"] for r in app.state.result.records]
+    statuses = [r.status for r in app.state.result.records]
     assert "pending" in statuses and statuses.count("ok") >= 1, statuses
     assert "Registration cancelled" in [n[0] for n in app.notices]
     done = {p.name: p.stat().st_mtime_ns for p in records.glob("*.json")}
@@ -791,7 +791,7 @@ def test_sequence_cancel_resume_play_and_flicker(tmp_path, small_seq, make_app):
     assert seq.run()
     app.jobs.join(300)
     app.worker.wait_idle()
-    assert all(r["status"] == "ok" for r in app.state.result.records), app.errors
+    assert all(r.status == "ok" for r in app.state.result.records), app.errors
     assert all((records / n).stat().st_mtime_ns == m for n, m in done.items())
     # Play advances the scrubber; pausing stops it.
     seq.set_frame(0)

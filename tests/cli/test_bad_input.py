@@ -413,7 +413,7 @@ def test_damaged_result_json_needs_force(sims, registered, tmp_path, capsys):
     assert_unchanged(before)
     code, _, err = cli(capsys, *register_args(sims[0], out), "--force")
     assert code == 0, err
-    assert registration.load(out).records[3]["status"] == "ok"
+    assert registration.load(out).records[3].status == "ok"
 
 
 # ------------------------------------------------------------------------------------------
@@ -433,7 +433,7 @@ def test_corrupt_frame_fails_alone_and_the_run_goes_on(sims, tmp_path, capsys):
     )
     res = registration.load(tmp_path / "out")
     truth = load_truth(sims[0])
-    assert [res.records[k]["status"] for k in range(N)] == ["ok", "ok", "failed", "ok", "ok", "ok"]
+    assert [res.records[k].status for k in range(N)] == ["ok", "ok", "failed", "ok", "ok", "ok"]
     # Frame 3 is registered against frame 1, the last good previous frame.
     assert truth_error(res, truth, 3) < 2.0
 
@@ -445,10 +445,8 @@ def test_frame_of_another_size_fails_naming_both_sizes(sims, tmp_path, capsys):
     code, _, err = cli(capsys, *register_args(sims[0], tmp_path / "out", frames))
     assert code == 0, err
     res = registration.load(tmp_path / "out")
-    assert res.records[3]["status"] == "failed"
-    assert (
-        "frame 3 is 400x300 pixels but the reference frame is 480x360" in res.records[3]["reason"]
-    )
+    assert res.records[3].status == "failed"
+    assert "frame 3 is 400x300 pixels but the reference frame is 480x360" in res.records[3].reason
     assert np.isnan(res.frame_to_base(3, [[100.0, 100.0]])).all()
     truth = load_truth(sims[0])
     assert truth_error(res, truth, 4) < 2.0 and truth_error(res, truth, 5) < 2.0
@@ -461,8 +459,8 @@ def test_frame_over_the_pixel_limit_fails_before_decoding(sims, tmp_path, capsys
     assert code == 0, err
     rec = registration.load(tmp_path / "out").records[4]
     assert (
-        rec["status"] == "failed"
-        and "20000x20000 pixels (400 MP) is over the limit of 100 MP" in rec["reason"]
+        rec.status == "failed"
+        and "20000x20000 pixels (400 MP) is over the limit of 100 MP" in rec.reason
     )
 
 
@@ -517,7 +515,7 @@ def test_damaged_records_are_reported_and_redone_by_resume(sims, registered, tmp
     # Missing or short files are seen at once; corruption inside the arrays when they are read.
     assert [res.status(k) for k in range(N)] == ["ok", "ok", "damaged", "damaged", "damaged", "ok"]
     assert np.isnan(res.frame_to_base(1, [[100.0, 100.0]], stage="local")).all()
-    assert res.status(1) == "damaged" and "000001.npz" in res.records[1]["reason"]
+    assert res.status(1) == "damaged" and "000001.npz" in res.records[1].reason
 
     code, _, err = cli(capsys, *register_args(sims[0], out), "--resume")
     assert code == 0, err
@@ -1002,9 +1000,7 @@ def test_app_register_all_after_opening_other_inputs_recomputes(sims, tmp_path):
             open_frames(a / "frames"), read_image(a / "base.png")
         )
         hashes = {hashlib.sha256(p.read_bytes()).hexdigest() for p in (b / "frames").glob("*.png")}
-        assert all(
-            r.get("input_sha256") in hashes for r in second.records if r["status"] != "pending"
-        )
+        assert all(r.input_sha256 in hashes for r in second.records if r.status != "pending")
         assert "Starting a new result" in [n[0] for n in app.notices]
     finally:
         app.stop()

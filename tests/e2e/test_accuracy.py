@@ -97,7 +97,7 @@ def _check_limits(figures: dict[str, float], measured: dict[str, float]) -> None
 
 
 def test_default_preset_every_stage_within_its_measured_error(default_result, default_report):
-    assert [r["status"] for r in default_result.records] == ["ok"] * default_result.n_frames
+    assert [r.status for r in default_result.records] == ["ok"] * default_result.n_frames
     _check_limits(_figures(default_report), DEFAULT)
 
 
@@ -110,10 +110,10 @@ def test_default_preset_reference_frame_stages(default_result, default_report):
     assert per["global"]["mean"] <= limit(DEFAULT["reference_global"])
     assert per["local"]["mean"] <= limit(DEFAULT["reference_local"])
     assert default_result.field(ref) is not None
-    assert default_result.records[ref]["stats"]["local"]["n_valid"] > 0
+    assert default_result.records[ref].stats["local"]["n_valid"] > 0
     # Measured 0.492 -> 0.403 px.
     assert per["local"]["mean"] < 0.9 * per["global"]["mean"]
-    assert default_result.records[ref]["stage"] == "inter-sensor"
+    assert default_result.records[ref].stage == "inter-sensor"
 
 
 def test_default_preset_local_stage_improves_every_frame(default_result, default_report):
@@ -133,7 +133,7 @@ def test_paper_preset_accuracy_on_a_short_sequence(paper_result, paper_report):
     """The paper's exact choices on the first three frames: every stage within its measured
     error, the local field lowering the motion, and the run recorded as the paper's
     configuration (not another preset's)."""
-    assert [r["status"] for r in paper_result.records] == ["ok"] * PAPER_FRAMES
+    assert [r.status for r in paper_result.records] == ["ok"] * PAPER_FRAMES
     assert paper_result.preset == "paper"
     assert paper_result.config == json.loads(json.dumps(config_to_dict(get_preset("paper"))))
     figures = _figures(paper_report)

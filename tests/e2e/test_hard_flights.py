@@ -79,7 +79,7 @@ def test_long_flight_does_not_drift(flight, tmp_path):
     intra-sensor frames drifts off (measured 7.7 px over the first 10, 719 px over the last)."""
     cfg = get_preset("default")
     result, err = _run(flight, tmp_path / "default", cfg)
-    assert all(r["status"] == "ok" for r in result.records)
+    assert all(r.status == "ok" for r in result.records)
     assert any(r.get("stage") == ANCHOR_STAGE for r in result.records)
     first, last = err[:10].mean(), err[-10:].mean()
     assert last <= 1.2 * first, f"first 10 {first:.2f} px, last 10 {last:.2f} px"
@@ -113,13 +113,13 @@ def test_paper_hard_flight_has_no_failed_frame(tmp_path):
         open_frames(sim / "frames"), read_image(sim / "base.png"), truth.gamma, tmp_path / "out",
         config=get_preset("default"), seed=seed,
     )  # fmt: skip
-    assert [k for k, r in enumerate(result.records) if r["status"] != "ok"] == []
-    kept = [r["stats"]["n_inliers"] / r["stats"]["n_control_points"] for r in result.records]
+    assert [k for k, r in enumerate(result.records) if r.status != "ok"] == []
+    kept = [r.stats["n_inliers"] / r.stats["n_control_points"] for r in result.records]
     assert np.mean(kept) >= 0.9 and min(kept) >= 0.75, np.round(kept, 2)
     s = evaluate_truth(result, truth).summary
     assert s["global"]["mean"] < 1.19, s["global"]  # measured 0.912
     assert s["local"]["mean"] < 0.94, s["local"]  # measured 0.718
-    assert 0.03 < result.camera.k2 < 0.045, result.records[0]["stats"]["lens"]  # 0.0365
+    assert 0.03 < result.camera.k2 < 0.045, result.records[0].stats["lens"]  # 0.0365
 
 
 @pytest.mark.slow
@@ -152,7 +152,7 @@ def test_a_map_finer_than_the_frames_keeps_the_local_stage_accurate(tmp_path):
             open_frames(sim / "frames"), read_image(sim / "base.png"), truth.gamma,
             tmp_path / name, config=config, seed=seed,
         )  # fmt: skip
-        assert all(r["status"] == "ok" for r in result.records)
+        assert all(r.status == "ok" for r in result.records)
         ev = evaluate_truth(result, truth)
         error[name] = ev.summary["local"]["mean"]
         motion[name] = ev.summary_motion["local"]["mean"]

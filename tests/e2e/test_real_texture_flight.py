@@ -83,8 +83,8 @@ def test_small_low_texture_frames_over_a_real_map_register_every_frame(roundabou
     truth = load_truth(roundabout)
     result = register(roundabout, tmp_path / "out")
     failed = [k for k in range(N_FRAMES) if result.status(k) != "ok"]
-    assert not failed, [result.records[k].get("reason") for k in failed]
-    stats = [result.records[k]["stats"] for k in range(1, N_FRAMES)]
+    assert not failed, [result.records[k].reason for k in failed]
+    stats = [result.records[k].stats for k in range(1, N_FRAMES)]
     assert [st["coarse_path"] for st in stats] == ["fast"] * (N_FRAMES - 1), stats
     # Frame 10's agreeing templates span 47 % of it, and the SIFT step finds 7 matches: the fast
     # path's model is kept, and the record says so.
@@ -116,4 +116,4 @@ def test_the_sift_fallback_alone_fails_with_reasons_and_never_grossly(roundabout
     assert ok.sum() >= N_FRAMES // 2, absolute
     assert absolute[ok].max() < 25.0, absolute
     for k in np.flatnonzero(~ok):
-        assert "coarse step" in result.records[k]["reason"], result.records[k]
+        assert "coarse step" in result.records[k].reason, result.records[k]

@@ -13,6 +13,7 @@ from app.cli import main
 from registration import evaluation
 from registration.coords import as_points
 from registration.evaluation import EvaluationConfig, Table2
+from registration.run import FrameRecord
 
 # --------------------------------------------------------------------------------------------
 # Fakes with known mappings
@@ -30,7 +31,7 @@ class LookupResult:
     def __init__(self, table, n_frames=5):
         self.table = table
         self.n_frames = n_frames
-        self.records = [{"status": "ok"} for _ in range(n_frames)]
+        self.records = [FrameRecord("ok") for _ in range(n_frames)]
 
     def frame_to_base(self, k, xy, stage="local"):
         return np.array([self.table[stage][k][tuple(p)] for p in as_points(xy).tolist()], float)
@@ -73,7 +74,7 @@ class OffsetResult:
         self.base_size = truth.base_size
         self.failed = set(failed)
         self.records = [
-            {"status": "failed" if k in self.failed else "ok"} for k in range(self.n_frames)
+            FrameRecord("failed" if k in self.failed else "ok") for k in range(self.n_frames)
         ]
 
     def frame_to_base(self, k, xy, stage="local"):

@@ -68,7 +68,7 @@ def result(sim, tmp_path_factory):
     args += ["--out", str(out), "--gamma", str(load_truth(sim).gamma), "--seed", seed_arg(sim)]
     assert cli_main(args) == 0
     res = registration.load(out)
-    assert all(r["status"] == "ok" for r in res.records)
+    assert all(r.status == "ok" for r in res.records)
     return res
 
 

@@ -56,11 +56,11 @@ def test_fast_path_is_taken_and_as_accurate_as_sift(sim_seq, default_result, tmp
     truth = load_truth(sim_seq)
     n = truth.n_frames
     fast_run = default_result  # the default preset takes the fast path
-    paths = [fast_run.records[k]["stats"].get("coarse_path") for k in range(1, n)]
+    paths = [fast_run.records[k].stats.get("coarse_path") for k in range(1, n)]
     assert paths == ["fast"] * (n - 1)
     sift_only = register(sim_seq, tmp_path / "sift", config=_sift(get_preset("default")))
-    assert [sift_only.records[k]["stats"]["coarse_path"] for k in range(1, n)] == ["sift"] * (n - 1)
-    assert sift_only.records[1]["stats"]["fast_path_reason"] == "off"
+    assert [sift_only.records[k].stats["coarse_path"] for k in range(1, n)] == ["sift"] * (n - 1)
+    assert sift_only.records[1].stats["fast_path_reason"] == "off"
     frames = list(range(n))
     for stage in ("global", "local"):
         fast = _errors(fast_run, truth, frames, stage)[1:]
@@ -98,7 +98,7 @@ def test_a_sudden_jump_falls_back_to_sift_and_registers(jump_sim, tmp_path):
     # Re-anchoring off: the jumped frame's result is the intra-sensor SIFT step's own.
     cfg = replace(cfg, intra=replace(cfg.intra, reanchor_coverage=0.0))
     result = register(jump_sim, tmp_path / "out", frames_dir=frames_dir, config=cfg)
-    stats = [result.records[i]["stats"] for i in range(len(picked))]
+    stats = [result.records[i].stats for i in range(len(picked))]
     assert [s.get("coarse_path") for s in stats[1:]] == ["fast", "sift", "fast"]
     assert stats[2]["fast_path_reason"].startswith("fast path: ")
     assert all(result.is_ok(i) for i in range(len(picked)))

@@ -113,15 +113,13 @@ def test_a_flight_with_a_lens_beyond_harris_registers_with_the_estimate(tmp_path
             open_frames(sim / "frames"), read_image(sim / "base.png"), truth.gamma,
             tmp_path / name, config=config, seed=seed,
         )  # fmt: skip
-        assert all(r["status"] == "ok" for r in result.records)
+        assert all(r.status == "ok" for r in result.records)
         results[name] = result
         error[name] = evaluate_truth(result, truth).summary["local"]["mean"]
     lensed = results["k2"]
-    assert lensed.records[0]["lens_k2"] == lensed.camera.k2
-    assert 0.025 < lensed.camera.k2 < 0.045, lensed.records[0]["stats"]["lens"]  # 0.0331
-    assert (
-        results["harris"].camera.k2 == 0.0 and "lens" not in results["harris"].records[0]["stats"]
-    )
+    assert lensed.records[0].lens_k2 == lensed.camera.k2
+    assert 0.025 < lensed.camera.k2 < 0.045, lensed.records[0].stats["lens"]  # 0.0331
+    assert results["harris"].camera.k2 == 0.0 and "lens" not in results["harris"].records[0].stats
     assert error["k2"] < 0.9 * error["harris"], error  # measured 0.788 vs 0.936
     # Resuming with frames 5-9 missing: the camera comes back from the reference record.
     out = tmp_path / "resumed"

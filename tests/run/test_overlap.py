@@ -195,6 +195,6 @@ def test_overlap_gives_the_serial_result_through_failures_and_anchors(rough_sequ
     sim, frames = rough_sequence
     a = register(sim, tmp_path / "a", frames_dir=frames, overlap=True)
     b = register(sim, tmp_path / "b", frames_dir=frames, overlap=False)
-    stages = [r.get("stage") or r["status"] for r in a.records]
+    stages = [r.stage or r.status for r in a.records]
     assert stages[2] == "failed" and "intra-sensor" in stages
     _assert_same(Path(a.out_dir), Path(b.out_dir))

@@ -55,7 +55,7 @@ def test_result_interface(sim, result):
         loaded.frame_to_base(0, q, stage="fine")
     with pytest.raises(IndexError):
         loaded.frame_to_base(N_FRAMES, q)
-    stats = loaded.records[1]["stats"]
+    stats = loaded.records[1].stats
     for key in ("n_control_points", "n_inliers", "reqcon_iterations", "residual_rms_px", "time_s"):
         assert key in stats
     assert stats["n_inliers"] <= stats["n_control_points"]
@@ -72,7 +72,7 @@ def test_interrupted_run_resumes_without_redoing_frames(sim, result, tmp_path):
     run(sim, out, progress=progress, cancel=cancel)
     done = sorted(p.name for p in (out / "frames").glob("*.json"))
     assert done == ["000000.json", "000001.json", "000002.json"]
-    assert registration.load(out).records[4]["status"] == "pending"
+    assert registration.load(out).records[4].status == "pending"
     stamps = {p: p.stat().st_mtime_ns for p in (out / "frames").iterdir()}
 
     with pytest.raises(ValueError, match="--resume"):
@@ -81,7 +81,7 @@ def test_interrupted_run_resumes_without_redoing_frames(sim, result, tmp_path):
         run(sim, out, preset="paper", resume=True)
 
     resumed = run(sim, out, resume=True)
-    assert all(r["status"] == "ok" for r in resumed.records)
+    assert all(r.status == "ok" for r in resumed.records)
     for p, t in stamps.items():
         assert p.stat().st_mtime_ns == t, f"{p.name} was rewritten"
     # Resuming reproduces the uninterrupted run. Not bit for bit: BLAS reductions may differ in
@@ -103,10 +103,10 @@ def test_failed_frame_is_marked_and_the_run_goes_on(sim, tmp_path):
     blank = np.full_like(cv2.imread(str(frames / "000003.png")), 128)
     cv2.imwrite(str(frames / "000003.png"), blank)
     res = run(sim, tmp_path / "out", frames_dir=frames)
-    assert res.records[3]["status"] == "failed"
-    assert res.records[3]["reason"]
+    assert res.records[3].status == "failed"
+    assert res.records[3].reason
     assert np.isnan(res.frame_to_base(3, [[320.0, 240.0]])).all()
-    assert [res.records[k]["status"] for k in (0, 1, 2, 4, 5)] == ["ok"] * 5
+    assert [res.records[k].status for k in (0, 1, 2, 4, 5)] == ["ok"] * 5
     truth = load_truth(sim)
     q = np.array([[320.0, 240.0]])
     assert np.linalg.norm(res.frame_to_base(5, q) - truth.frame_to_base(5, q)) < 2.0
@@ -127,7 +127,7 @@ def test_each_intra_frame_is_measured_by_one_flow(sim, tmp_path, monkeypatch):
     dis_flow = dense_flow.dis_flow
     monkeypatch.setattr(dense_flow, "dis_flow", lambda cfg: calls.append(1) or dis_flow(cfg))
     res = run(sim, tmp_path / "out", preset="fast", frames_dir=frames, overlap=True)
-    assert [r["status"] for r in res.records] == ["ok"] * 4
+    assert [r.status for r in res.records] == ["ok"] * 4
     assert len(calls) == 3
     truth = load_truth(sim)
     q = np.array([[100.0, 80.0], [320.0, 240.0], [540.0, 400.0]])
@@ -152,7 +152,7 @@ def test_reference_frame_that_cannot_be_registered_is_an_error(sim, tmp_path):
 
 def test_paper_preset_on_a_short_sequence(sim, paper_result):
     res = paper_result
-    assert all(r["status"] == "ok" for r in res.records)
+    assert all(r.status == "ok" for r in res.records)
     truth = load_truth(sim)
     w, h = truth.frame_size
     gx, gy = np.meshgrid(np.linspace(60, w - 60, 6), np.linspace(60, h - 60, 5))
@@ -185,11 +185,11 @@ def test_intra_frames_follow_motion_beyond_the_prediction_gate(sim, tmp_path):
     for k in range(4):
         shutil.copy(sim / "frames" / f"{k:06d}.png", frames)
     res = run(sim, tmp_path / "out", frames_dir=frames, config=cfg)
-    assert all(r["status"] == "ok" for r in res.records), [r.get("reason") for r in res.records]
+    assert all(r.status == "ok" for r in res.records), [r.get("reason") for r in res.records]
     gx, gy = np.meshgrid(np.linspace(60, w - 60, 6), np.linspace(60, h - 60, 5))
     q = np.c_[gx.ravel(), gy.ravel()]
     for k in range(1, 4):
-        assert res.records[k]["stats"]["n_gated"] > 100
+        assert res.records[k].stats["n_gated"] > 100
         err = np.linalg.norm(res.frame_to_base(k, q, "global") - truth.frame_to_base(k, q), axis=1)
         assert np.median(err) < 2.0
 

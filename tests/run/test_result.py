@@ -220,7 +220,7 @@ def test_writer_round_trip_of_records_arrays_and_stats(tmp_path):
     np.testing.assert_array_equal(f.vectors, vectors)
     np.testing.assert_array_equal(f.valid, field.valid)
     assert f.origin == (10.0, 20.0) and f.spacing == 100.0
-    st = res.records[0]["stats"]
+    st = res.records[0].stats
     assert (st["n_control_points"], st["n_inliers"], st["n_gated"]) == (20, 15, 40)
     assert st["residual_rms_px"] == pytest.approx(np.sqrt(np.mean(fine.residuals[kept] ** 2)))
     assert (st["coarse_model"], st["fine_model"], st["heading_deg"]) == (
@@ -228,7 +228,7 @@ def test_writer_round_trip_of_records_arrays_and_stats(tmp_path):
         "polyprojective",
         12.346,
     )
-    assert res.records[0]["input_sha256"] and res.records[0]["npz_sha256"]
+    assert res.records[0].input_sha256 and res.records[0].npz_sha256
     assert res.status(1) == "failed" and res.control_points(1) is None
     # A changed array of the same size is found by its digest (what a resume checks).
     npz = out / "frames" / "000000.npz"

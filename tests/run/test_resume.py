@@ -118,7 +118,7 @@ def test_killed_and_resumed_run_equals_the_uninterrupted_one(sim, uninterrupted,
     gx, gy = np.meshgrid(np.linspace(0, w - 1, 25), np.linspace(0, h - 1, 19))
     grid = np.c_[gx.ravel(), gy.ravel()]
     for k in range(N_FRAMES):
-        assert a.records[k]["status"] == b.records[k]["status"] == "ok"
+        assert a.records[k].status == b.records[k].status == "ok"
         for stage in ("global", "local"):
             pa, pb = a.frame_to_base(k, grid, stage), b.frame_to_base(k, grid, stage)
             assert np.array_equal(np.isnan(pa), np.isnan(pb))

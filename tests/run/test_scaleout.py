@@ -185,7 +185,7 @@ def test_chunked_run_is_as_accurate_as_one_chain(sim, chunked, tmp_path):
     res = registration.load(chunked)
     starts = [c.frames[0] for c in chunk_plan(N, REF, CHUNK) if not c.follows_reference]
     assert starts == [10, 2]
-    assert all(res.records[k]["stats"].get("chunk_start") for k in starts)
+    assert all(res.records[k].stats.get("chunk_start") for k in starts)
     e_one, e_chunked = error(one), error(res)
     assert e_chunked.mean() <= 1.1 * e_one.mean() + 0.05, (e_one.round(2), e_chunked.round(2))
     assert e_chunked.max() < 2.0, e_chunked.round(2)
@@ -324,9 +324,9 @@ def test_long_flight_in_chunks_stays_accurate_and_resumes_mid_chunk(tmp_path):
     )  # fmt: skip
     assert all(result.status(k) == "ok" for k in range(n))
     assert err.max() < 2.5 and err.mean() < 1.3, err.round(2)
-    starts = {k: result.records[k]["stats"].get("chunk_start") for k in (7, 13, 19)}
+    starts = {k: result.records[k].stats.get("chunk_start") for k in (7, 13, 19)}
     assert "base map" in starts.values(), starts
-    anchors = [k for k in range(n) if result.records[k].get("stage") == ANCHOR_STAGE]
+    anchors = [k for k in range(n) if result.records[k].stage == ANCHOR_STAGE]
     assert anchors, "no anchor on a long flight"
 
     # Lose the last frames of each chunk, keeping its first frames and anchors among them.

@@ -212,6 +212,8 @@ def run(args: argparse.Namespace) -> int:
     if args.no_local:
         config = replace(config, run_local=False)
     # A file, another tool's folder or a result without --resume/--force: refused before any work.
+    if args.resume and args.force:
+        raise UsageError("--resume and --force exclude each other")
     state = check_out_dir(Path(args.out), resume=args.resume, force=args.force)
     config = replace(config, chunk_frames=chunk_frames(args, state))
     base_map = read_base_map(args.base, crs=args.base_crs, nodata=parse_nodata(args.base_nodata))
@@ -280,9 +282,7 @@ def parse_nodata(text: str) -> str | float:
 def report(args: argparse.Namespace, result, base_map, config, elapsed: float, written) -> None:
     """The run's summary: one JSON object (``--json``) or a few lines, on standard output."""
     failed = [
-        {"frame": k, "reason": r.get("reason", "")}
-        for k, r in enumerate(result.records)
-        if r.get("status") != "ok"
+        {"frame": k, "reason": r.reason} for k, r in enumerate(result.records) if r.status != "ok"
     ]
     summary = {
         "out": str(Path(args.out).resolve()),
@@ -293,7 +293,7 @@ def report(args: argparse.Namespace, result, base_map, config, elapsed: float, w
         "preset": args.preset,
         "gamma": result.gamma,
         "lens_k2": result.camera.k2,
-        "lens": result.records[result.reference_frame].get("stats", {}).get("lens"),
+        "lens": result.records[result.reference_frame].stats.get("lens"),
         "time_s": round(elapsed, 3),
         "written": written,
         "base_georeferenced": base_map.georef is not None,

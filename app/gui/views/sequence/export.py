@@ -22,6 +22,7 @@ import zipfile
 from pathlib import Path
 
 from app.gui.context import Client, ViewContext
+from app.gui.messages import browser_message
 from app.gui.security import escape_md
 from app.gui.views.sequence.export_panel import ExportPanel
 from app.progress import human_size as _size
@@ -149,7 +150,7 @@ class Exporter:
         try:
             existing = self.target(r, formats, marks, folder)
         except ValueError as exc:
-            self.show_error(str(exc), client)
+            self.show_error(browser_message(exc), client)
             return False
         force = False
         if existing:
@@ -216,12 +217,8 @@ class Exporter:
                     progress=lambda done, total: progress(done, total, "steps"),
                     cancel=progress.cancel,
                 )
-            except ValueError as exc:  # the library's one-line reasons
-                self.show_error(str(exc), client)
-                return
-            except Exception as exc:
-                log.exception("export failed")
-                self.show_error(f"{type(exc).__name__}: {exc}", client)
+            except Exception as exc:  # the library's one-line reasons; a bug said as such
+                self.show_error(browser_message(exc), client)
                 return
             self.finished(summary, folder, time.perf_counter() - t0, client)
 

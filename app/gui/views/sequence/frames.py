@@ -183,7 +183,7 @@ class RegisteredFrames:
             return None
         out = np.full(r.n_frames, np.nan)
         for k, rec in enumerate(r.records):
-            v = (rec.get("stats") or {}).get("residual_rms_px")
-            if rec.get("status") == "ok" and v is not None:
+            v = rec.stats.get("residual_rms_px")
+            if rec.status == "ok" and v is not None:
                 out[k] = float(v)
         return out

@@ -33,6 +33,7 @@ from app.gui.views.sequence.export import Exporter
 from app.gui.views.sequence.frames import RegisteredFrames, excursion_flags, frame_preview_side
 from app.gui.views.sequence.panel import DisplayOptions, SequencePanel
 from app.gui.views.sequence.scene import RESIDUAL_OK, RESIDUAL_REMOVED, SequenceScene
+from registration.errors import ResultDamaged, ResumeMismatch
 from registration.run import pipeline
 
 log = logging.getLogger(__name__)
@@ -244,7 +245,7 @@ class SequenceView(View):
         if r is None:
             done = "no result yet"
         else:
-            s = [rec.get("status") for rec in r.records]
+            s = [rec.status for rec in r.records]
             done = (
                 f"{s.count('ok')} ok, {s.count('failed')} failed, {s.count('pending')} pending "
                 f"of {r.n_frames}"
@@ -264,11 +265,7 @@ class SequenceView(View):
         self.exporter.refresh()
         r = self.result()
         if r is not None:
-            failed = [
-                (k, str(rec.get("reason", "")))
-                for k, rec in enumerate(r.records)
-                if rec.get("status") == "failed"
-            ]
+            failed = [(k, rec.reason) for k, rec in enumerate(r.records) if rec.status == "failed"]
             self.panel.show_failed(failed)
         else:
             self.panel.show_failed([])
@@ -345,9 +342,7 @@ class SequenceView(View):
         other settings, it is kept beside (``result.prev-N``) and a fresh result started."""
         try:
             pipeline.register_sequence(inp.frames, inp.base, gamma, out_dir, **kwargs)
-        except ValueError as exc:
-            if "cannot resume" not in str(exc):
-                raise
+        except (ResumeMismatch, ResultDamaged) as exc:
             # γ, seed, reference frame or settings changed since the folder was made:
             # keep the old result beside it and start a fresh one.
             old = self.ctx.project.archive_result()
@@ -404,7 +399,7 @@ class SequenceView(View):
             self.notify(
                 client,
                 f"Frame {k} registered again",
-                f"{rec.get('status')} {rec.get('reason', '')}",
+                f"{rec.status} {rec.reason}",
                 "green",
             )
 
@@ -423,7 +418,7 @@ class SequenceView(View):
             return
         with self.state.lock:
             k0 = self.state.seq_frame
-        failed = [k for k, rec in enumerate(r.records) if rec.get("status") == "failed"]
+        failed = [k for k, rec in enumerate(r.records) if rec.status == "failed"]
         if failed:
             later = [k for k in failed if k > k0]
             self.set_frame(later[0] if later else failed[0])
@@ -575,7 +570,7 @@ class SequenceView(View):
             k = self.state.seq_frame
         if vals is None or r is None:
             return
-        failed = np.array([rec.get("status") == "failed" for rec in r.records])
+        failed = np.array([rec.status == "failed" for rec in r.records])
         self.panel.show_plot(vals, excursion_flags(vals), failed, k)
 
     def _update_frame_md(self, k: int) -> None:
@@ -587,10 +582,10 @@ class SequenceView(View):
         if r is None:
             return f"Frame {k}: no registration result yet."
         rec = r.records[k]
-        stats = rec.get("stats") or {}
-        parts = [f"Frame {k}: **{escape_md(rec.get('status'))}**"]
-        if rec.get("status") != "ok":
-            parts.append(escape_md(rec.get("reason", "")))
+        stats = rec.stats
+        parts = [f"Frame {k}: **{escape_md(rec.status)}**"]
+        if rec.status != "ok":
+            parts.append(escape_md(rec.reason))
         labels = {
             "n_control_points": "control points",
             "n_inliers": "kept by REQCON",
