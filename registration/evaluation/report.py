@@ -81,7 +81,7 @@ def find_excursions(
 # Reports
 
 
-@dataclass
+@dataclass(frozen=True)
 class EvaluationReport:
     """Everything :func:`evaluate_truth` / :func:`evaluate_points` measured.
 

@@ -95,7 +95,7 @@ class EvaluationConfig:
 # Table 2
 
 
-@dataclass
+@dataclass(frozen=True)
 class Table2:
     """The paper's Table 2: rows = stages, columns = locations x (mu, sigma) plus their average.
 

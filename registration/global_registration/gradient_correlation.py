@@ -20,7 +20,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -81,7 +81,7 @@ class CorrelationConfig:
             raise ValueError(f"CorrelationConfig.min_inliers must be >= 4, got {self.min_inliers}")
 
 
-@dataclass
+@dataclass(frozen=True)
 class CorrelationResult:
     """Outcome of :func:`refine_by_correlation`.
 
@@ -132,7 +132,8 @@ def refine_by_correlation(
     if out.rounds:
         # The model choice on the last round's matches only: during the rounds a projective
         # follows a strongly tilted frame's perspective, which the next round's windows need.
-        out.model, out.kind = select(out.frame_xy, out.base_xy, out.model)
+        model, kind = select(out.frame_xy, out.base_xy, out.model)
+        out = replace(out, model=model, kind=kind)
     return out
 
 

@@ -265,7 +265,7 @@ class KeypointSet:
         return int(self.xy.shape[0])
 
 
-@dataclass
+@dataclass(frozen=True)
 class FieldStats:
     """What :func:`estimate_field` measured (per-cell arrays are ``(Gy, Gx)``).
 

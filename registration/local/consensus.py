@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import cv2
@@ -450,10 +450,12 @@ def estimate_field_from_keypoints(
     field_, stats = estimate_field_from_matches(
         pos, reg_xy[a] - pos, width, height, config, origin=origin, valid_mask=valid_mask
     )
-    stats.n_keypoints_registered = len(reg_xy)
-    stats.n_keypoints_reference = len(ref_xy)
-    stats.time_match_s = time.perf_counter() - t0
-    return field_, stats
+    return field_, replace(
+        stats,
+        n_keypoints_registered=len(reg_xy),
+        n_keypoints_reference=len(ref_xy),
+        time_match_s=time.perf_counter() - t0,
+    )
 
 
 def _box_counts(mask: NDArray, cx: NDArray, cy: NDArray, half: float) -> NDArray[np.int64]:

@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from typing import Any
 
 import cv2
@@ -111,9 +111,7 @@ def estimate_field(
         field_, stats = estimate_field_from_matches(
             pos, disp, w, h, config, origin=origin, valid_mask=valid_mask
         )
-        stats.time_detect_s = t1 - t0
-        stats.time_total_s = time.perf_counter() - t0
-        return field_, stats
+        return field_, replace(stats, time_detect_s=t1 - t0, time_total_s=time.perf_counter() - t0)
     kp_reg = detect_keypoints(registered, config, mask=valid_mask, origin=origin)
     if reference_keypoints is None:
         kp_ref = detect_keypoints(reference, config, mask=valid_mask, origin=origin)
@@ -123,9 +121,7 @@ def estimate_field(
     field_, stats = estimate_field_from_keypoints(
         kp_reg, kp_ref, w, h, config, origin=origin, valid_mask=valid_mask
     )
-    stats.time_detect_s = t1 - t0
-    stats.time_total_s = time.perf_counter() - t0
-    return field_, stats
+    return field_, replace(stats, time_detect_s=t1 - t0, time_total_s=time.perf_counter() - t0)
 
 
 def estimate_field_in_frame(
@@ -180,9 +176,7 @@ def estimate_field_in_frame(
     field_, stats = estimate_field_from_matches(
         pos, disp, x1 - x0, y1 - y0, config, origin=(x0, y0), valid_mask=mask
     )
-    stats.time_detect_s = t1 - t0
-    stats.time_total_s = time.perf_counter() - t0
-    return field_, stats
+    return field_, replace(stats, time_detect_s=t1 - t0, time_total_s=time.perf_counter() - t0)
 
 
 def config_dict(config: LocalConfig) -> dict[str, Any]:

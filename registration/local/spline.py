@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -131,13 +132,14 @@ def estimate_field_spline(
             np.zeros((gy, gx), np.int32),
             np.full((gy, gx), np.nan, np.float32),
         )
-        stats.time_match_s = stats.time_total_s = time.perf_counter() - t0
-        return field_, stats
+        t = time.perf_counter() - t0
+        return field_, replace(stats, time_match_s=t, time_total_s=t)
     design = _bilinear_design(p, (x0, y0), spacing, gx, gy)
     v, w, r = _robust_node_fit(design, d, gx, gy, config)
     valid, stats = _node_stats(design, w, r, gx, gy)
     field_ = DisplacementField((x0, y0), spacing, v.reshape(gy, gx, 2).astype(np.float32), valid)
-    stats.time_match_s = stats.time_total_s = time.perf_counter() - t0
+    t = time.perf_counter() - t0
+    stats = replace(stats, time_match_s=t, time_total_s=t)
     log.debug("spline field: %s", stats.counts())
     return field_, stats
 

@@ -25,9 +25,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from registration.coords import as_points
+from registration.errors import NotGeoreferenced
 from registration.gis import GeoReference
 from registration.lens import Camera
-from registration.errors import NotGeoreferenced
 from registration.mapping import _check_stage
 from registration.run.identity import _base_difference, _frames_difference, base_identity
 from registration.run.records import (
