@@ -9,8 +9,8 @@ Layout of a project folder::
     result/          registration result folder (registration.load), written frame by frame
     uploads/         files uploaded through the browser
 
-Every write goes to a temporary file in the same folder and is moved into place with
-``os.replace``, so a crash or a kill never leaves a half-written file.
+Every write goes through the library's atomic writer (:func:`registration.io.atomic_path`), so
+a crash or a kill never leaves a half-written file.
 """
 
 from __future__ import annotations
@@ -18,32 +18,18 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import tempfile
 from pathlib import Path
 from typing import Any
+
+from registration.io import write_bytes_atomic
 
 PROJECT_FILE = "project.json"
 FORMAT_VERSION = 1
 
 
 def write_atomic(path: Path, data: bytes | str) -> None:
-    """Write ``data`` to ``path`` through a temporary file and ``os.replace``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    raw = data.encode("utf-8") if isinstance(data, str) else data
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(raw)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+    """Write ``data`` (text as UTF-8) to ``path`` atomically (:func:`registration.io.atomic_path`)."""
+    write_bytes_atomic(path, data.encode("utf-8") if isinstance(data, str) else data)
 
 
 UPLOADS = "uploads"

@@ -1,8 +1,8 @@
 """Frames rendered into base-map pixels (paper sections 5 and 6): through the global model and the
 local field, cropped to what a frame or the sequence covers, and a frame's footprint on the map.
 
-Pure functions return arrays (BGR uint8, like cv2); the ``write_*`` functions write files
-atomically (temporary file + ``os.replace``), so a reader never sees half a file.
+Pure functions: they return arrays (BGR uint8, like cv2); :mod:`registration.render.video`
+writes them out.
 """
 
 from __future__ import annotations

@@ -18,6 +18,7 @@ import shutil
 import tempfile
 from pathlib import Path
 
+from registration.io import write_bytes_atomic
 from registration.synth.config import SimConfig
 from registration.synth.render import RENDER_VERSION
 from registration.synth.sequence import Progress, simulate
@@ -106,8 +107,7 @@ def demo_sequence(progress: Progress | None = None, *, rebuild: bool = False) ->
     try:
         simulate(tmp, DEMO_CONFIG, progress=progress)
         marker = {"config": _config_dict(), "versions": _versions(), "files": _manifest(tmp)}
-        (tmp / (MARKER + ".tmp")).write_text(json.dumps(marker, indent=1))
-        os.replace(tmp / (MARKER + ".tmp"), tmp / MARKER)
+        write_bytes_atomic(tmp / MARKER, json.dumps(marker, indent=1).encode())
         # Swap the finished folder in; a concurrent builder may have won the race.
         trash = None
         if root.exists():

@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 
 from app.cli.common import UsageError, emit_json
+from registration.io import atomic_path
 from registration.lens import (
     CANVASES,
     IMAGE_INTERPOLATIONS,
@@ -119,14 +120,9 @@ def same_file(a: Path, b: Path) -> bool:
 def write_image_atomically(out: Path, image: np.ndarray) -> None:
     """Write ``image`` to ``out`` through a temporary file beside it, so that a failed write
     never leaves a truncated ``out`` (and an existing ``out`` stays intact until replaced)."""
-    tmp = out.with_name(f".{out.stem}.{os.getpid()}.tmp{out.suffix}")
-    try:
+    with atomic_path(out, keep_suffix=True) as tmp:  # cv2.imwrite picks the format by the name
         if not cv2.imwrite(str(tmp), image):
             raise UsageError(f"could not write {out}")
-        os.replace(tmp, out)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
 
 
 def run(args: argparse.Namespace) -> int:
