@@ -270,8 +270,8 @@ MUTATIONS: list[Mutation] = [
         "REQCON's outlier rule never stops: drops 5 % per round like the paper's rule",
         "registration/geometry/reqcon_fit.py",
         [
-            ("            if n_out == 0:\n", "            if False:\n", 1),
-            ("            n_drop = min(n_drop, n_out)\n", "", 1),
+            ("        if n_out == 0:\n", "        if False:\n", 1),
+            ("        n_drop = min(n_drop, n_out)\n", "", 1),
         ],  # fmt: skip
         ["tests/geometry/test_robust.py", "tests/geometry/test_model_choice.py", *E2E],
     ),
@@ -279,7 +279,7 @@ MUTATIONS: list[Mutation] = [
         "reqcon_never_drops",
         "REQCON never drops a point",
         "registration/geometry/reqcon_fit.py",
-        [("        kept[worst] = False\n", "        pass\n", 1)],
+        [("    kept[worst] = False\n", "    pass\n", 1)],
         ["tests/geometry/test_robust.py", *E2E],
     ),
     _m(

@@ -21,7 +21,7 @@ REPO = Path(__file__).resolve().parents[2]
 # The two stages of the paper on one layer (global registration, the local field) do not import
 # each other.
 LAYERS: list[tuple[str, ...]] = [
-    ("coords", "mapping"),
+    ("coords", "mapping", "errors"),
     ("io",),
     ("geometry",),
     ("matching",),

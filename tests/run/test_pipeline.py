@@ -14,6 +14,7 @@ import pytest
 
 import registration
 from app.cli import main as cli_main
+from registration.errors import ResultExists
 from registration.evaluation import evaluate_truth
 from registration.io import open_frames, read_image
 from registration.run import RegistrationFailed, get_preset, register_sequence
@@ -75,8 +76,9 @@ def test_interrupted_run_resumes_without_redoing_frames(sim, result, tmp_path):
     assert registration.load(out).records[4].status == "pending"
     stamps = {p: p.stat().st_mtime_ns for p in (out / "frames").iterdir()}
 
-    with pytest.raises(ValueError, match="--resume"):
+    with pytest.raises(ResultExists, match="already holds a registration result") as info:
         run(sim, out)
+    assert info.value.remedy == "continue_or_restart" and info.value.out_dir == out
     with pytest.raises(ValueError, match="different configuration"):
         run(sim, out, preset="paper", resume=True)
 

@@ -15,6 +15,7 @@ import registration
 from registration.geometry import DisplacementField, Projective
 from registration.io import FrameSource
 from registration.run import (
+    FrameRecord,
     ResultWriter,
     frame_arrays,
     frame_stats,
@@ -147,7 +148,7 @@ def test_damaged_arrays_make_the_frame_damaged_not_an_exception(tmp_path):
     npz = out / "frames" / "000002.npz"
     data = npz.read_bytes()
     npz.write_bytes(data[: len(data) // 2])
-    assert read_record(out, 2)["status"] == "damaged"  # the size differs from its record
+    assert read_record(out, 2).status == "damaged"  # the size differs from its record
     res = registration.load(out)
     assert res.status(2) == "damaged"
     assert np.isnan(res.frame_to_base(2, raw_points(), "local")).all()
@@ -158,7 +159,7 @@ def test_damaged_arrays_make_the_frame_damaged_not_an_exception(tmp_path):
     assert np.isnan(res.frame_to_base(2, raw_points(), "local")).all()
     assert res.status(2) == "damaged"
     npz.unlink()
-    assert "missing" in read_record(out, 2)["reason"]
+    assert "missing" in read_record(out, 2).reason
 
 
 @dataclass
@@ -207,9 +208,9 @@ def test_writer_round_trip_of_records_arrays_and_stats(tmp_path):
     stats = frame_stats(coarse, fine, {"total": 1.234567})
     out = tmp_path / "out"
     with ResultWriter.create(out, meta, frames=frames) as writer:
-        rec = {"status": "ok", "reason": "", "stats": stats, "model": model(0).to_dict()}
+        rec = FrameRecord("ok", stage="intra-sensor", stats=stats, model=model(0).to_dict())
         writer.write_frame(0, rec, frame_arrays(fine, field))
-        writer.write_frame(1, {"status": "failed", "reason": "no", "stats": {}, "model": None})
+        writer.write_frame(1, FrameRecord.failed("no"))
     res = registration.load(out)
     assert res.meta["seed"] == [1.0, 2.0, 3.0, 4.0] and res.preset == "default"
     s, d, k, r = res.control_points(0)
@@ -235,8 +236,8 @@ def test_writer_round_trip_of_records_arrays_and_stats(tmp_path):
     data = bytearray(npz.read_bytes())
     data[len(data) // 2] ^= 0xFF
     npz.write_bytes(bytes(data))
-    assert read_record(out, 0)["status"] == "ok"
-    assert verify_record(out, 0)["status"] == "damaged"
+    assert read_record(out, 0).status == "ok"
+    assert verify_record(out, 0).status == "damaged"
 
 
 def _config():
