@@ -66,7 +66,7 @@ MUTATIONS: list[Mutation] = [
     # -- the list (integration layer), translated to today's code -------------------
     _m(
         "fine_removed",
-        "fine step removed: `_fit_fine` keeps the coarse projective",
+        "fine step removed: `fit_fine` keeps the coarse projective",
         "registration/global_registration/fine.py",
         [
             (

@@ -198,19 +198,7 @@ def coarse_register(
     if len(seeds) == 1 and (not priors or priors[0].votes < cfg.heading.patch_below_votes):
         priors = priors + _patch_prior(seeds[0], lens, view, cbase, s_f, base_c.scale, priors, cfg)
     domain = rescale(camera.cell_centres(10), s_f)
-    attempts = []
-    for i, prior in enumerate(priors):
-        attempts.append(_attempt(prior, frame, base_c, matches, cfg, rng, bool(seeds), domain))
-        best = max(a.score for a in attempts)
-        # Without a seed, stop once a registration stands out clearly from the candidates
-        # left (their Hough votes bound how many matches they could gather).
-        if (
-            not seeds
-            and i + 1 < len(priors)
-            and best
-            >= max(2 * cfg.min_inliers_unseeded, 2 * cfg.decisive_ratio * priors[i + 1].votes)
-        ):
-            break
+    attempts = _try_priors(priors, frame, base_c, matches, cfg, rng, seeds, domain)
     result = replace(
         _decide(attempts, priors, seeds, frame, base_c, cfg, w, h, lens),
         n_keypoints_frame=len(frame.keypoints),
@@ -233,6 +221,24 @@ def coarse_register(
         base_from_corrected=quantized(result.base_from_corrected),
         time_s=time.perf_counter() - t0,
     )
+
+
+def _try_priors(priors, frame, base_c, matches, cfg: CoarseConfig, rng, seeds, domain) -> list:
+    """An attempt (:func:`_attempt`) per heading-and-scale prior, in order; without a seed they
+    stop once a registration stands out clearly from the candidates left (their Hough votes
+    bound how many matches they could gather)."""
+    attempts = []
+    for i, prior in enumerate(priors):
+        attempts.append(_attempt(prior, frame, base_c, matches, cfg, rng, bool(seeds), domain))
+        best = max(a.score for a in attempts)
+        if (
+            not seeds
+            and i + 1 < len(priors)
+            and best
+            >= max(2 * cfg.min_inliers_unseeded, 2 * cfg.decisive_ratio * priors[i + 1].votes)
+        ):
+            break
+    return attempts
 
 
 # The correlation rounds' model replaces the SIFT one only when this many times as many

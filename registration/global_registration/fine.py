@@ -133,7 +133,7 @@ class FineResult:
         return self.success
 
 
-def _fit_fine(
+def fit_fine(
     cps: ControlPoints,
     initial: Projective | PolyProjective,
     degree: int,
@@ -150,12 +150,52 @@ def _fit_fine(
     :data:`FINE_MIN_COVERAGE` asks of a polyprojective. ``noise_scale``: the points' relative
     measurement noise (:func:`registration.geometry.reqcon_fit.reqcon`).
     """
-    n = len(cps.src)
     start = (
         initial
         if isinstance(initial, PolyProjective)
         else PolyProjective.from_projective(initial, degree)
     )
+    too_few = _too_few_points(cps, initial, start, degree, check_support, t0)
+    if too_few is not None:
+        return too_few
+    fit: FitResult = reqcon(
+        cps.src, cps.dst, start, reqcon_cfg, domain=domain, noise_scale=noise_scale
+    )
+    result = FineResult(
+        success=bool(fit),
+        reason="" if fit else f"fine step: REQCON failed: {fit.reason}",
+        base_from_corrected=fit.model if fit else None,
+        src=cps.src,
+        dst=cps.dst,
+        kept=np.asarray(fit.inliers, bool),
+        residuals=np.asarray(fit.residuals, float),
+        iterations=int(fit.iterations),
+        source=getattr(cps, "source", None),
+        sigma_px=float(fit.sigma_px),
+    )
+    if check_support == "sparse" and fit and probes is not None:
+        coverage = hull_coverage(cps.src[result.kept], probes)
+        check_support = coverage < FINE_MIN_COVERAGE["polyprojective"]
+    if fit and check_support and degree > 1 and domain is not None:
+        result = _fall_back_if_unsupported(result, degree, domain, probes)
+    if result.success:
+        # The model as recorded (reproducible runs, models.quantized) and its residuals.
+        model = quantized(result.base_from_corrected)
+        result = replace(
+            result,
+            base_from_corrected=model,
+            residuals=np.asarray(model.residuals(cps.src, cps.dst)),
+        )
+    return replace(result, time_s=time.perf_counter() - t0)
+
+
+def _too_few_points(
+    cps: ControlPoints, initial, start: PolyProjective, degree: int, check_support, t0: float
+) -> FineResult | None:
+    """The fine step's result when there are too few control points for REQCON on ``start``:
+    the coarse model kept (said so) where the support check allows it, else a failure; None
+    when there are enough."""
+    n = len(cps.src)
     empty = FineResult(
         success=False,
         reason="",
@@ -190,35 +230,7 @@ def _fit_fine(
             ),
             time_s=time.perf_counter() - t0,
         )
-    fit: FitResult = reqcon(
-        cps.src, cps.dst, start, reqcon_cfg, domain=domain, noise_scale=noise_scale
-    )
-    result = FineResult(
-        success=bool(fit),
-        reason="" if fit else f"fine step: REQCON failed: {fit.reason}",
-        base_from_corrected=fit.model if fit else None,
-        src=cps.src,
-        dst=cps.dst,
-        kept=np.asarray(fit.inliers, bool),
-        residuals=np.asarray(fit.residuals, float),
-        iterations=int(fit.iterations),
-        source=getattr(cps, "source", None),
-        sigma_px=float(fit.sigma_px),
-    )
-    if check_support == "sparse" and fit and probes is not None:
-        coverage = hull_coverage(cps.src[result.kept], probes)
-        check_support = coverage < FINE_MIN_COVERAGE["polyprojective"]
-    if fit and check_support and degree > 1 and domain is not None:
-        result = _fall_back_if_unsupported(result, degree, domain, probes)
-    if result.success:
-        # The model as recorded (reproducible runs, models.quantized) and its residuals.
-        model = quantized(result.base_from_corrected)
-        result = replace(
-            result,
-            base_from_corrected=model,
-            residuals=np.asarray(model.residuals(cps.src, cps.dst)),
-        )
-    return replace(result, time_s=time.perf_counter() - t0)
+    return None
 
 
 # Models the fine step may fall back to, simplest first (all expressed as polyprojectives).
@@ -400,7 +412,7 @@ def _fine_against_base(frame_raw, base, camera, model, cfg: FineConfig, match_in
     # those as outliers of the centre's templates.
     noise = camera.stretch(cps.src) ** STRETCH_NOISE_POWER if len(cps.src) else None
     # The probes of robust.hull_coverage: how much of the frame the control points span.
-    return _fit_fine(
+    return fit_fine(
         cps, model, cfg.degree, cfg.reqcon, t0, frame_domain(frame_raw, camera), cfg.check_support,
         camera.cell_centres(10), noise,
     )  # fmt: skip

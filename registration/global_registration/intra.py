@@ -31,7 +31,7 @@ from registration.global_registration.coarse_records import (
 from registration.global_registration.fine import (
     STRETCH_NOISE_POWER,
     FineResult,
-    _fit_fine,
+    fit_fine,
     frame_domain,
 )
 from registration.global_registration.intra_points import (
@@ -234,6 +234,33 @@ def register_intra(
     view = frame_view(frame_raw, camera, match_in)
     prev = joint.previous if cfg.use_previous_frame else None
     state = PreviousFrame(view, None)
+    coarse = _intra_coarse(frame_raw, view, camera, joint, prev, state, cfg, coarse_cfg, rng, t0)
+    if not coarse:
+        return coarse, FineResult.failed(coarse.reason), None
+
+    t1 = time.perf_counter()
+    model = coarse.base_from_corrected
+    cps, flow = _intra_control_points(view, model, joint, prev, state, cfg, flow_cfg)
+    noise = camera.stretch(cps.src) ** STRETCH_NOISE_POWER if len(cps.src) else None
+    fine = fit_fine(
+        cps, model, degree, cfg.reqcon, t1, frame_domain(frame_raw, camera),
+        "sparse" if cfg.sparse_support else False, camera.cell_centres(10), noise_scale=noise,
+    )  # fmt: skip
+    fine = replace(fine, flow=flow)
+    if not fine:
+        return coarse, fine, None
+    state.base_from_corrected = fine.base_from_corrected
+    return coarse, fine, state
+
+
+def _intra_coarse(
+    frame_raw, view, camera: Camera, joint: JointBase, prev, state: PreviousFrame,
+    cfg: IntraConfig, coarse_cfg: CoarseConfig, rng: np.random.Generator, t0: float,
+) -> CoarseResult:  # fmt: skip
+    """The intra-sensor coarse step (:func:`register_intra`): the fast path when it is on and
+    confirmed, else the SIFT step (the fast path's simpler model where that fails too). Fills
+    ``state``'s coarse-scale grey and SIFT as they are computed; ``t0`` is when the frame's
+    registration began."""
     coarse, fast, fast_reason = None, None, "off"
     if cfg.fast_coarse and prev is not None:
         ccfg = intra_coarse_config(coarse_cfg, cfg)
@@ -259,14 +286,18 @@ def register_intra(
         fast_reason=fast_reason,
         time_s=time.perf_counter() - t0,
     )
-    if not coarse:
-        if fast_reason and fast_reason != "off":
-            # Both steps failed: say why the fast one did too.
-            coarse = replace(coarse, reason=f"{coarse.reason}; {fast_reason}")
-        return coarse, FineResult.failed(coarse.reason), None
+    if not coarse and fast_reason and fast_reason != "off":
+        # Both steps failed: say why the fast one did too.
+        coarse = replace(coarse, reason=f"{coarse.reason}; {fast_reason}")
+    return coarse
 
-    t1 = time.perf_counter()
-    model = coarse.base_from_corrected
+
+def _intra_control_points(
+    view, model, joint: JointBase, prev, state: PreviousFrame, cfg: IntraConfig, flow_cfg
+) -> tuple[ControlPoints, object]:
+    """The frame's control points (``src`` corrected px, ``dst`` base px; those found in the
+    previous frame taken through its model, none non-finite) by the method ``cfg`` names, and
+    the frame's flow when they came from one (else None)."""
     flow = None
     if cfg.control_points == "gridded_sift":
         state.sift = matching_sift.detect_sift(view.grey, cfg.gridded.sift)
@@ -286,16 +317,7 @@ def register_intra(
     keep = np.isfinite(cps.dst).all(axis=1) & np.isfinite(cps.src).all(axis=1)
     if not keep.all():
         cps = ControlPoints(cps.src[keep], cps.dst[keep], cps.score[keep], cps.source[keep])
-    noise = camera.stretch(cps.src) ** STRETCH_NOISE_POWER if len(cps.src) else None
-    fine = _fit_fine(
-        cps, model, degree, cfg.reqcon, t1, frame_domain(frame_raw, camera),
-        "sparse" if cfg.sparse_support else False, camera.cell_centres(10), noise_scale=noise,
-    )  # fmt: skip
-    fine = replace(fine, flow=flow)
-    if not fine:
-        return coarse, fine, None
-    state.base_from_corrected = fine.base_from_corrected
-    return coarse, fine, state
+    return cps, flow
 
 
 def intra_sift_coarse(

@@ -81,7 +81,8 @@ class ControlPoints:
         )
 
 
-def _call_points(fn: PointFunction, xy: NDArray[np.float64], name: str) -> NDArray[np.float64]:
+def call_points(fn: PointFunction, xy: NDArray[np.float64], name: str) -> NDArray[np.float64]:
+    """``fn(xy)`` for ``(N, 2)`` px, checked to be ``(N, 2)`` too (``name`` in the message)."""
     if len(xy) == 0:
         return np.zeros((0, 2))
     out = np.asarray(fn(xy), np.float64)

@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from registration import coords
-from registration.matching.control_points import ControlPoints, PointFunction, _call_points
+from registration.matching.control_points import ControlPoints, PointFunction, call_points
 from registration.matching.grey import to_grey
 from registration.matching.sift import Keypoints, SiftConfig, detect_sift
 
@@ -255,7 +255,7 @@ def _reference_windows(
         ``(lo, hi, usable)``: ``(N, 2)`` box corners, reference px, and ``(N,)`` bool, the box is
         finite and overlaps the image.
     """
-    mapped = _call_points(
+    mapped = call_points(
         ref_entry.ref_from_frame, corners.reshape(-1, 2), f"refs[{k}].ref_from_frame"
     )
     mapped = mapped.reshape(-1, 4, 2)

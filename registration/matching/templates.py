@@ -24,7 +24,6 @@ from __future__ import annotations
 import logging
 import math
 import os
-from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from typing import Literal
@@ -35,15 +34,12 @@ from numpy.typing import NDArray
 
 from registration import coords
 from registration.geometry import warp
-from registration.matching.control_points import ControlPoints
+from registration.matching.control_points import ControlPoints, PointFunction, call_points
 from registration.matching.grey import to_grey
 from registration.matching.gridded_sift import GriddedReference
 from registration.matching.ncc_peaks import _refine_peak, _structure_centroid
 
 logger = logging.getLogger(__name__)
-
-
-PointFunction = Callable[[NDArray[np.float64]], NDArray[np.float64]]
 
 
 @dataclass(frozen=True)
@@ -303,15 +299,6 @@ def _signal(image: NDArray, config: TemplateConfig) -> NDArray[np.uint8]:
     return gradient_magnitude(image) if config.signal == "gradient" else to_grey(image)
 
 
-def _call_points(fn: PointFunction, xy: NDArray[np.float64], name: str) -> NDArray[np.float64]:
-    if len(xy) == 0:
-        return np.zeros((0, 2))
-    out = np.asarray(fn(xy), np.float64)
-    if out.shape != xy.shape:
-        raise ValueError(f"{name} must map (N, 2) to (N, 2), got {xy.shape} -> {out.shape}")
-    return out
-
-
 @dataclass
 class SearchImage:
     """A reference resampled into the frame's geometry on a canvas padded by ``pad`` px:
@@ -547,10 +534,10 @@ class _Searches:
 def _usable_centres(centres, ref_from_frame, frame_from_ref, config):
     """Step 1: the centres whose predicted reference position is defined (and, with the
     inverse, comes back within ``max_roundtrip_px``), with those positions."""
-    pred = _call_points(ref_from_frame, centres.astype(np.float64), "ref_from_frame")
+    pred = call_points(ref_from_frame, centres.astype(np.float64), "ref_from_frame")
     keep = np.isfinite(pred).all(axis=1)
     if frame_from_ref is not None and keep.any():
-        back = _call_points(frame_from_ref, pred[keep], "frame_from_ref")
+        back = call_points(frame_from_ref, pred[keep], "frame_from_ref")
         err = np.hypot(*(back - centres[keep]).T)
         keep[np.flatnonzero(keep)[~(err <= config.max_roundtrip_px)]] = False
     return centres[keep], pred[keep]
@@ -642,7 +629,7 @@ def _match_set(frame, centres, config, ref, ref_from_frame, frame_from_ref, ref_
             sel = source == k
             if sel.any():
                 dst[sel] = warp.lattice_source(
-                    lambda q, fn=fn: _call_points(fn, q, "ref_from_frame"),
+                    lambda q, fn=fn: call_points(fn, q, "ref_from_frame"),
                     src[sel] + offset[sel], **lattice,
                 )  # fmt: skip
     else:

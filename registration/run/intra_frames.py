@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterator
+from contextlib import contextmanager
 
 import cv2
 import numpy as np
@@ -82,26 +83,49 @@ def run_chunk(context: ChunkContext, job: ChunkJob) -> Iterator[FrameOutput]:
     ``LOCAL_WORKERS`` local stages at once. Frames are yielded in order as their local stages
     finish. The local stage reads nothing that the global stage changes, and whatever changes
     the joint base (an anchor) waits for the local stages in flight, so the result is the
-    serial one to the bit.
-    OpenCV's own threads (results do not depend on their number) are held to one while both
-    stages are heavy (template control points: the main thread and the local workers keep both
-    cores busy, more threads only contend), and left alone when the global stage measures the
-    frame's flow (``IntraConfig.control_points == "flow"``): it is then the longer of the two,
-    and its OpenCV calls use the core the light local stage leaves idle (measured with one
-    local worker, 2560x1920 flight, H.264, median of 4 alternated runs: 0.274 s per frame held
-    to one thread, 0.225 s not)."""
-    ctx, cfg = context, context.config
+    serial one to the bit (:func:`_overlapping`)."""
+    todo = [k for k in job.chunk.frames if k not in job.done]
+    with _overlapping(context, todo) as (frames, local):
+        yield from _chunk_frames(context, job, frames, local)
+
+
+@contextmanager
+def _overlapping(ctx: ChunkContext, todo: list[int]):
+    """``(frames, local)`` for a chunk's frames ``todo``: with ``ctx.overlap`` the frames decoded
+    ahead (:class:`FramesAhead`) and local stages run by up to ``LOCAL_WORKERS`` threads
+    (:class:`LocalAhead`), else the frame source itself and local stages run at once.
+
+    OpenCV's own threads (results do not depend on their number) are held to one meanwhile
+    while both stages are heavy (template control points: the main thread and the local
+    workers keep both cores busy, more threads only contend), and left alone when the global
+    stage measures the frame's flow (``IntraConfig.control_points == "flow"``): it is then the
+    longer of the two, and its OpenCV calls use the core the light local stage leaves idle
+    (measured with one local worker, 2560x1920 flight, H.264, median of 4 alternated runs:
+    0.274 s per frame held to one thread, 0.225 s not)."""
+    frames = FramesAhead(ctx.frames, todo) if ctx.overlap and len(todo) > 1 else ctx.frames
+    local = LocalAhead(enabled=ctx.overlap, workers=LOCAL_WORKERS)
+    cv_threads = cv2.getNumThreads()
+    hold_cv_threads = ctx.overlap and ctx.config.intra.control_points != "flow"
+    if hold_cv_threads:
+        cv2.setNumThreads(1)
+    try:
+        yield frames, local
+    finally:
+        local.close()
+        if frames is not ctx.frames:
+            frames.close()
+        if hold_cv_threads:
+            cv2.setNumThreads(cv_threads)
+
+
+def _chunk_frames(ctx: ChunkContext, job: ChunkJob, frames, local) -> Iterator[FrameOutput]:
+    """The frames of ``job`` registered in order (:func:`run_chunk`): read from ``frames``, their
+    local stages run by ``local``; done frames replayed from their records."""
+    cfg = ctx.config
     local_cfg = _local_config(cfg)
     joint = ctx.joint_base()
     anchoring = Anchoring(ctx, joint)
     models: dict[int, object] = {}  # registered frames of this chunk (None: failed)
-    todo = [k for k in job.chunk.frames if k not in job.done]
-    frames = FramesAhead(ctx.frames, todo) if ctx.overlap and len(todo) > 1 else ctx.frames
-    local = LocalAhead(enabled=ctx.overlap, workers=LOCAL_WORKERS)
-    cv_threads = cv2.getNumThreads()
-    hold_cv_threads = ctx.overlap and cfg.intra.control_points != "flow"
-    if hold_cv_threads:
-        cv2.setNumThreads(1)
     # Frames whose local stage runs (or waits for a worker), oldest first.
     pending: list[tuple[int, _Global, NDArray]] = []
 
@@ -111,66 +135,59 @@ def run_chunk(context: ChunkContext, job: ChunkJob) -> Iterator[FrameOutput]:
             k, glob, frame = pending.pop(0)
             yield k, *glob.finish(*local.result(k))[:2]
 
-    try:
-        for k in job.chunk.frames:
-            done = job.done.get(k)
-            if done is not None:
-                models[k] = model_from_dict(done.model) if done.ok else None
-                if done.ok and done.anchor and cfg.intra.reanchor_coverage > 0:
-                    yield from finish_pending()
-                    frame = ctx.frames.get(k)
-                    render_anchor(
-                        joint, frame, ctx.camera, models[k], done.field,
-                        cfg.intra.anchor_fill_radius,
-                    )  # fmt: skip
+    for k in job.chunk.frames:
+        done = job.done.get(k)
+        if done is not None:
+            models[k] = model_from_dict(done.model) if done.ok else None
+            if done.ok and done.anchor and cfg.intra.reanchor_coverage > 0:
+                yield from finish_pending()
+                frame = ctx.frames.get(k)
+                render_anchor(
+                    joint, frame, ctx.camera, models[k], done.field,
+                    cfg.intra.anchor_fill_radius,
+                )  # fmt: skip
+            continue
+        t_read = time.perf_counter()
+        frame, problem = read_frame(frames, k)
+        t_read = time.perf_counter() - t_read
+        if frame is None:
+            # Unreadable or of another size: marked failed, the chunk goes on (the next
+            # frame takes the last good one as its previous frame).
+            models[k] = None
+            yield from finish_pending()
+            yield k, FrameRecord.failed(problem), None
+            continue
+        prev = _predecessor(k, job.chunk, models, ctx.reference_frame)
+        _set_previous(joint, ctx, prev, models)
+        glob = None
+        if prev is None:
+            yield from finish_pending()
+            record, arrays, state = _register_start(frame, k, ctx, joint, anchoring)
+        else:
+            glob = _register_global(frame, k, ctx.camera, joint, cfg)
+            glob.times["read"] = t_read
+            if glob.ok and cfg.run_local and not anchoring.wanted(frame, glob.state):
+                # The local stage in the background; the frame is yielded when it is done.
+                local.submit(k, _local_stage, frame, ctx.camera, glob, joint, local_cfg)
+                models[k] = glob.state.base_from_corrected
+                joint.previous, joint.previous_index = glob.state, k
+                pending.append((k, glob, frame))
+                # Overlapped, the next global stage starts while up to LOCAL_WORKERS local
+                # stages run; serial, the frame is done already and written at once.
+                yield from finish_pending(keep=LOCAL_WORKERS if ctx.overlap else 0)
                 continue
-            t_read = time.perf_counter()
-            frame, problem = read_frame(frames, k)
-            t_read = time.perf_counter() - t_read
-            if frame is None:
-                # Unreadable or of another size: marked failed, the chunk goes on (the next
-                # frame takes the last good one as its previous frame).
-                models[k] = None
-                yield from finish_pending()
-                yield k, FrameRecord.failed(problem), None
-                continue
-            prev = _predecessor(k, job.chunk, models, ctx.reference_frame)
-            _set_previous(joint, ctx, prev, models)
-            glob = None
-            if prev is None:
-                yield from finish_pending()
-                record, arrays, state = _register_start(frame, k, ctx, joint, anchoring)
-            else:
-                glob = _register_global(frame, k, ctx.camera, joint, cfg)
-                glob.times["read"] = t_read
-                if glob.ok and cfg.run_local and not anchoring.wanted(frame, glob.state):
-                    # The local stage in the background; the frame is yielded when it is done.
-                    local.submit(k, _local_stage, frame, ctx.camera, glob, joint, local_cfg)
-                    models[k] = glob.state.base_from_corrected
-                    joint.previous, joint.previous_index = glob.state, k
-                    pending.append((k, glob, frame))
-                    # Overlapped, the next global stage starts while up to LOCAL_WORKERS local
-                    # stages run; serial, the frame is done already and written at once.
-                    yield from finish_pending(keep=LOCAL_WORKERS if ctx.overlap else 0)
-                    continue
-                yield from finish_pending()
-                field_out = _local_stage(frame, ctx.camera, glob, joint, local_cfg)
-                record, arrays, state = glob.finish(*field_out)
-                record, arrays, state, _ = anchoring.maybe(frame, k, record, arrays, state)
-            models[k] = state.base_from_corrected if state is not None else None
-            if state is not None:
-                joint.previous, joint.previous_index = state, k
-            times = record.stats.get("time_s")
-            if times is not None and "read" not in times:
-                record = record.with_stats(time_s={**times, "read": round(t_read, 4)})
-            yield k, record, arrays
-        yield from finish_pending()
-    finally:
-        local.close()
-        if frames is not ctx.frames:
-            frames.close()
-        if hold_cv_threads:
-            cv2.setNumThreads(cv_threads)
+            yield from finish_pending()
+            field_out = _local_stage(frame, ctx.camera, glob, joint, local_cfg)
+            record, arrays, state = glob.finish(*field_out)
+            record, arrays, state, _ = anchoring.maybe(frame, k, record, arrays, state)
+        models[k] = state.base_from_corrected if state is not None else None
+        if state is not None:
+            joint.previous, joint.previous_index = state, k
+        times = record.stats.get("time_s")
+        if times is not None and "read" not in times:
+            record = record.with_stats(time_s={**times, "read": round(t_read, 4)})
+        yield k, record, arrays
+    yield from finish_pending()
 
 
 def _predecessor(k: int, chunk: Chunk, models: dict, ref: int) -> int | None:

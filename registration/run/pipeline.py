@@ -155,16 +155,9 @@ def register_sequence(
             reference frame cannot be registered.
     """
     out_dir = Path(out_dir)
-    validate_inputs(frames, base, gamma, seed, reference_frame)
-    if base_valid is not None and np.shape(base_valid) != base.shape[:2]:
-        raise ValueError(
-            f"base_valid has shape {np.shape(base_valid)}, the base map {base.shape[:2]}"
-        )
-    if base_georef is not None and not isinstance(base_georef, dict):
-        base_georef = base_georef.to_dict()
-    meta = make_metadata(
-        frames, base, base_path, gamma, seed, reference_frame, config, preset,
-        extra={"base_georef": base_georef},
+    meta = _checked_metadata(
+        frames, base, gamma, seed, reference_frame, base_valid, base_georef, base_path, config,
+        preset,
     )  # fmt: skip
     with ResultWriter.create(out_dir, meta, frames=frames, resume=resume, force=force) as writer:
         n = len(frames)
@@ -188,20 +181,45 @@ def register_sequence(
         cancelled = cancel is not None and cancel.is_set()
         if jobs and not cancelled:
             outputs = (executor or SerialExecutor()).run(context, jobs, cancel)
-            try:
-                for k, record, arrays in outputs:
-                    if not writer.done(k):  # a chunk redone after its worker died repeats it
-                        writer.write_frame(k, record, arrays)
-                        n_done += 1
-                        if progress:
-                            progress(n_done, n)
-                    if cancel is not None and cancel.is_set():
-                        break
-            finally:
-                outputs.close()
+            n_done = _write_outputs(writer, outputs, n_done, n, progress, cancel)
         if n_done == n and (jobs or mid_missing):
             _write_mosaic(writer, context)
     return RegistrationResult(out_dir)
+
+
+def _checked_metadata(
+    frames, base, gamma, seed, reference_frame, base_valid, base_georef, base_path, config, preset
+) -> dict:
+    """``result.json``'s content for a run of these inputs (:func:`make_metadata`), after the
+    checks that refuse unusable ones (:func:`validate_inputs`, the no-data mask's shape)."""
+    validate_inputs(frames, base, gamma, seed, reference_frame)
+    if base_valid is not None and np.shape(base_valid) != base.shape[:2]:
+        raise ValueError(
+            f"base_valid has shape {np.shape(base_valid)}, the base map {base.shape[:2]}"
+        )
+    if base_georef is not None and not isinstance(base_georef, dict):
+        base_georef = base_georef.to_dict()
+    return make_metadata(
+        frames, base, base_path, gamma, seed, reference_frame, config, preset,
+        extra={"base_georef": base_georef},
+    )  # fmt: skip
+
+
+def _write_outputs(writer, outputs, n_done: int, n: int, progress, cancel) -> int:
+    """Write each frame the chunks yield (``(k, record, arrays)``), once, reporting progress,
+    until they end or ``cancel`` is set; the number of frames done."""
+    try:
+        for k, record, arrays in outputs:
+            if not writer.done(k):  # a chunk redone after its worker died repeats it
+                writer.write_frame(k, record, arrays)
+                n_done += 1
+                if progress:
+                    progress(n_done, n)
+            if cancel is not None and cancel.is_set():
+                break
+    finally:
+        outputs.close()
+    return n_done
 
 
 def _reference_step(

@@ -148,12 +148,12 @@ def test_a_coarse_projective_on_matches_in_one_corner_gives_way(rng):
 
 
 def test_intra_fine_step_on_points_along_one_side_keeps_a_simpler_model(rng):
-    """``IntraConfig.sparse_support`` (``_fit_fine(..., "sparse")``): 150 control points of a
+    """``IntraConfig.sparse_support`` (``fit_fine(..., "sparse")``): 150 control points of a
     nadir-like projective (0.3 px noise) in the left 45 % of the frame. The polyprojective REQCON
     fits follows the noise and bends on the empty side; with "sparse" the simplest model that
     cross-validates as well is kept and the far side stays close. Points over the whole frame
     keep the polyprojective with or without it."""
-    from registration.global_registration.fine import _fit_fine
+    from registration.global_registration.fine import fit_fine
     from registration.matching import ControlPoints
     from registration.run import get_preset
 
@@ -168,7 +168,7 @@ def test_intra_fine_step_on_points_along_one_side_keeps_a_simpler_model(rng):
         dst = _apply(truth, src) + rng.normal(0, 0.3, src.shape)
         cps = ControlPoints(src, dst, np.ones(len(src)))
         start = Projective.from_matrix(truth)
-        fine = _fit_fine(cps, start, 2, reqcon, 0.0, domain, mode, probes)
+        fine = fit_fine(cps, start, 2, reqcon, 0.0, domain, mode, probes)
         assert fine, fine.reason
         err = np.hypot(*(fine.base_from_corrected.apply(right) - _apply(truth, right)).T)
         return float(err.max()), fine.model_kind
