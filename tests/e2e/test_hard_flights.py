@@ -55,7 +55,7 @@ def _assert_mid_base_is_what_the_run_filled(result, out, intra) -> None:
     ys, xs = np.nonzero(inner)
     b = np.c_[xs, ys][::7].astype(float)
     explained = np.zeros(len(b), bool)
-    anchors = [k for k, r in enumerate(result.records) if r.get("stage") == ANCHOR_STAGE]
+    anchors = [k for k, r in enumerate(result.records) if r.stage == ANCHOR_STAGE]
     centre = np.array([W - 1, H - 1]) / 2
     for k in [result.reference_frame, *anchors]:
         q = result.base_to_frame(k, b, stage="local")
@@ -80,7 +80,7 @@ def test_long_flight_does_not_drift(flight, tmp_path):
     cfg = get_preset("default")
     result, err = _run(flight, tmp_path / "default", cfg)
     assert all(r.status == "ok" for r in result.records)
-    assert any(r.get("stage") == ANCHOR_STAGE for r in result.records)
+    assert any(r.stage == ANCHOR_STAGE for r in result.records)
     first, last = err[:10].mean(), err[-10:].mean()
     assert last <= 1.2 * first, f"first 10 {first:.2f} px, last 10 {last:.2f} px"
     assert last < 0.72 and err.max() < 1.72, err.round(2)  # measured 0.553, 1.321

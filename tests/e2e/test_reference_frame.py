@@ -72,7 +72,7 @@ def test_frames_before_and_after_a_middle_reference_frame_are_registered(
     res = mid_reference_result
     assert res.reference_frame == MID_REFERENCE == report.reference_frame
     assert [r.status for r in res.records] == ["ok"] * res.n_frames
-    stages = [r["stage"] for r in res.records]
+    stages = [r.stage for r in res.records]
     assert stages[MID_REFERENCE] == "inter-sensor"
     assert stages.count("intra-sensor") == res.n_frames - 1
     per = {p["frame"]: p for p in report.per_frame}

@@ -187,7 +187,7 @@ def test_intra_frames_follow_motion_beyond_the_prediction_gate(sim, tmp_path):
     for k in range(4):
         shutil.copy(sim / "frames" / f"{k:06d}.png", frames)
     res = run(sim, tmp_path / "out", frames_dir=frames, config=cfg)
-    assert all(r.status == "ok" for r in res.records), [r.get("reason") for r in res.records]
+    assert all(r.status == "ok" for r in res.records), [r.reason for r in res.records]
     gx, gy = np.meshgrid(np.linspace(60, w - 60, 6), np.linspace(60, h - 60, 5))
     q = np.c_[gx.ravel(), gy.ravel()]
     for k in range(1, 4):
