@@ -244,3 +244,23 @@ def _config():
     from registration.run import get_preset
 
     return get_preset("default")
+
+
+def test_a_result_folder_written_before_the_subpackages_loads_and_maps_as_it_did():
+    """``tests/data/result_v1``: a 3-frame result written by the release before the library
+    was split into subpackages (its ``expected.json`` says how), and the mappings that release
+    computed from it: today's reader gives them to the last digits, at both stages."""
+    folder = Path(__file__).resolve().parents[1] / "data" / "result_v1"
+    expected = json.loads((folder / "expected.json").read_text())
+    res = registration.load(folder)
+    q = np.array(expected["points"])
+    assert res.n_frames == len(expected["frames"]) == 3
+    for k, exp in enumerate(expected["frames"]):
+        assert res.status(k) == exp["status"] == "ok"
+        assert isinstance(res.records[k], FrameRecord) and res.records[k].model is not None
+        for stage in ("global", "local"):
+            b = res.frame_to_base(k, q, stage)
+            np.testing.assert_allclose(b, exp[f"frame_to_base_{stage}"], rtol=0, atol=1e-9)
+            back = res.base_to_frame(k, b, stage)
+            np.testing.assert_allclose(back, exp[f"base_to_frame_{stage}"], rtol=0, atol=1e-9)
+    assert res.records[0].stage == "inter-sensor" and res.records[1].stage == "intra-sensor"
