@@ -6,4 +6,14 @@ compare against a baseline measured in the same run and report ratios.
 Run them with ``aerialreg bench SUITE ...`` or ``python -m benchmarks SUITE ...`` from the
 checkout."""
 
-SUITES = ("distortion", "simulate", "register", "heading", "scaleout", "srif", "export", "app")
+SUITES = (
+    "distortion",
+    "simulate",
+    "register",
+    "heading",
+    "scaleout",
+    "srif",
+    "export",
+    "app",
+    "flyover",
+)

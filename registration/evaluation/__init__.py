@@ -9,9 +9,18 @@ from registration.evaluation.baselines import (
     apply_homography,
     homography,
     register_baseline,
+    register_chained,
+    register_per_frame,
     register_stabilo,
     sift_features,
     stabilo_homography,
+)
+from registration.evaluation.consistency import (
+    ConsistencyConfig,
+    PairConsistency,
+    map_agreement,
+    pair_consistency,
+    summarise,
 )
 from registration.evaluation.points import (
     PointMarks,
@@ -30,6 +39,11 @@ from registration.evaluation.truth import (
 )
 
 __all__ = [
+    "ConsistencyConfig",
+    "PairConsistency",
+    "map_agreement",
+    "pair_consistency",
+    "summarise",
     "BaselineConfig",
     "EvaluationConfig",
     "LOCATIONS",
@@ -47,6 +61,8 @@ __all__ = [
     "propose_point",
     "read_points_csv",
     "register_baseline",
+    "register_chained",
+    "register_per_frame",
     "register_stabilo",
     "sift_features",
     "stabilo_homography",

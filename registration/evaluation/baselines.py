@@ -103,11 +103,13 @@ def apply_homography(h: NDArray, xy: NDArray) -> NDArray:
         return p[:, :2] / p[:, 2:3]
 
 
-def sift_features(image: NDArray):
-    """Full-frame SIFT of a grey or BGR image: ``(xy (N, 2), descriptors (N, 128))``."""
+def sift_features(image: NDArray, mask: NDArray | None = None):
+    """Full-frame SIFT of a grey or BGR image: ``(xy (N, 2), descriptors (N, 128))``; ``mask``:
+    where keypoints may lie (``(H, W)``, nonzero), None = everywhere."""
     from registration.matching import to_grey
 
-    kps, desc = cv2.SIFT_create().detectAndCompute(to_grey(image), None)
+    m = None if mask is None else np.asarray(mask, np.uint8) * 255
+    kps, desc = cv2.SIFT_create().detectAndCompute(to_grey(image), m)
     xy = np.array([k.pt for k in kps], np.float64).reshape(-1, 2)
     return xy, desc
 
@@ -156,6 +158,56 @@ def register_baseline(
         lambda frame: homography(sift_features(corrected_grey(frame, camera)), ref_feats, config),
         time.perf_counter() - t0,
     )
+
+
+def register_per_frame(
+    frames, base: NDArray, gamma: float, *, config=BaselineConfig(), base_valid=None
+) -> BaselineResult:
+    """Plain OpenCV with every frame matched to the map on its own (no chain): full-frame SIFT
+    of the corrected frame against the map's, FLANN ratio matching, MAGSAC (None where it finds
+    nothing). ``base_valid``: the map's content mask (no keypoints outside it)."""
+    from registration.matching import to_grey
+
+    w, h = frames.size
+    t0 = time.perf_counter()
+    base_feats = sift_features(to_grey(base), mask=base_valid)
+    out = BaselineResult(gamma, (w, h), [None] * len(frames))
+    setup_s = time.perf_counter() - t0
+    for k, frame in frames.iter():
+        t1 = time.perf_counter()
+        out.homographies[k] = homography(
+            sift_features(corrected_grey(frame, out.camera)), base_feats, config
+        )
+        out.times_s.append(time.perf_counter() - t1 + (setup_s if k == 0 else 0.0))
+    return out
+
+
+def register_chained(
+    frames, base: NDArray, gamma: float, *, config=BaselineConfig(), base_valid=None
+) -> BaselineResult:
+    """Plain OpenCV chained frame to frame: frame 0 matched to the map, every later frame to
+    the one before it (SIFT, FLANN, MAGSAC), their homographies multiplied; from the first frame
+    that fails on, the chain is broken (None)."""
+    from registration.matching import to_grey
+
+    w, h = frames.size
+    t0 = time.perf_counter()
+    base_feats = sift_features(to_grey(base), mask=base_valid)
+    out = BaselineResult(gamma, (w, h), [None] * len(frames))
+    setup_s = time.perf_counter() - t0
+    prev_feats, base_from_prev = None, None
+    for k, frame in frames.iter():
+        t1 = time.perf_counter()
+        feats = sift_features(corrected_grey(frame, out.camera))
+        if k == 0:
+            base_from_prev = homography(feats, base_feats, config)
+        elif base_from_prev is not None:
+            prev_from_k = homography(feats, prev_feats, config)
+            base_from_prev = None if prev_from_k is None else base_from_prev @ prev_from_k
+        out.homographies[k] = base_from_prev
+        prev_feats = feats
+        out.times_s.append(time.perf_counter() - t1 + (setup_s if k == 0 else 0.0))
+    return out
 
 
 def _chain_to_reference(frames, out: BaselineResult, base_from_ref, ref_from_frame, setup_s):

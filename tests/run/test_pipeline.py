@@ -364,3 +364,34 @@ def test_register_benchmark_runs_end_to_end(capsys):
     assert set(rows) == {"paper", "default", "fast", "opencv", "stabilo"}
     for row in rows.values():
         assert np.isfinite(row["global"]["mean"]) and row["times"]["total"] > 0
+
+
+def test_per_frame_and_chained_opencv_baselines_against_the_truth(sim):
+    """The plain-OpenCV baselines of the real flyover's benchmark on the simulated sequence: each
+    frame to the map on its own, and chained frame to frame; both within a few px of the truth,
+    and a frame the chain cannot match breaks the chain from there on (None), while the
+    per-frame baseline still registers the frames after it."""
+    from registration.evaluation import register_chained, register_per_frame
+
+    truth = load_truth(sim)
+    frames, base = open_frames(sim / "frames"), read_image(sim / "base.png")
+    per_frame = register_per_frame(frames, base, 0.7)
+    chained = register_chained(frames, base, 0.7)
+    for res in (per_frame, chained):
+        assert all(h is not None for h in res.homographies)
+        err = evaluate_truth(res, truth).summary["global"]
+        assert err["mean"] < 3.0, err
+
+    class Blanked:  # frame 2 blank: nothing to match
+        size = frames.size
+
+        def __len__(self):
+            return len(frames)
+
+        def iter(self, start=0):
+            for k, f in frames.iter(start):
+                yield k, (np.zeros_like(f) if k == 2 else f)
+
+    broken = register_chained(Blanked(), base, 0.7)
+    assert [h is None for h in broken.homographies[:4]] == [False, False, True, True]
+    assert per_frame.homographies[3] is not None

@@ -12,7 +12,20 @@ from app.cli.common import UsageError, emit_json, parse_size
 NAME = "bench"
 HELP = "Measure speed and accuracy against in-run baselines and print the figures (markdown or --json)."
 # benchmarks.SUITES, repeated so that --help works without the checkout (a test checks they agree).
-SUITES = ("distortion", "simulate", "register", "heading", "scaleout", "srif", "export", "app")
+SUITES = (
+    "distortion",
+    "simulate",
+    "register",
+    "heading",
+    "scaleout",
+    "srif",
+    "export",
+    "app",
+    "flyover",
+)
+# Frames a suite takes when --frames is not given, where it is not DEFAULT_FRAMES: the real
+# flyover video is scored whole.
+SUITE_FRAMES = {"flyover": 600}
 MAX_FRAMES = 1000
 DEFAULT_SIZE, DEFAULT_FRAMES = "1280x960", 6
 # Size and frames of a --profile run unless --size/--frames say otherwise: a few minutes of
@@ -87,6 +100,8 @@ def run(args: argparse.Namespace) -> int:
     if args.speed_options and suites != ["register"]:
         raise UsageError("--speed-options goes with the register suite only")
     size, frames = PROFILE_RUNS.get(args.profile, (DEFAULT_SIZE, DEFAULT_FRAMES))
+    if len(suites) == 1 and suites[0] in SUITE_FRAMES:
+        frames = SUITE_FRAMES[suites[0]]
     args.size = size if args.size is None else args.size
     args.frames = frames if args.frames is None else args.frames
     if (args.scene is None) != (args.base is None):
