@@ -60,8 +60,9 @@ def _consistency(result, greys, stage: str, anchors: set[int]) -> dict:
         pair_consistency,
         summarise,
     )
+    from registration.matching import ProbeConfig
 
-    cfg = ConsistencyConfig(exclude=(LOGO,))
+    cfg = ConsistencyConfig(probes=ProbeConfig(exclude=(LOGO,)))
     out = {}
     for step in STEPS:
         pairs = [

@@ -24,50 +24,33 @@ Points are ``(N, 2)`` float64 ``(x, y)`` pixels with pixel centres at integer co
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from registration.matching import gradient_magnitude, subpixel_peak, to_grey
+from registration.matching import (
+    ProbeConfig,
+    find_probes,
+    gradient_magnitude,
+    textured_probes,
+    to_grey,
+)
 
 
 @dataclass(frozen=True)
 class ConsistencyConfig:
-    """Settings of the image-only measurements. Lengths in raw frame px.
+    """Settings of the image-only measurements.
 
     Attributes:
-        grid_px: spacing of the probe points in frame ``k``.
-        template_px: side of the patch cut around each probe (odd).
-        search_px: the patch is searched this far around the prediction in each direction; a
-            prediction further off than this is not measured (it counts as a miss).
-        margin_px: probes closer than this to the frame's border are left out.
-        min_ncc: the correlation peak must reach this for a measurement to count.
-        min_structure: the smaller eigenvalue of the patch's structure tensor (mean of the
-            squared Scharr gradients / 16, grey levels² per px²) must reach this: along an edge
-            the peak slides.
-        peak_margin: a second peak more than 2 px from the first must be lower by this.
-        exclude: raw-px boxes ``(x0, y0, x1, y1)`` whose probes are left out (a burnt-in logo).
+        probes: where probes are cut in frame ``k`` and when a measurement in frame ``k + step``
+            counts (:class:`registration.matching.ProbeConfig`), raw frame px.
         floor_threshold_px: the robust homography's inlier threshold for the floor.
     """
 
-    grid_px: int = 24
-    template_px: int = 31
-    search_px: int = 8
-    margin_px: int = 20
-    min_ncc: float = 0.8
-    min_structure: float = 40.0
-    peak_margin: float = 0.05
-    exclude: tuple[tuple[float, float, float, float], ...] = ()
+    probes: ProbeConfig = field(default_factory=ProbeConfig)
     floor_threshold_px: float = 2.0
-
-    def __post_init__(self) -> None:
-        if self.template_px < 5 or self.template_px % 2 == 0:
-            raise ValueError(f"template_px must be odd and at least 5, got {self.template_px}")
-        for name in ("grid_px", "search_px", "margin_px"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
 
 
 @dataclass(frozen=True)
@@ -93,63 +76,6 @@ class PairConsistency:
     errors: NDArray[np.float64]
     floor: NDArray[np.float64]
     n_probes: int
-
-
-def probe_grid(size: tuple[int, int], config: ConsistencyConfig) -> NDArray[np.float64]:
-    """``(N, 2)`` raw px on a ``grid_px`` lattice inside the margin, outside ``exclude``."""
-    w, h = size
-    g, m = config.grid_px, max(config.margin_px, config.template_px // 2 + 1)
-    xs = np.arange(m, w - m, g, dtype=np.float64)
-    ys = np.arange(m, h - m, g, dtype=np.float64)
-    p = np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2)
-    keep = np.ones(len(p), bool)
-    for x0, y0, x1, y1 in config.exclude:
-        keep &= ~((p[:, 0] >= x0) & (p[:, 0] <= x1) & (p[:, 1] >= y0) & (p[:, 1] <= y1))
-    return p[keep]
-
-
-def structure_strength(grey: NDArray, points: NDArray, half: int) -> NDArray[np.float64]:
-    """The smaller eigenvalue of the structure tensor of the ``(2 half + 1)²`` patch around each
-    of ``points`` (integer px), grey levels² per px²: how well a patch pins both directions."""
-    g = grey.astype(np.float32)
-    gx = cv2.Scharr(g, cv2.CV_32F, 1, 0) / 16.0
-    gy = cv2.Scharr(g, cv2.CV_32F, 0, 1) / 16.0
-    k = 2 * half + 1
-    sxx = cv2.boxFilter(gx * gx, -1, (k, k))
-    syy = cv2.boxFilter(gy * gy, -1, (k, k))
-    sxy = cv2.boxFilter(gx * gy, -1, (k, k))
-    xi, yi = points[:, 0].astype(int), points[:, 1].astype(int)
-    a, c, b = sxx[yi, xi], syy[yi, xi], sxy[yi, xi]
-    return 0.5 * (a + c - np.sqrt((a - c) ** 2 + 4 * b * b)).astype(np.float64)
-
-
-def _measure(
-    grey_k: NDArray, grey_l: NDArray, p: NDArray, q: NDArray, config: ConsistencyConfig
-) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-    """Where each patch of ``grey_k`` around ``p`` (integer px) lies in ``grey_l`` near ``q``."""
-    half, r = config.template_px // 2, config.search_px
-    hl, wl = grey_l.shape
-    out = np.full((len(p), 2), np.nan)
-    ok = np.zeros(len(p), bool)
-    for i, ((px, py), (qx, qy)) in enumerate(zip(p.astype(int), q, strict=True)):
-        cx, cy = int(round(qx)), int(round(qy))
-        x0, y0 = cx - half - r, cy - half - r
-        x1, y1 = cx + half + r + 1, cy + half + r + 1
-        if x0 < 0 or y0 < 0 or x1 > wl or y1 > hl:
-            continue
-        tmpl = grey_k[py - half : py + half + 1, px - half : px + half + 1]
-        ncc = cv2.matchTemplate(grey_l[y0:y1, x0:x1], tmpl, cv2.TM_CCOEFF_NORMED)
-        _, best, _, (bx, by) = cv2.minMaxLoc(ncc)
-        if not best >= config.min_ncc or bx in (0, 2 * r) or by in (0, 2 * r):
-            continue  # weak, or on the search border (the true peak may lie outside)
-        rival = ncc.copy()
-        rival[max(0, by - 2) : by + 3, max(0, bx - 2) : bx + 3] = -1.0
-        if rival.max() > best - config.peak_margin:
-            continue  # two places look alike: the measurement is not unique
-        dx, dy = subpixel_peak(ncc[by - 1 : by + 2, bx - 1 : bx + 2])[0]
-        out[i] = (x0 + half + bx + dx, y0 + half + by + dy)
-        ok[i] = True
-    return out, ok
 
 
 def _homography_floor(p: NDArray, m: NDArray, lens, threshold: float) -> NDArray[np.float64]:
@@ -190,14 +116,12 @@ def pair_consistency(
         stage: ``"global"`` or ``"local"``.
     """
     cfg = config or ConsistencyConfig()
-    h, w = grey_k.shape
-    p = probe_grid((w, h), cfg)
-    p = p[structure_strength(grey_k, p, cfg.template_px // 2) >= cfg.min_structure]
+    p = textured_probes(grey_k, cfg.probes)
     n_probes = len(p)
     q = np.asarray(result.base_to_frame(k + step, result.frame_to_base(k, p, stage), stage))
     known = np.isfinite(q).all(axis=1)
     p, q = p[known], q[known]
-    m, ok = _measure(grey_k, grey_l, p, q, cfg)
+    m, ok = find_probes(grey_k, grey_l, p, q, cfg.probes)
     p, q, m = p[ok], q[ok], m[ok]
     return PairConsistency(
         k,

@@ -42,6 +42,7 @@ from registration.geometry.rational_fit import (
     _batch_normalise,
     _collinear_triple,
     _degenerate_points_reason,
+    _design,
     _dlt,
     _exponents,
     _forward_n,
@@ -529,6 +530,25 @@ class PolyProjective(_RationalModel):
         p[2 * j - 3 : 2 * j] = hn[3:6]
         p[3 * j - 3 : 3 * j - 1] = hn[6:8]
         return cls(degree, p, sn, dn)
+
+    def param_jacobian(self, xy: ArrayLike) -> tuple[Array, Array]:
+        """Destination px of source px ``xy`` (``(N, 2)``) and their derivatives with respect to
+        :attr:`params`, ``(N, 2, P)`` px per unit (the normalisations held fixed): what a joint
+        adjustment of many frames' models linearises (:mod:`registration.adjustment`)."""
+        un = self.src_norm.forward(as_points(xy))
+        a, b, c = _split(self.params, self.degree)
+        phi = _design(un, self.degree)
+        den = phi @ c
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xn, yn = phi @ a / den, phi @ b / den
+            g = phi / den[:, None] / self.dst_norm.scale
+            j = phi.shape[1]
+            jac = np.zeros((len(un), 2, 3 * j - 1))
+            jac[:, 0, :j] = g
+            jac[:, 1, j : 2 * j] = g
+            jac[:, 0, 2 * j :] = -(xn / den / self.dst_norm.scale)[:, None] * phi[:, :-1]
+            jac[:, 1, 2 * j :] = -(yn / den / self.dst_norm.scale)[:, None] * phi[:, :-1]
+        return self.dst_norm.backward(np.stack([xn, yn], axis=1)), jac
 
     def projective_part(self) -> Projective:
         """The degree-1 terms alone as a Projective (the start of the numerical inverse)."""

@@ -24,6 +24,13 @@ from registration.matching.gridded_sift import (
     window_centres,
 )
 from registration.matching.ncc_peaks import subpixel_peak
+from registration.matching.probes import (
+    ProbeConfig,
+    find_probes,
+    probe_grid,
+    structure_strength,
+    textured_probes,
+)
 from registration.matching.sift import Keypoints, Matches, SiftConfig, detect_sift, match_ratio
 from registration.matching.templates import (
     TemplateConfig,
@@ -35,6 +42,11 @@ from registration.matching.templates import (
 )
 
 __all__ = [
+    "ProbeConfig",
+    "find_probes",
+    "probe_grid",
+    "structure_strength",
+    "textured_probes",
     "ControlPoints",
     "FlowReference",
     "FrameFlow",

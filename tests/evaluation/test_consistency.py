@@ -8,13 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from registration.evaluation.consistency import (
-    ConsistencyConfig,
-    map_agreement,
-    pair_consistency,
-    probe_grid,
-    summarise,
-)
+from registration.evaluation.consistency import map_agreement, pair_consistency, summarise
+from registration.matching import ProbeConfig, probe_grid
 
 W, H = 320, 240
 OFFSETS = np.array([[40.0, 30.0], [47.3, 25.4], [55.1, 21.8]])  # frame k's corner in the texture
@@ -95,10 +90,10 @@ def test_edges_and_blank_patches_are_not_probed_and_excluded_boxes_are_left_out(
     stripes = cv2.GaussianBlur(stripes, (0, 0), 1.0)
     flat = _Shifts(np.zeros((2, 2)))
     assert pair_consistency(flat, stripes, stripes, 0, 1).n_probes == 0
-    cfg = ConsistencyConfig(exclude=((0, 0, 100, 100),))
+    cfg = ProbeConfig(exclude=((0, 0, 100, 100),))
     p = probe_grid((W, H), cfg)
     assert len(p) and not ((p[:, 0] <= 100) & (p[:, 1] <= 100)).any()
-    assert len(probe_grid((W, H), ConsistencyConfig())) > len(p)
+    assert len(probe_grid((W, H), ProbeConfig())) > len(p)
 
 
 def test_map_agreement_is_high_for_the_same_ground_and_low_for_another(frames):
