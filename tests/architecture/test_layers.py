@@ -28,6 +28,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("lens",),
     ("render",),
     ("global_registration", "local"),
+    ("adjustment",),
     ("gis",),
     ("synth",),
     ("run",),

@@ -1,0 +1,23 @@
+"""The sequence adjustment (beyond the paper; the paper registers each frame alone, section 4.4):
+the global models of many frames estimated together from each frame's control points to the map
+and links between frames that see the same ground, so that consecutive frames agree with each
+other as well as each agrees with the map.
+"""
+
+from registration.adjustment.links import measure_links
+from registration.adjustment.solve import (
+    AdjustmentConfig,
+    AdjustmentResult,
+    ControlPointSet,
+    FrameLinks,
+    adjust_models,
+)
+
+__all__ = [
+    "AdjustmentConfig",
+    "AdjustmentResult",
+    "ControlPointSet",
+    "FrameLinks",
+    "adjust_models",
+    "measure_links",
+]
