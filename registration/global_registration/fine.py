@@ -67,7 +67,7 @@ class FineConfig:
             Nelder-Mead).
         check_support: beyond the paper: keep the projective part where the kept control
             points do not support the degree-``degree`` terms over the frame
-            (:func:`registration.robust.supported_by_points`); the paper always keeps the
+            (:func:`registration.geometry.simplest_supported`); the paper always keeps the
             polyprojective.
         click_refit_px: beyond the paper (0 = off, the paper): where the fitted model puts a
             clicked frame point farther than this from its clicked map point (base px), the
