@@ -119,7 +119,12 @@ class _Problem:
 
     def __init__(self, models, links, controls, cfg: AdjustmentConfig) -> None:
         self.models = models
-        self.n_params = {k: len(m.params) for k, m in enumerate(models) if m is not None}
+        has = {k for k, m in enumerate(models) if m is not None}
+        # Only frames with evidence are unknowns: a model nothing constrains stays as it is.
+        seen = {c.k for c in controls if c.k in has and len(c.src)} | {
+            k for lk in links if lk.k in has and lk.l in has and len(lk.src_k) for k in (lk.k, lk.l)
+        }
+        self.n_params = {k: len(models[k].params) for k in sorted(seen)}
         self.offset, start = {}, 0
         for k, size in self.n_params.items():
             self.offset[k] = start

@@ -154,3 +154,12 @@ def test_nothing_to_adjust_and_bad_settings():
         AdjustmentConfig(link_sigma_px=0)
     with pytest.raises(ValueError, match="max_evaluations must be at least 1, got 0"):
         AdjustmentConfig(max_evaluations=0)
+
+
+def test_a_frame_nothing_constrains_keeps_its_model(scene):
+    truth, fits, controls, links = scene
+    alone = [c for c in controls if c.k != 5]
+    no_links_to_5 = [lk for lk in links if 5 not in (lk.k, lk.l)]
+    res = adjust_models(fits, no_links_to_5, alone)
+    assert res.success and np.array_equal(res.models[5].params, fits[5].params)
+    assert np.isnan(res.link_rms_px[5]) and np.isnan(res.control_rms_px[5])
