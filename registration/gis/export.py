@@ -71,8 +71,8 @@ FORMATS: dict[str, str] = {
     "mp4": "registered video over the sequence footprint, with a world file (.wld)",
     "points": "control points per frame as QGIS georeferencer .points files",
     "transforms": "per-frame transforms as JSON (models, corners, homography approximations)",
-    "geojson": "control points, frame footprints (and --marks) as GeoJSON",
-    "gpkg": "control points, frame footprints (and --marks) as one GeoPackage",
+    "geojson": "control points, frame footprints (and hand-marked points) as GeoJSON",
+    "gpkg": "control points, frame footprints (and hand-marked points) as one GeoPackage",
 }
 # Formats that need the frames' pixels.
 RASTER_FORMATS = ("geotiff", "cog", "png", "mosaic", "mp4")

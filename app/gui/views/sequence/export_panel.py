@@ -64,9 +64,7 @@ class ExportPanel:
 
         self.intro = gui.add_markdown("")
         self.formats = {
-            f: gui.add_checkbox(
-                label, f in DEFAULT_FORMATS, hint=FORMATS[f].replace("--marks", "marks")
-            )
+            f: gui.add_checkbox(label, f in DEFAULT_FORMATS, hint=FORMATS[f])
             for f, label in FORMAT_LABELS.items()
         }
         gui.add_markdown(
