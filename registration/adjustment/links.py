@@ -33,12 +33,14 @@ def measure_links(
     model_l,
     lens,
     config: ProbeConfig | None = None,
+    probes_k: NDArray | None = None,
 ) -> FrameLinks:
     """Links between raw frames ``k`` and ``l`` (grey ``(H, W)`` uint8) predicted through their
     models (``base_from_corrected``) and the lens (raw <-> corrected px); none when fewer than
-    ``MIN_LINKS`` survive."""
+    ``MIN_LINKS`` survive. ``probes_k``: frame ``k``'s
+    :func:`registration.matching.textured_probes`, when the caller keeps them."""
     cfg = config or ProbeConfig()
-    p = textured_probes(grey_k, cfg)
+    p = textured_probes(grey_k, cfg) if probes_k is None else probes_k
     empty = FrameLinks(k, l, np.zeros((0, 2)), np.zeros((0, 2)))
     if len(p) < MIN_LINKS:
         return empty

@@ -29,7 +29,7 @@ the normal equations converges in a handful of steps of milliseconds.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -53,6 +53,11 @@ class AdjustmentConfig:
         cost_tolerance: the solver stops when a step changes the robust cost by less than this
             share of it.
         max_evaluations: iteration cap of the solver (Gauss-Newton steps tried).
+        noise_rounds: rounds of re-estimating each frame's control-point noise from its own
+            residuals after a solution (variance components): a frame whose control points
+            disagree with everything else as a whole (its own registration went wrong, so they
+            agree with each other and a robust loss keeps them) then weighs as little as it
+            deserves, and does not pull its neighbours. 0 = the noise as given.
     """
 
     link_sigma_px: float = 0.1
@@ -60,12 +65,15 @@ class AdjustmentConfig:
     f_scale: float = 3.0
     cost_tolerance: float = 1e-5
     max_evaluations: int = 50
+    noise_rounds: int = 2
 
     def __post_init__(self) -> None:
         for name in ("link_sigma_px", "min_control_sigma_px", "f_scale"):
             v = getattr(self, name)
             if not (np.isfinite(v) and v > 0):
                 raise ValueError(f"AdjustmentConfig.{name} must be > 0, got {v!r}")
+        if self.noise_rounds < 0:
+            raise ValueError(f"noise_rounds must be 0 or more, got {self.noise_rounds}")
         if self.max_evaluations < 1:
             raise ValueError(f"max_evaluations must be at least 1, got {self.max_evaluations}")
 
@@ -100,6 +108,12 @@ class AdjustmentResult:
         models: the adjusted model of each frame (None where the input had none).
         link_rms_px, control_rms_px: per frame, the RMS residual (base px) of its links and of
             its control points after the adjustment (NaN where it has none).
+        position_sigma_px: per frame, the standard deviation (base px) of where the adjusted
+            model puts its points (RMS over its control and link points), from the solution's
+            covariance scaled by the residuals' own variance factor (NaN where the frame was no
+            unknown): what the evidence leaves unknown, not a model error the evidence shares.
+        variance_factor: the a-posteriori variance factor (weighted squared residuals per degree
+            of freedom; 1 when the residuals are as noisy as their expected noise).
         success: the solver converged (else it stopped at ``max_evaluations``).
         message: the solver's own words.
         n_evaluations: residual evaluations.
@@ -108,6 +122,8 @@ class AdjustmentResult:
     models: tuple[PolyProjective | None, ...]
     link_rms_px: NDArray[np.float64]
     control_rms_px: NDArray[np.float64]
+    position_sigma_px: NDArray[np.float64]
+    variance_factor: float
     success: bool
     message: str
     n_evaluations: int
@@ -117,76 +133,121 @@ class _Problem:
     """Residuals and their sparse Jacobian over the stacked parameters of the frames that have
     a model (``index[k]``: their block)."""
 
-    def __init__(self, models, links, controls, cfg: AdjustmentConfig) -> None:
+    def __init__(self, models, links, controls, cfg: AdjustmentConfig, fixed=(), priors=()) -> None:
         self.models = models
         has = {k for k, m in enumerate(models) if m is not None}
-        # Only frames with evidence are unknowns: a model nothing constrains stays as it is.
+        fixed = {k for k in fixed if k in has}
+        # Only frames with evidence are unknowns: a model nothing constrains stays as it is. A
+        # fixed frame (final already, or the reference frame the mid base image is made of)
+        # enters its links as a constant.
         seen = {c.k for c in controls if c.k in has and len(c.src)} | {
             k for lk in links if lk.k in has and lk.l in has and len(lk.src_k) for k in (lk.k, lk.l)
         }
-        self.n_params = {k: len(models[k].params) for k in sorted(seen)}
+        self.n_params = {k: len(models[k].params) for k in sorted(seen - fixed)}
         self.offset, start = {}, 0
         for k, size in self.n_params.items():
             self.offset[k] = start
             start += size
         self.size = start
+        self.fixed = fixed
         self.links = [
-            lk for lk in links if lk.k in self.offset and lk.l in self.offset and len(lk.src_k)
+            lk
+            for lk in links
+            if {lk.k, lk.l} <= (set(self.offset) | fixed)
+            and (lk.k in self.offset or lk.l in self.offset)
+            and len(lk.src_k)
         ]
         self.controls = [c for c in controls if c.k in self.offset and len(c.src)]
+        self.n_controls = len(self.controls)
+        # Priors are control points of another kind: the same residual, not counted as evidence.
+        self.controls += [c for c in priors if c.k in self.offset and len(c.src)]
         self.link_w = 1.0 / cfg.link_sigma_px
         self.control_w = [1.0 / max(c.sigma_px, cfg.min_control_sigma_px) for c in self.controls]
-        rows, cols, self.blocks, r = [], [], [], 0
+        self.blocks, r = [], 0
         for lk in self.links:
-            m = 2 * len(lk.src_k)
-            self.blocks.append(("link", r, m))
-            for k in (lk.k, lk.l):
-                rr, cc = np.meshgrid(
-                    np.arange(r, r + m),
-                    np.arange(self.offset[k], self.offset[k] + self.n_params[k]),
-                )
-                rows.append(rr.T.ravel())
-                cols.append(cc.T.ravel())
-            r += m
-        for c in self.controls:
-            m = 2 * len(c.src)
-            self.blocks.append(("control", r, m))
-            rr, cc = np.meshgrid(
-                np.arange(r, r + m),
-                np.arange(self.offset[c.k], self.offset[c.k] + self.n_params[c.k]),
-            )
-            rows.append(rr.T.ravel())
-            cols.append(cc.T.ravel())
-            r += m
+            self.blocks.append(("link", r, 2 * len(lk.src_k)))
+            r += 2 * len(lk.src_k)
+        for i, c in enumerate(self.controls):
+            self.blocks.append(("control" if i < self.n_controls else "prior", r, 2 * len(c.src)))
+            r += 2 * len(c.src)
         self.n_rows = r
-        self.rows = np.concatenate(rows) if rows else np.zeros(0, int)
-        self.cols = np.concatenate(cols) if cols else np.zeros(0, int)
+        # The points never move: their monomials are computed once (each frame's source
+        # normalisation is fixed in the solve).
+        self.link_design = [
+            (models[lk.k].design(lk.src_k), models[lk.l].design(lk.src_l)) for lk in self.links
+        ]
+        self.control_design = [models[c.k].design(c.src) for c in self.controls]
 
     def model(self, x: NDArray, k: int) -> PolyProjective:
         m = self.models[k]
+        if k not in self.offset:
+            return m
         o = self.offset[k]
         return PolyProjective(m.degree, x[o : o + self.n_params[k]], m.src_norm, m.dst_norm)
 
-    def _evaluate(self, x: NDArray, with_jacobian: bool):
-        res, jac = [], []
-        models = {k: self.model(x, k) for k in self.offset}
-        for lk in self.links:
-            vk, jk = models[lk.k].param_jacobian(lk.src_k)
-            vl, jl = models[lk.l].param_jacobian(lk.src_l)
-            res.append(((vk - vl) * self.link_w).ravel())
+    def _terms(self, x: NDArray, with_jacobian: bool):
+        """Per block: ``(frames, residuals (m, 2), Jacobians)``, weighted by the expected
+        noise; the Jacobians ``(m, 2, P)`` of the blocks' unknown frames (None for a held
+        one)."""
+        models = {k: self.model(x, k) for k in (*self.offset, *self.fixed)}
+        for lk, (dk, dl) in zip(self.links, self.link_design, strict=True):
+            vk, jk = models[lk.k].param_jacobian(lk.src_k, dk)
+            vl, jl = models[lk.l].param_jacobian(lk.src_l, dl)
+            jac = None
             if with_jacobian:
-                jac.append((jk * self.link_w).reshape(-1, jk.shape[2]).ravel())
-                jac.append((-jl * self.link_w).reshape(-1, jl.shape[2]).ravel())
-        for c, w in zip(self.controls, self.control_w, strict=True):
-            v, j = models[c.k].param_jacobian(c.src)
-            res.append(((v - c.dst) * w).ravel())
-            if with_jacobian:
-                jac.append((j * w).reshape(-1, j.shape[2]).ravel())
-        r = np.concatenate(res) if res else np.zeros(0)
-        if not with_jacobian:
-            return r
-        data = np.concatenate(jac) if jac else np.zeros(0)
-        return sp.csr_matrix((data, (self.rows, self.cols)), shape=(self.n_rows, self.size))
+                w = self.link_w
+                jac = (
+                    jk * w if lk.k in self.offset else None,
+                    -jl * w if lk.l in self.offset else None,
+                )
+            yield (lk.k, lk.l), (vk - vl) * self.link_w, jac
+        for c, w, d in zip(self.controls, self.control_w, self.control_design, strict=True):
+            v, j = models[c.k].param_jacobian(c.src, d)
+            yield (c.k,), (v - c.dst) * w, ((j * w,) if with_jacobian else None)
+
+    def _evaluate(self, x: NDArray, with_jacobian: bool = False):
+        return np.concatenate([r.ravel() for _, r, _ in self._terms(x, False)] or [np.zeros(0)])
+
+    def normal_equations(self, x: NDArray, f_scale: float):
+        """``(JᵀWJ, JᵀWr, r)`` of the weighted residuals ``r`` with the soft-L1 IRLS weights
+        ``W`` at ``x``, assembled block by block (each block touches one or two frames, so
+        ``JᵀWJ`` is a sparse matrix of dense ``P x P`` blocks)."""
+        blocks: dict[tuple[int, int], NDArray] = {}
+        grad = np.zeros(self.size)
+        res = []
+        for frames, r, jacs in self._terms(x, True):
+            r = np.where(np.isfinite(r), r, 1e6)
+            res.append(r.ravel())
+            w = 1.0 / np.sqrt(1.0 + (r**2).sum(1) / f_scale**2)  # per point
+            flat = [None if j is None else j.reshape(-1, j.shape[2]) for j in jacs]
+            wr = (r * w[:, None]).ravel()
+            w2 = np.repeat(w, 2)
+            for a, ja in zip(frames, flat, strict=True):
+                if ja is None:
+                    continue
+                oa = self.offset[a]
+                grad[oa : oa + ja.shape[1]] += ja.T @ wr
+                for b, jb in zip(frames, flat, strict=True):
+                    if jb is not None:
+                        key = (a, b)
+                        block = (ja * w2[:, None]).T @ jb
+                        blocks[key] = blocks[key] + block if key in blocks else block
+        rows, cols, data = [], [], []
+        for (a, b), block in blocks.items():
+            pa, pb = block.shape
+            rr, cc = np.meshgrid(
+                np.arange(self.offset[a], self.offset[a] + pa),
+                np.arange(self.offset[b], self.offset[b] + pb),
+                indexing="ij",
+            )
+            rows.append(rr.ravel())
+            cols.append(cc.ravel())
+            data.append(block.ravel())
+        normal = sp.csc_matrix(
+            (np.concatenate(data), (np.concatenate(rows), np.concatenate(cols))),
+            shape=(self.size, self.size),
+        )
+        return normal, grad, np.concatenate(res)
 
     def residuals(self, x: NDArray) -> NDArray:
         r = self._evaluate(x, False)
@@ -194,8 +255,22 @@ class _Problem:
         # so the trust region shrinks rather than the solver stopping.
         return np.where(np.isfinite(r), r, 1e6)
 
-    def jacobian(self, x: NDArray):
-        return self._evaluate(x, True)
+    def reestimate_noise(self, x: NDArray) -> bool:
+        """Raise each frame's control-point noise to what its residuals show (robustly: the
+        median point residual / 1.177, the median of a 2D normal's radius); whether any weight
+        changed by more than 20 %."""
+        r = self._evaluate(x, False)
+        changed, ci = False, 0
+        for kind, start, m in self.blocks:
+            if kind != "control":
+                continue
+            e = r[start : start + m].reshape(-1, 2) / self.control_w[ci]
+            seen = float(np.median(np.hypot(e[:, 0], e[:, 1]))) / 1.177
+            if seen * self.control_w[ci] > 1.2:
+                self.control_w[ci] = 1.0 / seen
+                changed = True
+            ci += 1
+        return changed
 
     def per_frame_rms(self, x: NDArray, n: int) -> tuple[NDArray, NDArray]:
         r = self._evaluate(x, False)
@@ -211,7 +286,7 @@ class _Problem:
                 for k in (lk.k, lk.l):
                     sq["link"][k] += d2.sum()
                     cnt["link"][k] += len(d2)
-            else:
+            elif kind == "control":
                 c = self.controls[ci]
                 d2 = (e**2).sum(1) / self.control_w[ci] ** 2
                 ci += 1
@@ -241,11 +316,7 @@ def _solve(problem: _Problem, x0: NDArray, cfg: AdjustmentConfig) -> tuple[NDArr
     cost = _robust_cost(r, cfg.f_scale)
     damping = 1e-6
     for step in range(1, cfg.max_evaluations + 1):
-        jac = problem.jacobian(x)
-        w = _robust_weights(r, cfg.f_scale)
-        jw = jac.multiply(w[:, None]).tocsr()
-        normal = (jac.T @ jw).tocsc()
-        grad = jw.T @ r
+        normal, grad, _ = problem.normal_equations(x, cfg.f_scale)
         diag = normal.diagonal()
         while True:
             lhs = normal + sp.diags(damping * np.maximum(diag, 1e-12), format="csc")
@@ -271,6 +342,8 @@ def adjust_models(
     links: Sequence[FrameLinks],
     controls: Sequence[ControlPointSet],
     config: AdjustmentConfig | None = None,
+    fixed: Collection[int] = (),
+    priors: Sequence[ControlPointSet] = (),
 ) -> AdjustmentResult:
     """Estimate the frames' global models together (module docstring).
 
@@ -279,6 +352,11 @@ def adjust_models(
             frame (left out, with the links that touch it).
         links: frame-to-frame correspondences (:class:`FrameLinks`), corrected px.
         controls: each frame's control points to the map (:class:`ControlPointSet`).
+        fixed: frames whose models are held as they are (their links still count): frames
+            already final in a sliding window, the reference frame.
+        priors: weak control points that hold a frame where its evidence does not reach (as
+            control points, but no part of its ``control_rms_px`` nor of where its
+            ``position_sigma_px`` is taken).
 
     Returns:
         The adjusted models (recorded to the project's quantum, as every stage's models are) and
@@ -286,14 +364,58 @@ def adjust_models(
     """
     cfg = config or AdjustmentConfig()
     models = list(models)
-    problem = _Problem(models, links, controls, cfg)
+    problem = _Problem(models, links, controls, cfg, fixed, priors)
     n = len(models)
     if problem.size == 0 or problem.n_rows == 0:
         nan = np.full(n, np.nan)
-        return AdjustmentResult(tuple(models), nan, nan, True, "nothing to adjust", 0)
-    x0 = np.concatenate([models[k].params for k in problem.offset])
-    x, converged, steps = _solve(problem, x0, cfg)
+        return AdjustmentResult(tuple(models), nan, nan, nan, np.nan, True, "nothing to adjust", 0)
+    x = np.concatenate([models[k].params for k in problem.offset])
+    steps = 0
+    for _ in range(cfg.noise_rounds + 1):
+        x, converged, taken = _solve(problem, x, cfg)
+        steps += taken
+        if not problem.reestimate_noise(x):
+            break
     out = [quantized(problem.model(x, k)) if k in problem.offset else models[k] for k in range(n)]
     link_rms, control_rms = problem.per_frame_rms(x, n)
+    sigma, factor = _position_sigma(problem, x, cfg, n)
     message = f"converged in {steps} steps" if converged else f"stopped after {steps} steps"
-    return AdjustmentResult(tuple(out), link_rms, control_rms, converged, message, steps)
+    return AdjustmentResult(
+        tuple(out), link_rms, control_rms, sigma, factor, converged, message, steps
+    )
+
+
+def _position_sigma(problem: _Problem, x: NDArray, cfg: AdjustmentConfig, n: int):
+    """Per frame, the RMS positional standard deviation (base px) of its points under the
+    solution's covariance, ``s0² (Jᵀ W J)⁻¹`` with the robust weights ``W`` at the solution;
+    and ``s0²``, the weighted squared residuals per degree of freedom."""
+    normal, _, r = problem.normal_equations(x, cfg.f_scale)
+    w = _robust_weights(r, cfg.f_scale)
+    dof = max(problem.n_rows - problem.size, 1)
+    factor = float(np.sum(w * r**2) / dof)
+    # A whisker of damping keeps a frame the evidence barely fixes from a singular factor.
+    normal = normal + sp.diags(1e-12 * np.maximum(normal.diagonal(), 1e-12), format="csc")
+    sigma = np.full(n, np.nan)
+    try:
+        lu = spla.splu(normal)
+    except RuntimeError:  # singular: nothing to say
+        return sigma, factor
+    points: dict[int, list] = {k: [] for k in problem.offset}
+    for c in problem.controls[: problem.n_controls]:
+        points[c.k].append(c.src)
+    with_controls = {c.k for c in problem.controls[: problem.n_controls]}
+    for lk in problem.links:  # a frame without control points: where its links are
+        for k, src in ((lk.k, lk.src_k), (lk.l, lk.src_l)):
+            if k in points and k not in with_controls:
+                points[k].append(src)
+    for k, o in problem.offset.items():
+        size = problem.n_params[k]
+        unit = np.zeros((problem.size, size))
+        unit[o : o + size] = np.eye(size)
+        cov = lu.solve(unit)[o : o + size] * factor
+        if not points[k]:  # held by its prior alone
+            continue
+        _, j = problem.model(x, k).param_jacobian(np.concatenate(points[k]))
+        var = np.einsum("nip,pq,niq->n", j, cov, j)
+        sigma[k] = float(np.sqrt(np.mean(np.maximum(var, 0.0))))
+    return sigma, factor

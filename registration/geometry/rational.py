@@ -531,19 +531,25 @@ class PolyProjective(_RationalModel):
         p[3 * j - 3 : 3 * j - 1] = hn[6:8]
         return cls(degree, p, sn, dn)
 
-    def param_jacobian(self, xy: ArrayLike) -> tuple[Array, Array]:
+    def design(self, xy: ArrayLike) -> Array:
+        """The monomials of source px ``xy`` (``(N, 2)``) in this model's source normalisation,
+        ``(N, J)``: what :meth:`param_jacobian` takes again for the same points."""
+        return _design(self.src_norm.forward(as_points(xy)), self.degree)
+
+    def param_jacobian(self, xy: ArrayLike, design: Array | None = None) -> tuple[Array, Array]:
         """Destination px of source px ``xy`` (``(N, 2)``) and their derivatives with respect to
         :attr:`params`, ``(N, 2, P)`` px per unit (the normalisations held fixed): what a joint
-        adjustment of many frames' models linearises (:mod:`registration.adjustment`)."""
-        un = self.src_norm.forward(as_points(xy))
+        adjustment of many frames' models linearises (:mod:`registration.adjustment`).
+        ``design``: :meth:`design` of ``xy``, when the caller keeps it (the same points over
+        many parameter values)."""
+        phi = self.design(xy) if design is None else design
         a, b, c = _split(self.params, self.degree)
-        phi = _design(un, self.degree)
         den = phi @ c
         with np.errstate(divide="ignore", invalid="ignore"):
             xn, yn = phi @ a / den, phi @ b / den
             g = phi / den[:, None] / self.dst_norm.scale
             j = phi.shape[1]
-            jac = np.zeros((len(un), 2, 3 * j - 1))
+            jac = np.zeros((len(phi), 2, 3 * j - 1))
             jac[:, 0, :j] = g
             jac[:, 1, j : 2 * j] = g
             jac[:, 0, 2 * j :] = -(xn / den / self.dst_norm.scale)[:, None] * phi[:, :-1]

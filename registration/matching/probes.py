@@ -102,6 +102,7 @@ def find_probes(
     hb, wb = grey_b.shape
     out = np.full((len(p), 2), np.nan)
     ok = np.zeros(len(p), bool)
+    peaks = np.zeros((len(p), 3, 3))
     for i, ((px, py), (qx, qy)) in enumerate(zip(p.astype(int), q, strict=True)):
         cx, cy = int(round(qx)), int(round(qy))
         x0, y0 = cx - half - r, cy - half - r
@@ -117,7 +118,9 @@ def find_probes(
         rival[max(0, by - 2) : by + 3, max(0, bx - 2) : bx + 3] = -1.0
         if rival.max() > best - config.peak_margin:
             continue  # two places look alike: the measurement is not unique
-        dx, dy = subpixel_peak(ncc[by - 1 : by + 2, bx - 1 : bx + 2])[0]
-        out[i] = (x0 + half + bx + dx, y0 + half + by + dy)
+        peaks[i] = ncc[by - 1 : by + 2, bx - 1 : bx + 2]
+        out[i] = (x0 + half + bx, y0 + half + by)
         ok[i] = True
+    if ok.any():  # sub-pixel refinement of every peak at once
+        out[ok] += subpixel_peak(peaks[ok])
     return out, ok

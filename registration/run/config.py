@@ -29,6 +29,7 @@ import types
 import typing
 from dataclasses import dataclass, field, replace
 
+from registration.adjustment import SequenceAdjustConfig
 from registration.global_registration import CoarseConfig, FineConfig, IntraConfig
 from registration.lens import LensConfig
 from registration.local import FLOW_OVERRIDES, LocalConfig
@@ -67,6 +68,11 @@ class PipelineConfig:
             frame has no registered predecessor (unless it follows the reference frame) and
             each chunk sees only its own anchors. 0 = one chunk (the paper's chain). The result
             depends on this value, not on where the chunks run.
+        adjust: beyond the paper: once every frame is registered, estimate the global models
+            of all frames together, window by window, from their control points and links
+            between frames that see the same ground
+            (:mod:`registration.adjustment.sequence`); each frame then also gets a predicted
+            error and a flag. None = each frame as its own registration left it (the paper).
     """
 
     coarse: CoarseConfig = field(default_factory=CoarseConfig)
@@ -79,6 +85,7 @@ class PipelineConfig:
     lens: LensConfig = field(default_factory=LensConfig)
     random_seed: int = 0
     chunk_frames: int = 0
+    adjust: SequenceAdjustConfig | None = None
 
     def __post_init__(self) -> None:
         if isinstance(self.chunk_frames, bool) or not isinstance(self.chunk_frames, int):
@@ -334,8 +341,12 @@ def get_preset(name: str) -> PipelineConfig:
 
 
 def config_to_dict(config: PipelineConfig) -> dict:
-    """JSON-able nested dict of a config."""
-    return dataclasses.asdict(config)
+    """JSON-able nested dict of a config. Without a sequence adjustment its key is left out, so
+    that a result written before the adjustment existed resumes."""
+    out = dataclasses.asdict(config)
+    if out.get("adjust", 0) is None:
+        del out["adjust"]
+    return out
 
 
 def config_from_dict(data: dict, cls: type = PipelineConfig, path: str = "config"):

@@ -39,6 +39,7 @@ from registration.io import FrameSource
 from registration.lens import Camera, check_harris_gamma
 from registration.local import reference_field
 from registration.render import render_to_base
+from registration.run.adjust import adjust_result
 from registration.run.anchoring import ANCHOR_STAGE, anchor_box, footprint, render_anchor
 from registration.run.chunks import ChunkContext, ChunkExecutor, chunk_jobs, processing_order
 from registration.run.config import PipelineConfig, config_from_dict
@@ -112,6 +113,7 @@ def register_sequence(
     base_georef=None,
     executor: ChunkExecutor | None = None,
     overlap: bool | None = None,
+    adjust_progress: Progress | None = None,
 ) -> RegistrationResult:
     """Register every frame of ``frames`` to ``base`` and write the result folder ``out_dir``.
 
@@ -131,6 +133,8 @@ def register_sequence(
         force: delete the result already in ``out_dir`` and start over.
         progress: called with ``(frames done, n_frames)`` after each frame.
         cancel: when set, the run stops after the frame in progress (finished frames are kept).
+        adjust_progress: called with ``(frames adjusted, frames ok)`` as the sequence
+            adjustment (``config.adjust``) makes frames final.
         reference: coarse and fine results for the reference frame computed beforehand (the
             app's seed step), used instead of recomputing them.
         base_georef: the base map's :class:`registration.gis.georef.GeoReference` (or its
@@ -184,6 +188,8 @@ def register_sequence(
             n_done = _write_outputs(writer, outputs, n_done, n, progress, cancel)
         if n_done == n and (jobs or mid_missing):
             _write_mosaic(writer, context)
+        if config.adjust is not None and n_done == n and not (cancel and cancel.is_set()):
+            adjust_result(writer, frames, config.adjust, adjust_progress, cancel)
     return RegistrationResult(out_dir)
 
 
@@ -244,7 +250,9 @@ def _reference_step(
         # Resuming: the mid base image is rendered again from the record, exactly as the
         # uninterrupted run rendered it (each chunk adds its own anchors, run_chunk).
         camera = camera.with_k2(rec.camera.k2)
-        mid, valid = render_to_base(frame, camera, rec.model(ref), (0, 0, wb, hb), rec.field(ref))
+        mid, valid = render_to_base(
+            frame, camera, rec.own_model(ref), (0, 0, wb, hb), rec.field(ref)
+        )
         if writer.read_mid_base() is None:
             writer.write_mid_base(mid, valid)
         return mid, valid, rec.records[ref].model, camera
@@ -330,11 +338,11 @@ def _write_mosaic(writer: ResultWriter, ctx: ChunkContext) -> None:
     joint = make_joint_base(ctx.mid.copy(), ctx.mid_valid.copy())
     hb, wb = joint.mid_valid.shape
     for k in anchors:
-        if anchor_box(ctx.camera, result.model(k), (wb, hb)) is None:
+        if anchor_box(ctx.camera, result.own_model(k), (wb, hb)) is None:
             continue  # the frame is not read: its box needs only the camera and model
         # As the run filled it: only the anchor's pixels within its fill radius.
         render_anchor(
-            joint, ctx.frames.get(k), ctx.camera, result.model(k), result.field(k),
+            joint, ctx.frames.get(k), ctx.camera, result.own_model(k), result.field(k),
             ctx.config.intra.anchor_fill_radius,
         )  # fmt: skip
     writer.write_mid_base(joint.mid_image, joint.mid_valid)

@@ -49,6 +49,10 @@ class FrameRecord:
             before the record and not changed after.
         model: its global model ``base_from_corrected`` as a dict
             (:func:`registration.geometry.model_from_dict`); None unless ok.
+        adjusted_model: its model after the sequence adjustment
+            (:mod:`registration.adjustment.sequence`; ``stats["adjustment"]`` says how it was
+            made), which the result then uses; ``model`` stays the frame's own. None: not
+            adjusted.
         lens_k2: the fourth-order lens term the reference frame's registration found (the
             reference frame's record only).
         k: the frame's index (set when written).
@@ -63,6 +67,7 @@ class FrameRecord:
     stage: str | None = None
     stats: dict = field(default_factory=dict)
     model: dict | None = None
+    adjusted_model: dict | None = None
     lens_k2: float | None = None
     k: int | None = None
     npz_bytes: int | None = None
@@ -99,6 +104,8 @@ class FrameRecord:
             out["stage"] = self.stage
         out["stats"] = self.stats
         out["model"] = self.model
+        if self.adjusted_model is not None:
+            out["adjusted_model"] = self.adjusted_model
         if self.lens_k2 is not None:
             out["lens_k2"] = self.lens_k2
         out["npz_bytes"] = self.npz_bytes
@@ -117,6 +124,9 @@ class FrameRecord:
             raise ValueError("stats is not an object")
         if obj["status"] == "ok" and not isinstance(model, dict):
             raise ValueError("an ok record without its model")
+        adjusted = obj.get("adjusted_model")
+        if adjusted is not None and not isinstance(adjusted, dict):
+            raise ValueError("adjusted_model is not an object")
         k = obj.get("k")
         return cls(
             status=obj["status"],
@@ -124,6 +134,7 @@ class FrameRecord:
             stage=obj.get("stage"),
             stats=stats,
             model=model,
+            adjusted_model=adjusted,
             lens_k2=obj.get("lens_k2"),
             k=None if k is None else int(k),
             npz_bytes=obj.get("npz_bytes"),

@@ -147,19 +147,37 @@ class RegistrationResult:
         self._arrays[k] = {}
 
     def model(self, k: int):
-        """The frame's global ``base_from_corrected`` model, or None when it failed."""
+        """The frame's global ``base_from_corrected`` model (after the sequence adjustment where
+        the run made one), or None when it failed."""
         k = self._check_k(k)
         if not self.is_ok(k):
             return None
         if k not in self._models:
             from registration.geometry import model_from_dict
 
+            rec = self.records[k]
             try:
-                self._models[k] = model_from_dict(self.records[k].model)
+                own = model_from_dict(rec.model)
+                adjusted = None if rec.adjusted_model is None else (
+                    model_from_dict(rec.adjusted_model)
+                )  # fmt: skip
             except (KeyError, TypeError, ValueError) as exc:
                 self._damage(k, f"damaged record {k:06d}.json: bad model ({_first_line(exc)})")
                 return None
-        return self._models[k]
+            self._models[k] = (own, adjusted)
+        own, adjusted = self._models[k]
+        return own if adjusted is None else adjusted
+
+    def own_model(self, k: int):
+        """The frame's model from its own registration (before any sequence adjustment), or
+        None when it failed: what the run's later frames were registered with."""
+        if self.model(k) is None:
+            return None
+        return self._models[k][0]
+
+    def is_adjusted(self, k: int) -> bool:
+        """Whether the frame's model and field come from the sequence adjustment."""
+        return self.is_ok(k) and self.records[k].adjusted_model is not None
 
     def _npz(self, k: int) -> dict:
         k = self._check_k(k)
@@ -197,6 +215,10 @@ class RegistrationResult:
             self._npz(k)
         return self.is_ok(k)
 
+    def arrays(self, k: int) -> dict[str, NDArray]:
+        """Every array of the frame's ``.npz`` by name (a copy of the dict; empty without)."""
+        return dict(self._npz(k))
+
     def control_points(self, k: int):
         """``(src, dst, kept, residuals)`` of the frame's fine step, or None."""
         a = self._npz(k)
@@ -205,19 +227,26 @@ class RegistrationResult:
         return a["src"], a["dst"], a["kept"].astype(bool), a["residuals"]
 
     def field(self, k: int):
-        """The frame's local :class:`registration.geometry.displacement_field.DisplacementField`, or None."""
-        a = self._npz(k)
-        if "field_vectors" not in a:
-            return None
-        from registration.geometry import DisplacementField
+        """The frame's own local
+        :class:`registration.geometry.displacement_field.DisplacementField` (measured on its own
+        model, :meth:`own_model`), or None."""
+        return _field(self._npz(k), "field_")
 
-        return DisplacementField.from_arrays(
-            {
-                name[len("field_") :]: a[name]
-                for name in a
-                if name.startswith("field_") and not name.startswith("field_stats_")
-            }
-        )
+    def local_stage(self, k: int):
+        """``(model, field)`` the frame's stage ``"local"`` maps through: the adjusted model
+        and the field made consistent on it where the sequence adjustment made one, else its
+        own; ``field`` None when it has none (``"local"`` is then ``"global"``)."""
+        adjusted = _field(self._npz(k), "adjusted_field_")
+        if adjusted is not None:
+            return self.model(k), adjusted
+        return self.own_model(k), self.field(k)
+
+    def release(self, k: int) -> None:
+        """Forget frame ``k``'s cached model and arrays (a long pass over the frames keeps
+        memory flat); they are read again when asked for."""
+        if 0 <= k < self.n_frames:
+            self._models.pop(k, None)
+            self._arrays.pop(k, None)
 
     def field_stats(self, k: int) -> dict[str, NDArray] | None:
         """Per-cell arrays of the local stage (status codes, matches, kept, residuals), or None."""
@@ -236,13 +265,13 @@ class RegistrationResult:
                 & (xy[:, 1] <= h - 0.5)
             )
 
-    def _global_frame_to_base(self, k: int, xy: NDArray) -> NDArray:
-        out = self.model(k).apply(self.lens.corrected_from_raw(xy))
+    def _global_frame_to_base(self, k: int, xy: NDArray, model=None) -> NDArray:
+        out = (model or self.model(k)).apply(self.lens.corrected_from_raw(xy))
         out[~self._inside_frame(xy)] = np.nan
         return out
 
-    def _global_base_to_frame(self, k: int, xy: NDArray) -> NDArray:
-        raw = self.lens.raw_from_corrected(self.model(k).inverse(xy))
+    def _global_base_to_frame(self, k: int, xy: NDArray, model=None) -> NDArray:
+        raw = self.lens.raw_from_corrected((model or self.model(k)).inverse(xy))
         raw[~self._inside_frame(raw)] = np.nan
         return raw
 
@@ -253,12 +282,12 @@ class RegistrationResult:
         _check_stage(stage)
         if not self._usable(k, stage):
             return np.full_like(pts, np.nan)
-        field = self.field(k) if stage == "local" else None
+        model, field = self.local_stage(k) if stage == "local" else (None, None)
         if field is None:
             return self._global_frame_to_base(k, pts)
         from registration.geometry import local_frame_to_base
 
-        return local_frame_to_base(lambda q: self._global_frame_to_base(k, q), field, pts)
+        return local_frame_to_base(lambda q: self._global_frame_to_base(k, q, model), field, pts)
 
     def base_to_frame(self, k: int, xy: ArrayLike, stage: str = "local") -> NDArray[np.float64]:
         """``(N, 2)`` base pixels -> ``(N, 2)`` raw pixels of frame ``k`` (NaN where unknown)."""
@@ -267,12 +296,12 @@ class RegistrationResult:
         _check_stage(stage)
         if not self._usable(k, stage):
             return np.full_like(pts, np.nan)
-        field = self.field(k) if stage == "local" else None
+        model, field = self.local_stage(k) if stage == "local" else (None, None)
         if field is None:
             return self._global_base_to_frame(k, pts)
         from registration.geometry import local_base_to_frame
 
-        return local_base_to_frame(lambda b: self._global_base_to_frame(k, b), field, pts)
+        return local_base_to_frame(lambda b: self._global_base_to_frame(k, b, model), field, pts)
 
     # -- map coordinates (georeferenced base) --------------------------------------------------
     def _require_georef(self):
@@ -310,6 +339,14 @@ class RegistrationResult:
         georef = self._require_georef()
         pts = as_points(xy, "xy") if from_crs is None else georef.from_crs(xy, from_crs)
         return self.base_to_frame(k, georef.base_from_map(pts), stage)
+
+
+def _field(arrays: dict, prefix: str):
+    if prefix + "vectors" not in arrays:
+        return None
+    from registration.geometry import DisplacementField
+
+    return DisplacementField.from_arrays(arrays, prefix)
 
 
 def load_result(out_dir: str | Path) -> RegistrationResult:

@@ -147,6 +147,17 @@ class ResultWriter:
         write_json_atomic(frame_record_path(self.out_dir, k, ".json"), record.to_json())
         self._status[k] = record.status
 
+    def write_record(self, k: int, record: FrameRecord) -> None:
+        """Rewrite frame ``k``'s record, its arrays file as it is (a record written before
+        records held their arrays' size gets it now, so that the arrays stay its own)."""
+        npz = frame_record_path(self.out_dir, k, ".npz")
+        if record.legacy_arrays and npz.is_file():
+            record = replace(record, npz_bytes=npz.stat().st_size, npz_sha256=file_sha256(npz))
+        write_json_atomic(
+            frame_record_path(self.out_dir, k, ".json"), replace(record, k=int(k)).to_json()
+        )
+        self._status[k] = record.status
+
     # -- the mid base image -----------------------------------------------------------------
     def write_mid_base(self, mid: NDArray, valid: NDArray[np.bool_]) -> None:
         write_image_atomic(self.out_dir / MID_BASE, mid)

@@ -97,6 +97,14 @@ def _registration_arguments(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="skip the local displacement field (stage 'local' then equals 'global')",
     )
+    p.add_argument(
+        "--adjust",
+        action="store_true",
+        help="beyond the paper: once every frame is registered, estimate the frames' global "
+        "models together, window by window, from their control points and links between frames "
+        "that see the same ground, so that consecutive frames agree; each frame gets a predicted "
+        "error, and one likely to be off by more than 2 base px is flagged",
+    )
 
 
 def _run_arguments(p: argparse.ArgumentParser) -> None:
@@ -211,6 +219,10 @@ def run(args: argparse.Namespace) -> int:
     config = get_preset(args.preset)
     if args.no_local:
         config = replace(config, run_local=False)
+    if args.adjust:
+        from registration.adjustment import SequenceAdjustConfig
+
+        config = replace(config, adjust=SequenceAdjustConfig())
     # A file, another tool's folder or a result without --resume/--force: refused before any work.
     if args.resume and args.force:
         raise UsageError("--resume and --force exclude each other")
@@ -232,6 +244,14 @@ def run(args: argparse.Namespace) -> int:
             bar = ProgressBar(total, "register").__enter__()
         bar.update(done - bar.done)
 
+    def adjust_progress(done: int, total: int) -> None:
+        nonlocal bar
+        if bar is None or bar.label != "adjust":
+            if bar is not None:
+                bar.__exit__(None, None, None)
+            bar = ProgressBar(total, "adjust").__enter__()
+        bar.update(done - bar.done)
+
     try:
         with executor(args) as run_on:
             result = register_sequence(
@@ -247,6 +267,7 @@ def run(args: argparse.Namespace) -> int:
                 resume=args.resume,
                 force=args.force,
                 progress=progress,
+                adjust_progress=adjust_progress,
                 base_georef=base_map.georef,
                 base_valid=base_map.valid_or_none,
                 executor=run_on,
@@ -284,12 +305,19 @@ def report(args: argparse.Namespace, result, base_map, config, elapsed: float, w
     failed = [
         {"frame": k, "reason": r.reason} for k, r in enumerate(result.records) if r.status != "ok"
     ]
+    flagged = [
+        {"frame": k, "predicted_error_px": r.stats["adjustment"]["predicted_error_px"]}
+        for k, r in enumerate(result.records)
+        if r.ok and r.stats.get("adjustment", {}).get("flagged")
+    ]
     summary = {
         "out": str(Path(args.out).resolve()),
         "n_frames": result.n_frames,
         "n_ok": result.n_frames - len(failed),
         "n_failed": len(failed),
         "failed": failed,
+        "n_adjusted": sum(result.is_adjusted(k) for k in range(result.n_frames)),
+        "flagged": flagged,
         "preset": args.preset,
         "gamma": result.gamma,
         "lens_k2": result.camera.k2,
@@ -313,6 +341,17 @@ def report(args: argparse.Namespace, result, base_map, config, elapsed: float, w
             sys.stdout.write(f"  lens: {summary['lens']['reason']}\n")
         for f in failed:
             sys.stdout.write(f"  frame {f['frame']} failed: {f['reason']}\n")
+        if summary["n_adjusted"]:
+            sys.stdout.write(
+                f"  adjusted {summary['n_adjusted']} frames together; "
+                f"{len(flagged)} flagged as likely off by more than "
+                f"{config.adjust.flag_px:g} base px\n"
+            )
+        for f in flagged:
+            sys.stdout.write(
+                f"  frame {f['frame']} flagged: predicted error "
+                f"{f['predicted_error_px']:.2f} base px\n"
+            )
 
 
 def chunk_frames(args: argparse.Namespace, state: str) -> int:

@@ -1,0 +1,121 @@
+"""The local stage made consistent in time (beyond the paper, whose local stage measures each
+frame's displacement field alone, section 5).
+
+A frame's field corrects its global model where relief and the lens bend the view away from it.
+Measured per frame against the mid base image, it carries that frame's own matching noise, so
+consecutive frames disagree by it (on the real flyover the local stage made frame-to-frame
+consistency worse than the global stage). After the sequence adjustment, the correction a frame
+needs at a ground point is nearly what its neighbours need there: relief moves slowly across
+the frame as the camera moves. So each frame's field is re-expressed on its adjusted model and
+averaged, node by node, with its neighbours' fields re-expressed on theirs: the frames within
+``field_radius`` frames that saw the ground from nearly the same place (their views less than
+``field_baseline_px`` apart: relief looks the same from there), and kept only where the frames
+agree on it: the mean is shrunk by how little its spread supports it, ``m (1 - s²/(n |m|²))⁺``
+(``s`` the spread of the ``n`` frames' corrections at that node). A node only the frame itself
+measured keeps its own correction, as the paper's local stage does; where no frame measured
+one, the field is filled from the nodes around it.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from registration.geometry import DisplacementField, PolyProjective
+from registration.local import fill_invalid
+
+
+@dataclass(frozen=True)
+class FrameField:
+    """What one frame contributes to its neighbours' fields: its own field, the model it was
+    measured on, and its adjusted model."""
+
+    field: DisplacementField
+    own: PolyProjective
+    adjusted: PolyProjective
+
+
+def correction_at(
+    frame: FrameField, nodes: NDArray, inside: Callable[[NDArray], NDArray]
+) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """The correction ``frame`` makes at base px ``nodes`` (``(N, 2)``), re-expressed on its
+    adjusted model: ``d'(x) = g'(q) - x`` for the frame point ``q`` its own local stage puts at
+    ``x`` (``x + d(x) = g(q)``), NaN where ``q`` is not near the frame (``inside``: corrected px
+    -> bool); and where its field was measured (the nearest node valid, ``q`` in the frame's
+    reach)."""
+    f = frame.field
+    d = f.sample(nodes, outside="nan")
+    gy, gx = f.shape
+    ij = np.round((nodes - np.asarray(f.origin)) / f.spacing).astype(int)
+    on_grid = (ij[:, 0] >= 0) & (ij[:, 0] < gx) & (ij[:, 1] >= 0) & (ij[:, 1] < gy)
+    measured = np.zeros(len(nodes), bool)
+    measured[on_grid] = f.valid[ij[on_grid, 1], ij[on_grid, 0]]
+    q = frame.own.inverse(nodes + d)
+    near = np.isfinite(q).all(axis=1)
+    near[near] = inside(q[near])
+    out = np.full((len(nodes), 2), np.nan)
+    out[near] = frame.adjusted.apply(q[near]) - nodes[near]
+    return out, measured & near
+
+
+def consistent_field(
+    own: FrameField, neighbours: Sequence[FrameField], inside: Callable[[NDArray], NDArray]
+) -> DisplacementField:
+    """Frame ``own``'s field on its adjusted model (on its own field's grid, refined:
+    :func:`refined_grid`): its correction
+    averaged with its ``neighbours``' where two or more frames measured a node, and shrunk by
+    how little their spread supports it; its own correction alone where no neighbour measured
+    the node (module docstring)."""
+    grid = refined_grid(own.field)
+    nodes = grid.node_xy.reshape(-1, 2)
+    return pool_corrections(grid, [correction_at(f, nodes, inside) for f in (own, *neighbours)])
+
+
+# The field on the adjusted model has twice the nodes per side of the frame's own: the change
+# of model between them is bilinear there, and a quarter of the cell quarters its error.
+REFINE = 2
+
+
+def refined_grid(field_: DisplacementField, factor: int = REFINE) -> DisplacementField:
+    """An empty field (zeros, nothing valid) on ``field_``'s grid with ``factor`` times the
+    nodes per side, over the same extent."""
+    gy, gx = field_.shape
+    shape = ((gy - 1) * factor + 1, (gx - 1) * factor + 1)
+    return DisplacementField(
+        field_.origin, field_.spacing / factor, np.zeros((*shape, 2), np.float32),
+        np.zeros(shape, bool),
+    )  # fmt: skip
+
+
+def pool_corrections(
+    grid: DisplacementField,
+    corrections: Sequence[tuple[NDArray, NDArray]],
+    support: float = 1.0,
+) -> DisplacementField:
+    """:func:`consistent_field` from the corrections and their measured masks
+    (:func:`correction_at`) at the nodes of ``grid`` (:func:`refined_grid`), the frame's own
+    first; ``support`` scales
+    the shrinkage (``m (1 - support s² / (n |m|²))⁺``). Nodes no frame measured keep the
+    frame's own (filled) correction re-expressed, so that its local stage stays continuous
+    where it was."""
+    c = np.stack([np.where(m[:, None], v, np.nan) for v, m in corrections])  # (F, N, 2)
+    seen = np.isfinite(c).all(axis=2)
+    n = seen.sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # nodes no frame measured: NaN
+        mean = np.nanmean(c, axis=0)
+        spread2 = np.nansum((c - mean) ** 2, axis=(0, 2)) / np.maximum(n - 1, 1)
+        shrink = np.clip(1.0 - support * spread2 / (n * (mean**2).sum(axis=1)), 0.0, 1.0)
+    own = corrections[0][0]
+    vectors = np.where(np.isfinite(own), own, 0.0)
+    known = np.isfinite(own).all(axis=1)
+    pooled = n >= 2
+    vectors[pooled] = mean[pooled] * np.nan_to_num(shrink[pooled])[:, None]
+    shape = grid.vectors.shape
+    valid = (pooled | ((n == 1) & seen[0])).reshape(shape[:2])
+    filled = fill_invalid(vectors.reshape(shape), (known | pooled).reshape(shape[:2]))
+    return DisplacementField(grid.origin, grid.spacing, filled, valid)

@@ -1,0 +1,122 @@
+"""The local stage made consistent in time, against known truth: a field re-expressed on an
+adjusted model maps every node where the frame's own local stage did; fields of frames that saw
+the same relief from nearly the same place, each with its own matching noise, pool to the
+truth better than each alone; noise without a common correction is shrunk away; a node only the
+frame itself measured keeps its own correction."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from registration.adjustment import FrameField, consistent_field, correction_at
+from registration.geometry import (
+    DisplacementField,
+    Normalisation,
+    PolyProjective,
+    Projective,
+    local_frame_to_base,
+)
+
+W, H = 640, 480
+SPACING = 100.0
+
+
+def _model(dx: float, dy: float, bend: float = 0.0) -> PolyProjective:
+    """Frame px -> base px: a shift, with a little curvature."""
+    proj = Projective.from_matrix(np.array([[1.0, 0, 200 + dx], [0, 1.0, 150 + dy], [0, 0, 1]]))
+    corners = np.array([[0, 0], [W, 0], [W, H], [0, H]], float)
+    poly = PolyProjective.from_projective(
+        proj, 2, Normalisation.for_extent(W, H), Normalisation.from_points(proj.apply(corners))
+    )
+    p = poly.params.copy()
+    p[0] += bend
+    return poly.with_params(p)
+
+
+def _field(vectors: np.ndarray, valid: np.ndarray | None = None) -> DisplacementField:
+    gy, gx = vectors.shape[:2]
+    return DisplacementField(
+        (0.0, 0.0), SPACING, vectors.astype(np.float32),
+        np.ones((gy, gx), bool) if valid is None else valid,
+    )  # fmt: skip
+
+
+def _inside(q):
+    return (q[:, 0] >= -W / 2) & (q[:, 0] <= 1.5 * W) & (q[:, 1] >= -H / 2) & (q[:, 1] <= 1.5 * H)
+
+
+# The true correction (relief) on a 11 x 9 grid over the base: a bump of 1.5 px.
+GX, GY = 11, 9
+YY, XX = np.mgrid[0:GY, 0:GX]
+RELIEF = np.stack(
+    [1.5 * np.exp(-((XX - 5) ** 2 + (YY - 4) ** 2) / 4.0), 0.5 * np.sin(XX / 2.0)], -1
+)
+
+
+def test_a_field_on_the_adjusted_model_maps_the_frame_where_its_own_did():
+    own, adjusted = _model(0, 0), _model(0.4, -0.3, bend=0.0005)
+    field_ = _field(RELIEF)
+    moved = consistent_field(FrameField(field_, own, adjusted), [], _inside)
+    # On the own grid's nodes, every other node of the refined one, valid where the own field
+    # was measured and the frame reaches.
+    assert np.array_equal(moved.valid[::2, ::2], field_.valid & _covered(field_, own))
+    # At the nodes inside the frame: exactly where the own local stage put them.
+    nodes = moved.node_xy.reshape(-1, 2)[moved.valid.ravel()]
+    q = own.inverse(nodes + field_.sample(nodes))
+    via_adjusted = local_frame_to_base(adjusted.apply, moved, q)
+    assert np.abs(via_adjusted - nodes).max() < 1e-3
+    # Anywhere in the frame: within a few hundredths of a px (the change between nodes is
+    # bilinear where the models' difference is a smooth polynomial).
+    rng = np.random.default_rng(2)
+    q = rng.uniform([20, 20], [W - 20, H - 20], (300, 2))
+    gap = local_frame_to_base(adjusted.apply, moved, q) - local_frame_to_base(own.apply, field_, q)
+    assert np.abs(gap).max() < 0.05
+
+
+def _covered(field_, model):
+    nodes = field_.node_xy.reshape(-1, 2)
+    q = model.inverse(nodes + field_.sample(nodes))
+    return _inside(q).reshape(field_.shape)
+
+
+def test_neighbours_fields_pool_to_the_truth_and_noise_alone_is_shrunk():
+    rng = np.random.default_rng(7)
+    frames = []
+    for j in range(7):  # the same relief seen from 0.5 px apart, each with its own noise
+        model = _model(0.5 * j, 0.0)
+        noise = rng.normal(0, 0.3, RELIEF.shape)
+        truth = RELIEF.copy()
+        truth[:, 7:9] = 0.0  # columns 7-8: noise, no relief
+        frames.append((FrameField(_field(truth + noise), model, model), truth))
+    own, truth = frames[3]
+    pooled = consistent_field(own, [f for i, (f, _) in enumerate(frames) if i != 3], _inside)
+    ok = pooled.valid[::2, ::2] & _covered(own.field, own.own)
+    assert ok.sum() > 30
+    err_own = np.hypot(*(own.field.vectors - truth)[ok].T)
+    err_pooled = np.hypot(*(pooled.vectors[::2, ::2] - truth)[ok].T)
+    # 7 frames: the noise drops by about sqrt(7).
+    assert np.sqrt(np.mean(err_pooled**2)) < 0.55 * np.sqrt(np.mean(err_own**2))
+    # Where there is no common correction, what is kept is smaller than one frame's noise.
+    noise_only = ok.copy()
+    noise_only[:, :7] = False
+    noise_only[:, 9:] = False
+    assert (
+        np.abs(pooled.vectors[::2, ::2][noise_only]).mean()
+        < 0.5 * np.abs(own.field.vectors[noise_only]).mean()
+    )
+
+
+def test_a_node_only_the_frame_measured_keeps_its_own_correction():
+    model = _model(0, 0)
+    mine = _field(RELIEF)
+    valid = np.ones((GY, GX), bool)
+    valid[4, 5] = False  # the neighbour did not measure the bump's centre
+    theirs = _field(RELIEF + 0.2, valid)
+    pooled = consistent_field(
+        FrameField(mine, model, model), [FrameField(theirs, model, model)], _inside
+    )
+    assert pooled.valid[8, 10]  # node (4, 5) of the own grid
+    assert np.allclose(pooled.vectors[8, 10], RELIEF[4, 5], atol=1e-6)
+    node = mine.node_xy[4, 5][None]
+    _, measured = correction_at(FrameField(theirs, model, model), node, _inside)
+    assert not measured[0]
