@@ -19,6 +19,8 @@ For a georeferenced base (``result.json`` key ``base_georef``) the same in map c
 
 from __future__ import annotations
 
+import copy
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -97,6 +99,7 @@ class RegistrationResult:
         self.georef = GeoReference.from_dict(meta.get("base_georef"))
         self._models: dict[int, object] = {}
         self._arrays: dict[int, dict] = {}
+        self._own_only = False
         self.reload()
 
     @property
@@ -108,6 +111,8 @@ class RegistrationResult:
         self.records: list[FrameRecord] = [
             read_record(self.out_dir, k) for k in range(self.n_frames)
         ]
+        if self._own_only:
+            self.records = [replace(r, adjusted_model=None) for r in self.records]
         self._models.clear()
         self._arrays.clear()
         # The lens beyond Harris that the reference frame's registration found (0 = Harris).
@@ -236,10 +241,18 @@ class RegistrationResult:
         """``(model, field)`` the frame's stage ``"local"`` maps through: the adjusted model
         and the field made consistent on it where the sequence adjustment made one, else its
         own; ``field`` None when it has none (``"local"`` is then ``"global"``)."""
-        adjusted = _field(self._npz(k), "adjusted_field_")
+        adjusted = None if self._own_only else _field(self._npz(k), "adjusted_field_")
         if adjusted is not None:
             return self.model(k), adjusted
         return self.own_model(k), self.field(k)
+
+    def unadjusted(self) -> RegistrationResult:
+        """This result as each frame's own registration left it: the sequence adjustment's
+        models and fields set aside (to compare the two; the folder is not changed)."""
+        view = copy.copy(self)
+        view.records = [replace(r, adjusted_model=None) for r in self.records]
+        view._models, view._arrays, view._own_only = {}, {}, True
+        return view
 
     def release(self, k: int) -> None:
         """Forget frame ``k``'s cached model and arrays (a long pass over the frames keeps
