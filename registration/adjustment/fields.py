@@ -13,7 +13,16 @@ averaged, node by node, with its neighbours' fields re-expressed on theirs: the 
 agree on it: the mean is shrunk by how little its spread supports it, ``m (1 - s²/(n |m|²))⁺``
 (``s`` the spread of the ``n`` frames' corrections at that node). A node only the frame itself
 measured keeps its own correction, as the paper's local stage does; where no frame measured
-one, the field is filled from the nodes around it.
+one, the frame's own correction is kept, filled from the nodes around it where it has none.
+
+Pooling assumes that what differs between the neighbours' corrections is noise. A warp of each
+frame's own that the global model does not follow (a strong rolling shutter with shake) differs
+between frames for real, and pooling averages it away: on the simulator's paper-hard flight
+(7-26 base px between frames) pooling frames 8 px apart made consecutive frames disagree more
+at the local stage (0.095 -> 0.14 px), which is why neighbours further apart than
+``field_baseline_px`` (5) are left out. Taking a smooth warp off each neighbour before pooling
+kept that flight's frames apart but undid the pooling on the real flyover (1.0x -> 2.5x the
+floor), whose frames' fields differ mostly in exactly such smooth, noisy warps.
 """
 
 from __future__ import annotations
@@ -98,24 +107,26 @@ def pool_corrections(
 ) -> DisplacementField:
     """:func:`consistent_field` from the corrections and their measured masks
     (:func:`correction_at`) at the nodes of ``grid`` (:func:`refined_grid`), the frame's own
-    first; ``support`` scales
-    the shrinkage (``m (1 - support s² / (n |m|²))⁺``). Nodes no frame measured keep the
-    frame's own (filled) correction re-expressed, so that its local stage stays continuous
-    where it was."""
-    c = np.stack([np.where(m[:, None], v, np.nan) for v, m in corrections])  # (F, N, 2)
-    seen = np.isfinite(c).all(axis=2)
+    first (module docstring). ``support`` scales the shrinkage."""
+    own = corrections[0][0]
+    stack = np.stack([np.where(m[:, None], c, np.nan) for c, m in corrections])  # (F, N, 2)
+    seen = np.isfinite(stack).all(axis=2)
     n = seen.sum(axis=0)
     with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # nodes no frame measured: NaN
-        mean = np.nanmean(c, axis=0)
-        spread2 = np.nansum((c - mean) ** 2, axis=(0, 2)) / np.maximum(n - 1, 1)
+        mean = np.nanmean(stack, axis=0)
+        spread2 = np.nansum((stack - mean) ** 2, axis=(0, 2)) / np.maximum(n - 1, 1)
         shrink = np.clip(1.0 - support * spread2 / (n * (mean**2).sum(axis=1)), 0.0, 1.0)
-    own = corrections[0][0]
-    vectors = np.where(np.isfinite(own), own, 0.0)
-    known = np.isfinite(own).all(axis=1)
     pooled = n >= 2
-    vectors[pooled] = mean[pooled] * np.nan_to_num(shrink[pooled])[:, None]
+    valid = pooled | ((n == 1) & seen[0])
+    if len(corrections) == 1:
+        # No neighbour: the frame's own field, every node re-expressed (filled ones too), so
+        # that its local stage maps exactly where it did.
+        vectors, known = np.where(np.isfinite(own), own, 0.0), np.isfinite(own).all(axis=1)
+    else:
+        vectors, known = np.where(valid[:, None], np.nan_to_num(own), 0.0), valid
+        vectors[pooled] = mean[pooled] * np.nan_to_num(shrink[pooled])[:, None]
     shape = grid.vectors.shape
-    valid = (pooled | ((n == 1) & seen[0])).reshape(shape[:2])
-    filled = fill_invalid(vectors.reshape(shape), (known | pooled).reshape(shape[:2]))
+    filled = fill_invalid(vectors.reshape(shape), known.reshape(shape[:2]))
+    valid = valid.reshape(shape[:2])
     return DisplacementField(grid.origin, grid.spacing, filled, valid)

@@ -73,7 +73,7 @@ class SequenceAdjustConfig:
     default_control_sigma_px: float = 0.3
     prior_sigma_px: float = 1.0
     field_radius: int = 5
-    field_baseline_px: float = 8.0
+    field_baseline_px: float = 5.0
     field_support: float = 1.0
     flag_px: float = 2.0
 
