@@ -6,10 +6,12 @@ was adjusted and how well, and an interrupted adjustment resumes to the same bit
 from __future__ import annotations
 
 import json
+import shutil
 import threading
 from dataclasses import replace
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -156,3 +158,75 @@ def test_register_adjust_reports_on_the_command_line(sim_seq, tmp_path, capsys):
     assert summary["n_adjusted"] == N_FRAMES
     assert summary["flagged"] == []
     assert load_config(out).adjust == SequenceAdjustConfig()
+
+
+def _plant_offset(out: Path, frames, k: int, offset) -> None:
+    """Frame ``k`` registered ``offset`` base px off, as a frame whose own registration went
+    wrong: its model and its control points' map positions moved together."""
+    from registration.run.records import read_record
+    from registration.run.result_folder import ResultLock
+    from registration.run.writer import ResultWriter
+
+    rec = read_record(out, k)
+    model = json.loads(json.dumps(rec.model))
+    model["dst_norm"]["center"] = list(np.add(model["dst_norm"]["center"], offset))
+    arrays = dict(np.load(out / "frames" / f"{k:06d}.npz"))
+    arrays["dst"] = arrays["dst"] + np.asarray(offset)
+    writer = ResultWriter(out, ResultLock(out).acquire(), frames)
+    try:
+        writer.write_frame(k, replace(rec, model=model), arrays)
+    finally:
+        writer.close()
+
+
+@pytest.mark.parametrize("offset", [(9.0, 12.0), (18.0, 24.0)])
+def test_a_frame_registered_off_is_put_back_or_flagged(sim_seq, default_result, tmp_path, offset):
+    """Frame 3 15 base px off: its neighbours are still found in it (the probes search 8 frame
+    px around where its model puts them), the links put it back (measured: 0.53 px from the
+    truth) and its control points, which agree with each other but not with the links, weigh
+    as little as their residuals show. 30 px off: no link survives, and it is flagged. Either
+    way its neighbours are not pulled."""
+    from registration.io import open_frames
+    from registration.run.adjust import adjust_result
+    from registration.run.result_folder import ResultLock
+    from registration.run.writer import ResultWriter
+
+    out = tmp_path / "out"
+    shutil.copytree(default_result.out_dir, out)
+    frames = open_frames(sim_seq / "frames")
+    _plant_offset(out, frames, 3, offset)
+    writer = ResultWriter(out, ResultLock(out).acquire(), frames)
+    try:
+        adjust_result(writer, frames, SMALL)
+    finally:
+        writer.close()
+    truth = load_truth(sim_seq)
+    result = registration.load(out)
+    planted = _map_error(result.unadjusted(), truth, 3)
+    assert planted > 4.5
+    adjustment = result.records[3].stats["adjustment"]
+    if np.hypot(*offset) < 20:
+        assert _map_error(result, truth, 3) < 1.0
+        assert adjustment["control_rms_px"] > 10 and adjustment["n_links"] > 50
+    else:
+        assert adjustment["flagged"] == "no links to its neighbours"
+    for k in (1, 2, 4, 5):
+        assert _map_error(result, truth, k) < _map_error(default_result, truth, k) + 0.1, k
+        assert result.records[k].stats["adjustment"]["flagged"] == ""
+
+
+def test_a_blank_frame_fails_and_the_others_are_adjusted_around_it(
+    sim_seq, default_result, tmp_path
+):
+    frames_dir = tmp_path / "frames"
+    shutil.copytree(sim_seq / "frames", frames_dir)
+    blank = sorted(frames_dir.iterdir())[3]
+    image = cv2.imread(str(blank))
+    cv2.imwrite(str(blank), np.full_like(image, 128))
+    result = run(sim_seq, tmp_path / "out", frames_dir=frames_dir, config=_config())
+    truth = load_truth(sim_seq)
+    assert result.status(3) == "failed" and not result.is_adjusted(3)
+    for k in (0, 1, 2, 4, 5):
+        assert result.is_adjusted(k)
+        assert result.records[k].stats["adjustment"]["flagged"] == ""
+        assert _map_error(result, truth, k) < _map_error(default_result, truth, k) + 0.05, k
