@@ -66,8 +66,8 @@ class SequenceAdjustConfig:
     """
 
     window_frames: int = 40
-    final_frames: int = 20
-    link_steps: tuple[int, ...] = (1, 2, 5)
+    final_frames: int = 30
+    link_steps: tuple[int, ...] = (1, 5)
     probes: ProbeConfig = field(default_factory=ProbeConfig)
     solver: AdjustmentConfig = field(default_factory=AdjustmentConfig)
     default_control_sigma_px: float = 0.3
