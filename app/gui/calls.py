@@ -16,17 +16,24 @@ from pathlib import Path
 import numpy as np
 
 from registration import global_registration
+from registration.adjustment import SequenceAdjustConfig
 from registration.lens import Camera
 from registration.run import config as run_config
 from registration.run import frame_record_path, pipeline
 
 
-def pipeline_config(preset: str, degree: int, run_local: bool) -> run_config.PipelineConfig:
+def pipeline_config(
+    preset: str, degree: int, run_local: bool, adjust: bool = False
+) -> run_config.PipelineConfig:
     """The preset with the app's transform choice: polyprojective ``degree`` (1 = projective)
-    for the reference and every frame, and the local displacement field on or off."""
+    for the reference and every frame, the local displacement field on or off, and the
+    sequence adjustment on or off."""
     cfg = run_config.get_preset(preset)
     fine = dataclasses.replace(cfg.fine, degree=int(degree))
-    return dataclasses.replace(cfg, fine=fine, run_local=bool(run_local))
+    return dataclasses.replace(
+        cfg, fine=fine, run_local=bool(run_local),
+        adjust=SequenceAdjustConfig() if adjust else None,
+    )  # fmt: skip
 
 
 def seed_argument(seed, seed2):

@@ -71,7 +71,8 @@ class AppState:
         seed_pair: which pair the next clicks place (1 or 2).
         reference_frame: index of the reference frame (paper: the first).
         preset: registration.run.config preset name; ``transform`` a :data:`TRANSFORMS` name;
-            ``run_local``: compute the local displacement field.
+            ``run_local``: compute the local displacement field; ``adjust``: adjust the
+            sequence once every frame is registered (``registration.adjustment``).
         cp_edits: the analyst's control-point edits of the reference frame (for ``reference``'s
             key only).
         reference: :class:`ReferenceFit` or None (saved in the project's reference.npz).
@@ -110,6 +111,7 @@ class AppState:
     preset: str = "default"
     transform: str = "polyprojective 2"
     run_local: bool = True
+    adjust: bool = False
     cp_edits: Edits = field(default_factory=Edits)
     reference: ReferenceFit | None = None
     result_dir: str | None = None
@@ -147,6 +149,7 @@ class AppState:
         "preset",
         "transform",
         "run_local",
+        "adjust",
         "cp_edits",
         "result_dir",
         "seq_frame",
@@ -315,7 +318,7 @@ class AppState:
                     value = float(value)
                 elif name in ("calib_frame", "reference_frame", "seq_frame", "eval_frame"):
                     value = int(value)
-                elif name in ("gamma_set", "run_local"):
+                elif name in ("gamma_set", "run_local", "adjust"):
                     value = bool(value)
                 elif name == "cp_edits":
                     value = Edits.from_json(value)

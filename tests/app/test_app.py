@@ -578,6 +578,31 @@ def test_sequence_plot_jump_failed_list_and_rerun(registered):
     )
 
 
+def test_sequence_adjusted_together_shows_predicted_errors(fitted):
+    """With "Adjust the frames together" (Seed view, Run settings), the run adjusts the
+    sequence: the chart draws each frame's predicted error, the frame's line says it, the
+    project remembers the choice."""
+    app, truth, bxy = fitted
+    app.views["Seed"].set_setting("adjust", True)
+    assert json.loads((app.project.folder / "project.json").read_text())["adjust"] is True
+    app.set_mode("Sequence")
+    seq = app.views["Sequence"]
+    assert "frames adjusted together on" in seq.run_text()[1]
+    assert seq.run()
+    app.jobs.join(300)
+    app.worker.wait_idle()
+    r = app.state.result
+    assert all(r.is_adjusted(k) for k in range(r.n_frames)), app.errors
+    seq.draw_plot()
+    predicted = seq.panel.plot.data[5]
+    expected = [r.records[k].stats["adjustment"]["predicted_error_px"] for k in range(r.n_frames)]
+    assert np.allclose(predicted[: r.n_frames], expected)
+    seq.set_frame(1)
+    app.worker.wait_idle()
+    assert "predicted error" in seq.panel.frame_md.content
+    assert "flagged" not in seq.panel.frame_md.content
+
+
 def test_sequence_text_follows_the_seed(tmp_path, small_seq, make_app):
     """The Sequence view no longer says "no seed" after a seed was set elsewhere."""
     app = make_app(tmp_path / "proj", small_seq)

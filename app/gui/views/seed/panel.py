@@ -82,6 +82,7 @@ class SeedPanel:
                 "Transform", tuple(TRANSFORMS), initial_value="polyprojective 2"
             )
             self.local = gui.add_checkbox("Local displacement field", True)
+            self.adjust = gui.add_checkbox("Adjust the frames together", False)
             self.auto_fit = gui.add_checkbox("Fit after each seed change", True)
         self.btn_coarse = gui.add_button("Run coarse step")
         self.coarse_md = gui.add_markdown("")
@@ -146,6 +147,9 @@ class SeedPanel:
     def on_local_field_changed(self, callback: Callable[[bool, Client], None]) -> None:
         on_change(self.local, bool, callback)
 
+    def on_adjust_changed(self, callback: Callable[[bool, Client], None]) -> None:
+        on_change(self.adjust, bool, callback)
+
     def on_run_coarse(self, callback: ClientCallback) -> None:
         on_press(self.btn_coarse, callback)
 
@@ -180,12 +184,15 @@ class SeedPanel:
     def reference_frame(self, k: int) -> None:
         self.ref_slider.value = int(k)
 
-    def show_settings(self, preset: str, transform: str, run_local: bool) -> None:
+    def show_settings(
+        self, preset: str, transform: str, run_local: bool, adjust: bool = False
+    ) -> None:
         """The run settings of the session (an unknown preset leaves the dropdown as it is)."""
         if preset in self.preset.options:
             self.preset.value = preset
         self.transform.value = transform
         self.local.value = run_local
+        self.adjust.value = adjust
 
     @property
     def fit_after_seed_change(self) -> bool:

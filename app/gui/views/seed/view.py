@@ -82,6 +82,7 @@ class SeedView(View):
         p.on_preset_changed(lambda value, client: self.set_setting("preset", value))
         p.on_transform_changed(lambda value, client: self.set_setting("transform", value))
         p.on_local_field_changed(lambda value, client: self.set_setting("run_local", value))
+        p.on_adjust_changed(lambda value, client: self.set_setting("adjust", value))
         p.on_use_typed(self.use_typed)
         p.on_run_coarse(lambda client: self.run_fit(client, fine=False))
         p.on_run_fine(self.run_fine)
@@ -142,13 +143,14 @@ class SeedView(View):
         self.points.cp.selected = None
         with self.state.lock:
             st = self.state
-            ref, preset, transform, local = (
+            ref, preset, transform, local, adjust = (
                 st.reference_frame,
                 st.preset,
                 st.transform,
                 st.run_local,
+                st.adjust,
             )
-        self.panel.show_settings(preset, transform, local)
+        self.panel.show_settings(preset, transform, local, adjust)
         self.panel.configure(inp.n_frames)
         self.panel.reference_frame = ref
         self.restore_reference()

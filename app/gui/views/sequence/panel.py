@@ -54,7 +54,7 @@ class SequencePanel:
         self.jump = gui.add_button_group("Jump to", ("worst frame", "next failed"))
         self.btn_rerun = gui.add_button("Register this frame again")
         self.plot = gui.add_uplot(
-            data=(np.array([0.0, 1.0]),) + tuple(np.array([np.nan, np.nan]) for _ in range(4)),
+            data=(np.array([0.0, 1.0]),) + tuple(np.array([np.nan, np.nan]) for _ in range(5)),
             series=(
                 up.Series(label="frame"),
                 up.Series(
@@ -77,6 +77,12 @@ class SequencePanel:
                     stroke="#2b8a3e",
                     width=0,
                     points={"show": True, "size": 11, "fill": "#2b8a3e"},
+                ),
+                up.Series(
+                    label="predicted error (px)",
+                    stroke="#f08c00",
+                    width=2,
+                    dash=[6, 4],
                 ),
             ),
             title=PLOT_TITLE,
@@ -192,13 +198,16 @@ class SequencePanel:
         self.colourbar.image = image
         self.colourbar.visible = True
 
-    def show_plot(self, values, flags, failed, current) -> None:
-        """The chart: RMS per frame, excursions, failed frames, the frame shown.
+    def show_plot(self, values, flags, failed, current, predicted=None) -> None:
+        """The chart: RMS per frame, excursions and flagged frames, failed frames, the frame
+        shown, and each frame's predicted error where the frames were adjusted together.
 
         uPlot's autoscale breaks on NaN (it has no NaN gaps, only nulls, which a numpy array
         cannot carry): both axes get explicit ranges, and NaN points are simply not drawn."""
         n = len(values)
-        finite = np.asarray(values, np.float64)[np.isfinite(values)]
+        predicted = np.full(n, np.nan) if predicted is None else np.asarray(predicted, np.float64)
+        both = np.concatenate([np.asarray(values, np.float64), predicted])
+        finite = both[np.isfinite(both)]
         ymax = float(finite.max()) * 1.15 if len(finite) else 1.0
         ymax = max(ymax, 1e-3)
         ranges = (max(n - 1, 1), round(ymax, 6))
@@ -215,11 +224,11 @@ class SequencePanel:
         exc = np.where(flags, values, np.nan)
         fail = np.where(failed, 0.0, np.nan)
         if n == 1:  # uPlot needs two x values
-            x, values, exc, fail, shown = (
-                np.append(v, np.nan) for v in (x, values, exc, fail, shown)
+            x, values, exc, fail, shown, predicted = (
+                np.append(v, np.nan) for v in (x, values, exc, fail, shown, predicted)
             )
             x[1] = 1.0
-        self.plot.data = (x, np.asarray(values, np.float64), exc, fail, shown)
+        self.plot.data = (x, np.asarray(values, np.float64), exc, fail, shown, predicted)
 
     def show_failed(self, failed: list[tuple[int, str]]) -> None:
         if not failed:

@@ -240,6 +240,7 @@ class SequenceView(View):
         with self.state.lock:
             st = self.state
             seed, r, transform, local = st.seed, st.result, st.transform, st.run_local
+            adjust = st.adjust
             ref_ok = st.current_reference() is not None and st.current_reference().fine
             preset = st.preset
         if r is None:
@@ -257,7 +258,8 @@ class SequenceView(View):
         return (
             f"Result: {done}; {seed_txt}; {ref_txt}.",
             f"Run settings: preset {escape_md(preset)}, {escape_md(transform)}, local field "
-            f"{'on' if local else 'off'} (Seed view).",
+            f"{'on' if local else 'off'}, frames adjusted together {'on' if adjust else 'off'} "
+            "(Seed view).",
         )
 
     def refresh_text(self) -> None:
@@ -287,7 +289,7 @@ class SequenceView(View):
             reference = (
                 (fit.coarse, fit.fine) if fit is not None and fit.coarse and fit.fine else None
             )
-            cfg = calls.pipeline_config(preset, st.degree, st.run_local)
+            cfg = calls.pipeline_config(preset, st.degree, st.run_local, st.adjust)
             out_dir = str(self.ctx.project.result_dir)
             st.result_dir = out_dir
         self.ctx.save()
@@ -304,7 +306,11 @@ class SequenceView(View):
                     self.refresh_text()
                     self.submit("plot", self.draw_plot)
 
+            def on_adjust_progress(done, total) -> None:
+                progress(done, total, "frames adjusted together")
+
             kwargs = dict(
+                adjust_progress=on_adjust_progress,
                 seed=calls.seed_argument(seed, seed2),
                 reference_frame=ref,
                 config=cfg,
@@ -571,7 +577,8 @@ class SequenceView(View):
         if vals is None or r is None:
             return
         failed = np.array([rec.status == "failed" for rec in r.records])
-        self.panel.show_plot(vals, excursion_flags(vals), failed, k)
+        flags = excursion_flags(vals) | np.array([bool(flagged(rec)) for rec in r.records])
+        self.panel.show_plot(vals, flags, failed, k, predicted_errors(r.records))
 
     def _update_frame_md(self, k: int) -> None:
         self.panel.show_frame_info(self.frame_text(k))
@@ -596,6 +603,9 @@ class SequenceView(View):
             v = stats.get(name)
             if v is not None:
                 parts.append(f"{label} {v:.3g}" if isinstance(v, float) else f"{label} {v}")
+        adjustment = stats.get("adjustment")
+        if isinstance(adjustment, dict):
+            parts.append(adjustment_text(adjustment))
         lens = stats.get("lens")
         if isinstance(lens, dict) and lens.get("reason"):
             # The reference frame's estimate of the lens beyond Harris, and whether it was used.
@@ -612,3 +622,35 @@ class SequenceView(View):
             if stages:
                 parts.append("time: " + ", ".join(stages))
         return "; ".join(parts)
+
+
+def flagged(record) -> str:
+    """Why the sequence adjustment flagged the frame (``""``: it did not, or there was none)."""
+    adjustment = record.stats.get("adjustment") if record.ok else None
+    return str(adjustment.get("flagged") or "") if isinstance(adjustment, dict) else ""
+
+
+def predicted_errors(records) -> np.ndarray | None:
+    """Each frame's predicted error (base px) from the sequence adjustment, NaN for frames it
+    did not adjust; None when it adjusted none."""
+    values = [
+        r.stats["adjustment"].get("predicted_error_px")
+        if r.ok and isinstance(r.stats.get("adjustment"), dict) else None
+        for r in records
+    ]  # fmt: skip
+    if all(v is None for v in values):
+        return None
+    return np.array([np.nan if v is None else float(v) for v in values])
+
+
+def adjustment_text(adjustment: dict) -> str:
+    """A frame's outcome of the sequence adjustment, for the frame's line (markdown)."""
+    text = (
+        f"adjusted with its neighbours: predicted error "
+        f"{adjustment.get('predicted_error_px', float('nan')):.2f} base px, "
+        f"{adjustment.get('n_links', 0)} link points, "
+        f"{adjustment.get('n_controls', 0)} control points to the map"
+    )
+    if adjustment.get("flagged"):
+        text += f" — **flagged: {escape_md(str(adjustment['flagged']))}**"
+    return text
