@@ -17,6 +17,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from registration.evaluation.report import (
     EvaluationReport,
+    _adjustment,
     _camera,
     _definitions,
     _excursions,
@@ -245,6 +246,7 @@ def evaluate_points(
     pooled: dict[str, list[NDArray]] = {s: [] for s in STAGES}
     for k in sorted(by_frame):
         rec: dict[str, Any] = {"frame": k, "status": _status(result, k)}
+        rec.update(_adjustment(result, k))
         rec["n_points"] = len(by_frame[k]["global"])
         for s in STAGES:
             v = np.asarray(by_frame[k][s], float)

@@ -17,6 +17,10 @@ from numpy.typing import ArrayLike, NDArray
 from registration.evaluation.table2 import STAGE_LABELS, STAGES, EvaluationConfig, Table2
 from registration.lens import Camera
 
+# A frame worse than this (base px, mean error at the local stage) should be flagged by the
+# sequence adjustment (issue: "a frame likely to be worse than 2 px is flagged").
+FLAG_CHECK_PX = 2.0
+
 # --------------------------------------------------------------------------------------------
 # Excursions and statistics
 
@@ -178,6 +182,7 @@ class EvaluationReport:
         if failed:
             out.append("")
             out.append(f"Frames without a registration: {', '.join(map(str, failed))}")
+        out += self._flag_lines()
         damaged = [p["frame"] for p in self.per_frame if p.get("status") == "damaged"]
         if damaged:
             out.append("")
@@ -186,6 +191,29 @@ class EvaluationReport:
                 f"them): {', '.join(map(str, damaged))}"
             )
         return "\n".join(out) + "\n"
+
+    def _flag_lines(self) -> list[str]:
+        """The frames the sequence adjustment flagged, and, against the truth, how its flags
+        fared: frames worse than :data:`FLAG_CHECK_PX` (mean error at the local stage) left
+        unflagged, and good frames flagged."""
+        adjusted = [p for p in self.per_frame if "predicted_error_px" in p]
+        if not adjusted:
+            return []
+        flagged = [p for p in adjusted if p.get("flagged")]
+        out = ["", "### Frames the sequence adjustment flagged", ""]
+        out += [f"- frame {p['frame']}: {p['flagged']}" for p in flagged] or ["- none"]
+        if self.mode == "truth":
+            bad = [p for p in adjusted if ((p.get("local") or {}).get("mean") or 0) > FLAG_CHECK_PX]
+            missed = [p["frame"] for p in bad if not p.get("flagged")]
+            false = [p["frame"] for p in flagged if p not in bad]
+            out += [
+                "",
+                f"Against the truth: {len(bad)} of {len(adjusted)} adjusted frames are worse than "
+                f"{FLAG_CHECK_PX:g} px (mean, local stage); {len(missed)} of them unflagged "
+                f"({', '.join(map(str, missed)) or 'none'}); {len(false)} good frames flagged "
+                f"({', '.join(map(str, false)) or 'none'}).",
+            ]
+        return out
 
     def per_frame_csv(self) -> str:
         """CSV ``frame,status,<stage>_n,<stage>_mean,...`` one row per evaluated frame (truth
@@ -197,6 +225,9 @@ class EvaluationReport:
         head = ["frame", "status", *[f"{s}_{k}" for s in STAGES for k in keys]]
         if motion:
             head += [f"motion_{s}_{k}" for s in ("global", "local") for k in keys]
+        adjusted = any("predicted_error_px" in p for p in self.per_frame)
+        if adjusted:
+            head += ["predicted_error_px", "flagged"]
         w.writerow(head)
         for p in self.per_frame:
             row = [p["frame"], p.get("status", "")]
@@ -207,6 +238,9 @@ class EvaluationReport:
                 for s in ("global", "local"):
                     st = p.get("motion", {}).get(s) or {}
                     row += ["" if st.get(k) is None else st.get(k) for k in keys]
+            if adjusted:
+                v = p.get("predicted_error_px")
+                row += ["" if v is None else v, p.get("flagged", "")]
             w.writerow(row)
         return buf.getvalue()
 
@@ -233,6 +267,17 @@ def _excursions(per_frame: list[dict], config: EvaluationConfig) -> dict[str, li
         ]
         out[s] = find_excursions(frames, errs, config)
     return out
+
+
+def _adjustment(result: Any, k: int) -> dict[str, Any]:
+    """Frame ``k``'s predicted error and flag from the sequence adjustment (empty without)."""
+    records = getattr(result, "records", None)
+    if records is None or not 0 <= k < len(records) or not records[k].ok:
+        return {}
+    a = records[k].stats.get("adjustment")
+    if not isinstance(a, dict):
+        return {}
+    return {"predicted_error_px": a.get("predicted_error_px"), "flagged": a.get("flagged", "")}
 
 
 def _status(result: Any, k: int) -> str:

@@ -14,6 +14,7 @@ from numpy.typing import ArrayLike, NDArray
 from registration.coords import as_points, frame_outline
 from registration.evaluation.report import (
     EvaluationReport,
+    _adjustment,
     _camera,
     _definitions,
     _excursions,
@@ -164,6 +165,7 @@ def evaluate_truth(
         b = ground_grid(truth, k, config.grid_step_px)
         error, motion = truth_errors(result, truth, k, b)
         rec: dict[str, Any] = {"frame": k, "status": _status(result, k), "n_points": len(b)}
+        rec.update(_adjustment(result, k))
         rec["motion"] = {}
         for s in STAGES:
             e = error[s] if not (s == "unregistered" and k == ref) else np.zeros(0)

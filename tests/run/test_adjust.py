@@ -18,6 +18,7 @@ import pytest
 import registration
 from app.cli import main as cli_main
 from registration.adjustment import SequenceAdjustConfig
+from registration.evaluation import evaluate_truth
 from registration.run import get_preset, load_config
 from registration.synth import load_truth
 from tests.conftest import SIM_SEQUENCE, seed_for
@@ -210,6 +211,11 @@ def test_a_frame_registered_off_is_put_back_or_flagged(sim_seq, default_result, 
         assert adjustment["control_rms_px"] > 10 and adjustment["n_links"] > 50
     else:
         assert adjustment["flagged"] == "no links to its neighbours"
+        # evaluate says so, and checks the flag against the truth.
+        report = evaluate_truth(result, truth).to_markdown()
+        assert "- frame 3: no links to its neighbours" in report
+        assert "1 of 6 adjusted frames are worse than 2 px" in report
+        assert "0 of them unflagged (none); 0 good frames flagged (none)" in report
     for k in (1, 2, 4, 5):
         assert _map_error(result, truth, k) < _map_error(default_result, truth, k) + 0.1, k
         assert result.records[k].stats["adjustment"]["flagged"] == ""
