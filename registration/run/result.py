@@ -60,9 +60,15 @@ class RegistrationResult:
       presence means the frame is done. The reference frame's record also holds ``lens_k2``,
       the lens's fourth-order term beyond Harris every frame was registered with (0 = Harris,
       :mod:`registration.lens.k2`; :attr:`camera` carries it), and ``stats["lens"]``, its
-      estimate.
+      estimate. A run with the sequence adjustment (``config.adjust``) adds to each frame
+      ``adjusted_model`` (which :meth:`model` and both stages then use; ``model`` stays the
+      frame's own) and ``stats["adjustment"]`` (its window, links, residuals, predicted error
+      and flag; :class:`registration.adjustment.FrameAdjustment`).
     * ``frames/KKKKKK.npz``: the frame's control points (``src`` corrected px, ``dst`` base px,
-      ``kept``, ``residuals``) and its local displacement field (``field_*`` arrays).
+      ``kept``, ``residuals``) and its local displacement field (``field_*`` arrays), measured
+      on its own model; with the adjustment, also the field on the adjusted model
+      (``adjusted_field_*``, :mod:`registration.adjustment.fields`), which stage ``"local"``
+      uses. :meth:`unadjusted` sets the adjustment aside.
     * ``mid_base.png``, ``mid_base_valid.png``: the reference frame in base pixels and its mask.
     * ``.lock``: held by the process writing the folder.
 
