@@ -124,3 +124,37 @@ def test_killed_and_resumed_run_equals_the_uninterrupted_one(sim, uninterrupted,
             assert np.array_equal(np.isnan(pa), np.isnan(pb))
             gap = np.nanmax(np.hypot(*(pa - pb).T))
             assert gap <= 0.05, f"frame {k} {stage}: {gap:.3f} px from the uninterrupted run"
+
+
+@pytest.fixture(scope="module")
+def uninterrupted_adjusted(sim, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("full_adjusted") / "out"
+    _register(sim, out, "--adjust")
+    return out
+
+
+@pytest.mark.slow
+def test_killed_while_adjusting_resumes_to_the_same_bits(sim, uninterrupted_adjusted, tmp_path):
+    """SIGKILL once every frame is registered, as the sequence adjustment starts (or while it
+    writes): the resumed run's records and arrays equal the uninterrupted run's."""
+    out = tmp_path / "out"
+    proc = subprocess.Popen([*_args(sim, out), "--adjust"], cwd=REPO,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
+    try:
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 600 and proc.poll() is None:
+            records = list((out / "frames").glob("*.json")) if (out / "frames").is_dir() else []
+            if len(records) == N_FRAMES:
+                break
+            time.sleep(0.02)
+        os.kill(proc.pid, signal.SIGKILL)
+    finally:
+        proc.wait(timeout=60)
+    _register(sim, out, "--adjust", "--resume")
+    a, b = _records(uninterrupted_adjusted), _records(out)
+    for k in range(N_FRAMES):
+        assert "adjustment" in a[k][0]["stats"]
+        assert a[k][0] == b[k][0], f"frame {k}: records differ"
+        assert a[k][1].keys() == b[k][1].keys()
+        for name in a[k][1]:
+            assert np.array_equal(a[k][1][name], b[k][1][name], equal_nan=True), (k, name)
