@@ -111,7 +111,7 @@ class AppState:
     preset: str = "default"
     transform: str = "polyprojective 2"
     run_local: bool = True
-    adjust: bool = False
+    adjust: bool = True
     cp_edits: Edits = field(default_factory=Edits)
     reference: ReferenceFit | None = None
     result_dir: str | None = None

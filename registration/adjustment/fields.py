@@ -49,13 +49,17 @@ class FrameField:
 
 
 def correction_at(
-    frame: FrameField, nodes: NDArray, inside: Callable[[NDArray], NDArray]
+    frame: FrameField, nodes: NDArray, clip: Callable[[NDArray], NDArray]
 ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
     """The correction ``frame`` makes at base px ``nodes`` (``(N, 2)``), re-expressed on its
-    adjusted model: ``d'(x) = g'(q) - x`` for the frame point ``q`` its own local stage puts at
-    ``x`` (``x + d(x) = g(q)``), NaN where ``q`` is not near the frame (``inside``: corrected px
-    -> bool); and where its field was measured (the nearest node valid, ``q`` in the frame's
-    reach)."""
+    adjusted model, and where its field was measured (the nearest node valid and the node in
+    the frame).
+
+    For the frame point ``q`` its own local stage puts at ``x`` (``x + d(x) = g(q)``):
+    ``d'(x) = d(x) + g'(q) - g(q)``, exactly where the frame's own local stage was. Beyond the
+    frame, the change of model is taken at the nearest point of the frame (``clip``: corrected
+    px -> the nearest corrected px inside the raw frame): there both models extrapolate, and
+    their difference can grow without bound where neither is held by evidence."""
     f = frame.field
     d = f.sample(nodes, outside="nan")
     gy, gx = f.shape
@@ -64,15 +68,18 @@ def correction_at(
     measured = np.zeros(len(nodes), bool)
     measured[on_grid] = f.valid[ij[on_grid, 1], ij[on_grid, 0]]
     q = frame.own.inverse(nodes + d)
-    near = np.isfinite(q).all(axis=1)
-    near[near] = inside(q[near])
+    known = np.isfinite(q).all(axis=1) & np.isfinite(d).all(axis=1)
     out = np.full((len(nodes), 2), np.nan)
-    out[near] = frame.adjusted.apply(q[near]) - nodes[near]
-    return out, measured & near
+    inside = np.zeros(len(nodes), bool)
+    if known.any():
+        qc = clip(q[known])
+        inside[known] = np.hypot(*(qc - q[known]).T) < 1e-6
+        out[known] = d[known] + frame.adjusted.apply(qc) - frame.own.apply(qc)
+    return out, measured & inside
 
 
 def consistent_field(
-    own: FrameField, neighbours: Sequence[FrameField], inside: Callable[[NDArray], NDArray]
+    own: FrameField, neighbours: Sequence[FrameField], clip: Callable[[NDArray], NDArray]
 ) -> DisplacementField:
     """Frame ``own``'s field on its adjusted model (on its own field's grid, refined:
     :func:`refined_grid`): its correction
@@ -81,7 +88,7 @@ def consistent_field(
     the node (module docstring)."""
     grid = refined_grid(own.field)
     nodes = grid.node_xy.reshape(-1, 2)
-    return pool_corrections(grid, [correction_at(f, nodes, inside) for f in (own, *neighbours)])
+    return pool_corrections(grid, [correction_at(f, nodes, clip) for f in (own, *neighbours)])
 
 
 # The field on the adjusted model has twice the nodes per side of the frame's own: the change

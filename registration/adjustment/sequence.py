@@ -268,13 +268,9 @@ def adjust_window(
         for k in range(window.start, window.end)
         if evidence.controls[k] is not None and k not in held
     ]
-    priors = [
-        ControlPointSet(
-            k, evidence.outline, models[k].apply(evidence.outline), config.prior_sigma_px
-        )
-        for k in range(window.start, window.end)
-        if models[k] is not None and k not in held
-    ]
+    priors = [_prior(k, models[k], evidence.outline, config.prior_sigma_px)
+              for k in range(window.start, window.end)
+              if models[k] is not None and k not in held]  # fmt: skip
     out = adjust_models(models, links, controls, config.solver, fixed=held, priors=priors)
     n_links = np.zeros(window.end, int)
     for lk in links:
@@ -333,6 +329,13 @@ def adjust_sequence(
             if adjusted.k in todo:
                 yield adjusted, solution
         evidence.forget_before(window.final_end - max(config.link_steps))
+
+
+def _prior(k: int, model: PolyProjective, outline: NDArray, sigma_px: float) -> ControlPointSet:
+    """Frame ``k``'s own model as a weak prior at the outline points it maps."""
+    dst = model.apply(outline)
+    ok = np.isfinite(dst).all(axis=1)
+    return ControlPointSet(k, outline[ok], dst[ok], sigma_px)
 
 
 def _has_neighbour(models, k: int, steps) -> bool:

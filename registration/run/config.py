@@ -309,15 +309,18 @@ def _default() -> PipelineConfig:
         local=replace(paper.local, **{**FLOW_OVERRIDES, **LOCAL_FLOW}),
         reference_local=REFERENCE_LOCAL,
         lens=LensConfig(estimate_k2=True),
+        adjust=SequenceAdjustConfig(),
     )
 
 
 def _fast() -> PipelineConfig:
     """The default preset with one DIS flow per intra-sensor frame: control points drawn from
-    it (:data:`INTRA_FLOW_POINT_SPACING_PX`) and the local stage reusing it."""
+    it (:data:`INTRA_FLOW_POINT_SPACING_PX`) and the local stage reusing it, and no sequence
+    adjustment (it would add more to this preset's time than to the default's)."""
     default = _default()
     return replace(
         default,
+        adjust=None,
         intra=replace(
             default.intra,
             control_points="flow",

@@ -247,7 +247,7 @@ class RegistrationResult:
         """``(model, field)`` the frame's stage ``"local"`` maps through: the adjusted model
         and the field made consistent on it where the sequence adjustment made one, else its
         own; ``field`` None when it has none (``"local"`` is then ``"global"``)."""
-        adjusted = None if self._own_only else _field(self._npz(k), "adjusted_field_")
+        adjusted = _field(self._npz(k), "adjusted_field_") if self.is_adjusted(k) else None
         if adjusted is not None:
             return self.model(k), adjusted
         return self.own_model(k), self.field(k)

@@ -41,8 +41,12 @@ def _field(vectors: np.ndarray, valid: np.ndarray | None = None) -> Displacement
     )  # fmt: skip
 
 
+def _clip(q):
+    return np.c_[np.clip(q[:, 0], 0, W), np.clip(q[:, 1], 0, H)]
+
+
 def _inside(q):
-    return (q[:, 0] >= -W / 2) & (q[:, 0] <= 1.5 * W) & (q[:, 1] >= -H / 2) & (q[:, 1] <= 1.5 * H)
+    return np.hypot(*(_clip(q) - q).T) < 1e-9
 
 
 # The true correction (relief) on a 11 x 9 grid over the base: a bump of 1.5 px.
@@ -56,7 +60,7 @@ RELIEF = np.stack(
 def test_a_field_on_the_adjusted_model_maps_the_frame_where_its_own_did():
     own, adjusted = _model(0, 0), _model(0.4, -0.3, bend=0.0005)
     field_ = _field(RELIEF)
-    moved = consistent_field(FrameField(field_, own, adjusted), [], _inside)
+    moved = consistent_field(FrameField(field_, own, adjusted), [], _clip)
     # On the own grid's nodes, every other node of the refined one, valid where the own field
     # was measured and the frame reaches.
     assert np.array_equal(moved.valid[::2, ::2], field_.valid & _covered(field_, own))
@@ -89,9 +93,9 @@ def test_neighbours_fields_pool_to_the_truth_and_noise_alone_is_shrunk():
         truth[:, 7:9] = 0.0  # columns 7-8: noise, no relief
         frames.append((FrameField(_field(truth + noise), model, model), truth))
     own, truth = frames[3]
-    pooled = consistent_field(own, [f for i, (f, _) in enumerate(frames) if i != 3], _inside)
+    pooled = consistent_field(own, [f for i, (f, _) in enumerate(frames) if i != 3], _clip)
     ok = pooled.valid[::2, ::2] & _covered(own.field, own.own)
-    assert ok.sum() > 30
+    assert ok.sum() >= 25
     err_own = np.hypot(*(own.field.vectors - truth)[ok].T)
     err_pooled = np.hypot(*(pooled.vectors[::2, ::2] - truth)[ok].T)
     # 7 frames: the noise drops by about sqrt(7).
@@ -113,10 +117,10 @@ def test_a_node_only_the_frame_measured_keeps_its_own_correction():
     valid[4, 5] = False  # the neighbour did not measure the bump's centre
     theirs = _field(RELIEF + 0.2, valid)
     pooled = consistent_field(
-        FrameField(mine, model, model), [FrameField(theirs, model, model)], _inside
+        FrameField(mine, model, model), [FrameField(theirs, model, model)], _clip
     )
     assert pooled.valid[8, 10]  # node (4, 5) of the own grid
     assert np.allclose(pooled.vectors[8, 10], RELIEF[4, 5], atol=1e-6)
     node = mine.node_xy[4, 5][None]
-    _, measured = correction_at(FrameField(theirs, model, model), node, _inside)
+    _, measured = correction_at(FrameField(theirs, model, model), node, _clip)
     assert not measured[0]

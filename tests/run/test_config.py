@@ -83,11 +83,15 @@ def test_default_preset_differs_from_the_paper_and_is_valid():
     assert default.coarse.ransac.refine == "lm" and default.fine.reqcon.optimizer == "lm"
     assert default.fine.reqcon.stop == "outliers"
     assert default.intra.control_points == "template" and default.local.method == "flow"
-    # The fast preset: the default one with control points from the frame's flow.
+    # The fast preset: the default one with control points from the frame's flow, and no
+    # sequence adjustment (the paper has none either).
     fast = get_preset("fast")
     assert fast.intra.control_points == "flow"
+    assert default.adjust is not None and fast.adjust is None and paper.adjust is None
     assert default == dataclasses.replace(
-        fast, intra=dataclasses.replace(fast.intra, control_points="template")
+        fast,
+        intra=dataclasses.replace(fast.intra, control_points="template"),
+        adjust=default.adjust,
     )
     assert default.match_in == "raw" and default.reference_local is not None
     assert default.coarse.correlation.rounds and default.coarse.guided

@@ -99,11 +99,13 @@ def _registration_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--adjust",
-        action="store_true",
+        action=argparse.BooleanOptionalAction,
+        default=None,
         help="beyond the paper: once every frame is registered, estimate the frames' global "
         "models together, window by window, from their control points and links between frames "
         "that see the same ground, so that consecutive frames agree; each frame gets a predicted "
-        "error, and one likely to be off by more than 2 base px is flagged",
+        "error, and one likely to be off by more than 2 base px is flagged (default: on with "
+        "--preset default, off with paper and fast)",
     )
 
 
@@ -219,10 +221,10 @@ def run(args: argparse.Namespace) -> int:
     config = get_preset(args.preset)
     if args.no_local:
         config = replace(config, run_local=False)
-    if args.adjust:
+    if args.adjust is not None:
         from registration.adjustment import SequenceAdjustConfig
 
-        config = replace(config, adjust=SequenceAdjustConfig())
+        config = replace(config, adjust=SequenceAdjustConfig() if args.adjust else None)
     # A file, another tool's folder or a result without --resume/--force: refused before any work.
     if args.resume and args.force:
         raise UsageError("--resume and --force exclude each other")

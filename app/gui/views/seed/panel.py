@@ -82,7 +82,7 @@ class SeedPanel:
                 "Transform", tuple(TRANSFORMS), initial_value="polyprojective 2"
             )
             self.local = gui.add_checkbox("Local displacement field", True)
-            self.adjust = gui.add_checkbox("Adjust the frames together", False)
+            self.adjust = gui.add_checkbox("Adjust the frames together", True)
             self.auto_fit = gui.add_checkbox("Fit after each seed change", True)
         self.btn_coarse = gui.add_button("Run coarse step")
         self.coarse_md = gui.add_markdown("")
@@ -185,7 +185,7 @@ class SeedPanel:
         self.ref_slider.value = int(k)
 
     def show_settings(
-        self, preset: str, transform: str, run_local: bool, adjust: bool = False
+        self, preset: str, transform: str, run_local: bool, adjust: bool = True
     ) -> None:
         """The run settings of the session (an unknown preset leaves the dropdown as it is)."""
         if preset in self.preset.options:
