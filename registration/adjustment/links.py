@@ -22,6 +22,12 @@ from registration.matching import ProbeConfig, find_probes, textured_probes
 # many corrected px (RANSAC, then least squares on the inliers).
 LINK_INLIER_PX = 1.0
 MIN_LINKS = 8
+# Links by Lucas-Kanade are kept when at least this share of the probes survives; else the pair
+# is measured again by correlation.
+FLOW_SHARE = 0.5
+# A Lucas-Kanade probe whose mean intensity difference exceeds this many times the pair's
+# median is a changed patch, not ground.
+CHANGED_PATCH = 2.0
 
 
 def measure_links(
@@ -34,20 +40,35 @@ def measure_links(
     lens,
     config: ProbeConfig | None = None,
     probes_k: NDArray | None = None,
+    matcher: str = "flow",
 ) -> FrameLinks:
     """Links between raw frames ``k`` and ``l`` (grey ``(H, W)`` uint8) predicted through their
     models (``base_from_corrected``) and the lens (raw <-> corrected px); none when fewer than
     ``MIN_LINKS`` survive. ``probes_k``: frame ``k``'s
-    :func:`registration.matching.textured_probes`, when the caller keeps them."""
+    :func:`registration.matching.textured_probes`, when the caller keeps them. ``matcher``:
+    ``"flow"`` (pyramidal Lucas-Kanade from the prediction, every probe at once) or ``"ncc"``
+    (each probe's patch searched by normalised cross-correlation, with a uniqueness test)."""
     cfg = config or ProbeConfig()
     p = textured_probes(grey_k, cfg) if probes_k is None else probes_k
-    empty = FrameLinks(k, l, np.zeros((0, 2)), np.zeros((0, 2)))
     if len(p) < MIN_LINKS:
-        return empty
+        return FrameLinks(k, l, np.zeros((0, 2)), np.zeros((0, 2)))
     q = lens.raw_from_corrected(model_l.inverse(model_k.apply(lens.corrected_from_raw(p))))
     known = np.isfinite(q).all(axis=1)
     p, q = p[known], q[known]
-    m, ok = find_probes(grey_k, grey_l, p, q, cfg)
+    src_k, src_l = _robust_links(grey_k, grey_l, p, q, lens, cfg, matcher)
+    if matcher == "flow" and len(src_k) < FLOW_SHARE * len(p):
+        # Lucas-Kanade goes astray where the prediction is far off (a frame whose own
+        # registration went wrong) or the patches changed: the search by correlation then.
+        src_k, src_l = _robust_links(grey_k, grey_l, p, q, lens, cfg, "ncc")
+    return FrameLinks(k, l, src_k, src_l)
+
+
+def _robust_links(grey_k, grey_l, p, q, lens, cfg: ProbeConfig, matcher: str):
+    """The probes ``p`` of frame k measured in frame l around ``q`` (raw px) and kept where a
+    homography of all of them explains them: ``(src_k, src_l)`` corrected px, empty when fewer
+    than ``MIN_LINKS`` survive."""
+    empty = np.zeros((0, 2)), np.zeros((0, 2))
+    m, ok = (_flow_probes if matcher == "flow" else find_probes)(grey_k, grey_l, p, q, cfg)
     src_k, src_l = lens.corrected_from_raw(p[ok]), lens.corrected_from_raw(m[ok])
     if len(src_k) < MIN_LINKS:
         return empty
@@ -60,4 +81,34 @@ def measure_links(
     keep = np.hypot(*(pred - src_l).T) <= LINK_INLIER_PX
     if keep.sum() < MIN_LINKS:
         return empty
-    return FrameLinks(k, l, src_k[keep], src_l[keep])
+    return src_k[keep], src_l[keep]
+
+
+def _flow_probes(grey_k, grey_l, p, q, cfg: ProbeConfig):
+    """Where each probe's patch lies in ``grey_l``: pyramidal Lucas-Kanade from the prediction
+    ``q``, the patch as its window (``template_px``), one pyramid level over ``search_px``. As
+    :func:`registration.matching.find_probes` returns: ``(N, 2)`` px, NaN where not found, and
+    the found mask. 4-5x faster than the NCC search on the real flyover, within 0.06 px of it
+    at the median (0.11 at the 90th percentile)."""
+    if not len(p):
+        return np.zeros((0, 2)), np.zeros(0, bool)
+    half = cfg.template_px // 2
+    found, status, err = cv2.calcOpticalFlowPyrLK(
+        grey_k, grey_l, p.astype(np.float32).reshape(-1, 1, 2),
+        q.astype(np.float32).reshape(-1, 1, 2).copy(), winSize=(2 * half + 1, 2 * half + 1),
+        maxLevel=1, flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+        criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01),
+    )  # fmt: skip
+    m = found.reshape(-1, 2).astype(np.float64)
+    hb, wb = grey_l.shape
+    ok = status.ravel().astype(bool) & np.isfinite(m).all(axis=1)
+    # A patch that changed (a car moved into part of it) matches worse than the ground does:
+    # its mean intensity difference far above the pair's typical one.
+    err = err.ravel()
+    if ok.any():
+        ok &= err <= CHANGED_PATCH * max(float(np.median(err[ok])), 1.0)
+    # Within the search reach of the prediction, and with the whole patch in the image.
+    ok &= np.hypot(*(m - q).T) <= cfg.search_px
+    ok &= (m[:, 0] >= half) & (m[:, 0] < wb - half) & (m[:, 1] >= half) & (m[:, 1] < hb - half)
+    m[~ok] = np.nan
+    return m, ok

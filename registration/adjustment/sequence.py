@@ -42,7 +42,9 @@ class SequenceAdjustConfig:
         final_frames: frames a window makes final (the window then moves on by this many).
         link_steps: frame ``k`` is linked to ``k + s`` for each ``s`` (same ground seen from
             further apart ties a stretch of frames together, not only neighbours).
-        probes: how links are measured (:func:`registration.adjustment.measure_links`).
+        probes: where links are measured (:func:`registration.adjustment.measure_links`).
+        link_matcher: how: ``"flow"`` (Lucas-Kanade from the prediction) or ``"ncc"`` (each
+            probe's patch searched by correlation).
         solver: the solver's noise model and stopping rule.
         default_control_sigma_px: a frame's control-point noise (base px) where its fine step
             recorded none.
@@ -69,6 +71,7 @@ class SequenceAdjustConfig:
     final_frames: int = 30
     link_steps: tuple[int, ...] = (1, 5)
     probes: ProbeConfig = field(default_factory=ProbeConfig)
+    link_matcher: str = "flow"
     solver: AdjustmentConfig = field(default_factory=AdjustmentConfig)
     default_control_sigma_px: float = 0.3
     prior_sigma_px: float = 1.0
@@ -99,6 +102,8 @@ class SequenceAdjustConfig:
                 f"field_radius must be 0..{reach} (the longest link step and the window's "
                 f"frames beyond its final ones), got {self.field_radius}"
             )
+        if self.link_matcher not in ("flow", "ncc"):
+            raise ValueError(f"link_matcher must be 'flow' or 'ncc', got {self.link_matcher!r}")
         for name in ("flag_px", "default_control_sigma_px", "prior_sigma_px"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)!r}")
@@ -222,14 +227,20 @@ class SequenceEvidence:
     _links: dict = field(default_factory=dict, repr=False)
     _probes: dict = field(default_factory=dict, repr=False)
 
-    def links(self, k: int, l: int, probes: ProbeConfig) -> FrameLinks:  # noqa: E741
+    def links(
+        self,
+        k: int,
+        l: int,  # noqa: E741 (the second frame)
+        probes: ProbeConfig,
+        matcher: str = "flow",
+    ) -> FrameLinks:
         """Links between frames ``k`` and ``l``, measured once through their own models."""
         if (k, l) not in self._links:
             if k not in self._probes:
                 self._probes[k] = textured_probes(self.grey(k), probes)
             self._links[(k, l)] = measure_links(
                 self.grey(k), self.grey(l), k, l, self.models[k], self.models[l], self.lens,
-                probes, self._probes[k],
+                probes, self._probes[k], matcher,
             )  # fmt: skip
         return self._links[(k, l)]
 
@@ -258,7 +269,7 @@ def adjust_window(
     held = {k for k in range(first, window.start) if models[k] is not None}
     held |= {k for k in evidence.fixed if first <= k < window.end and models[k] is not None}
     links = [
-        evidence.links(k, k + s, config.probes)
+        evidence.links(k, k + s, config.probes, config.link_matcher)
         for s in steps
         for k in range(first, window.end - s)
         if k + s >= window.start and models[k] is not None and models[k + s] is not None

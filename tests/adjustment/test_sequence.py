@@ -60,7 +60,7 @@ class _Evidence(SequenceEvidence):
         self.truth, self.rng_seed = truth, rng_seed
         self.measured: list[tuple[int, int]] = []
 
-    def links(self, k, l, probes):  # noqa: E741
+    def links(self, k, l, probes, matcher="flow"):  # noqa: E741
         rng = np.random.default_rng(self.rng_seed * 1000 + k * 31 + l)
         p = _grid(48) + rng.uniform(-5, 5, (1, 2))
         q = self.truth[l].inverse(self.truth[k].apply(p))
@@ -133,8 +133,8 @@ def test_a_frame_its_neighbours_cannot_be_found_in_is_flagged(flight):
     truth, models, controls = flight
 
     class Blind(_Evidence):
-        def links(self, k, l, probes):  # noqa: E741
-            lk = super().links(k, l, probes)
+        def links(self, k, l, probes, matcher="flow"):  # noqa: E741
+            lk = super().links(k, l, probes, matcher)
             if BAD in (k, l):
                 return FrameLinks(k, l, lk.src_k[:0], lk.src_l[:0])
             return lk
