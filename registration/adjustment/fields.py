@@ -11,9 +11,13 @@ averaged, node by node, with its neighbours' fields re-expressed on theirs: the 
 ``field_radius`` frames that saw the ground from nearly the same place (their views less than
 ``field_baseline_px`` apart: relief looks the same from there), and kept only where the frames
 agree on it: the mean is shrunk by how little its spread supports it, ``m (1 - s²/(n |m|²))⁺``
-(``s`` the spread of the ``n`` frames' corrections at that node). A node only the frame itself
-measured keeps its own correction, as the paper's local stage does; where no frame measured
-one, the frame's own correction is kept, filled from the nodes around it where it has none.
+(``s`` the spread of the ``n`` frames' corrections at that node). What is stored is the
+difference between the pooled and the frame's own correction, ``δ``, a field on top of the
+frame's own local stage (``x' + δ(x') = own_local(q)``), extended from the pooled nodes to the
+rest; a frame without neighbours has none (its local stage is the paper's, exactly). (Storing the pooled
+field itself on the adjusted model instead needs the model change interpolated between nodes,
+which beyond the frame's edge is an extrapolation of two polynomials: the tests' flight lost
+0.1 px at the local stage to it.)
 
 Pooling assumes that what differs between the neighbours' corrections is noise. A warp of each
 frame's own that the global model does not follow (a strong rolling shutter with shake) differs
@@ -80,19 +84,20 @@ def correction_at(
 
 def consistent_field(
     own: FrameField, neighbours: Sequence[FrameField], clip: Callable[[NDArray], NDArray]
-) -> DisplacementField:
-    """Frame ``own``'s field on its adjusted model (on its own field's grid, refined:
-    :func:`refined_grid`): its correction
-    averaged with its ``neighbours``' where two or more frames measured a node, and shrunk by
-    how little their spread supports it; its own correction alone where no neighbour measured
-    the node (module docstring)."""
+) -> DisplacementField | None:
+    """What makes frame ``own``'s local stage consistent with its ``neighbours``' (module
+    docstring): a field ``δ`` on its own field's grid, refined (:func:`refined_grid`), that its
+    own local stage is corrected by (``x' + δ(x') = own_local(q)``); None without neighbours
+    (its local stage stays its own)."""
+    if not neighbours:
+        return None
     grid = refined_grid(own.field)
     nodes = grid.node_xy.reshape(-1, 2)
     return pool_corrections(grid, [correction_at(f, nodes, clip) for f in (own, *neighbours)])
 
 
-# The field on the adjusted model has twice the nodes per side of the frame's own: the change
-# of model between them is bilinear there, and a quarter of the cell quarters its error.
+# The consistency field has twice the nodes per side of the frame's own field: the pooled
+# corrections vary between the own field's nodes.
 REFINE = 2
 
 
@@ -114,26 +119,22 @@ def pool_corrections(
 ) -> DisplacementField:
     """:func:`consistent_field` from the corrections and their measured masks
     (:func:`correction_at`) at the nodes of ``grid`` (:func:`refined_grid`), the frame's own
-    first (module docstring). ``support`` scales the shrinkage."""
+    first: where two or more frames measured a node, the pooled correction (shrunk by
+    ``support`` times how little its spread supports it) less the frame's own; elsewhere that of
+    the nearest such nodes."""
     own = corrections[0][0]
     stack = np.stack([np.where(m[:, None], c, np.nan) for c, m in corrections])  # (F, N, 2)
-    seen = np.isfinite(stack).all(axis=2)
-    n = seen.sum(axis=0)
+    n = np.isfinite(stack).all(axis=2).sum(axis=0)
     with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # nodes no frame measured: NaN
         mean = np.nanmean(stack, axis=0)
         spread2 = np.nansum((stack - mean) ** 2, axis=(0, 2)) / np.maximum(n - 1, 1)
         shrink = np.clip(1.0 - support * spread2 / (n * (mean**2).sum(axis=1)), 0.0, 1.0)
-    pooled = n >= 2
-    valid = pooled | ((n == 1) & seen[0])
-    if len(corrections) == 1:
-        # No neighbour: the frame's own field, every node re-expressed (filled ones too), so
-        # that its local stage maps exactly where it did.
-        vectors, known = np.where(np.isfinite(own), own, 0.0), np.isfinite(own).all(axis=1)
-    else:
-        vectors, known = np.where(valid[:, None], np.nan_to_num(own), 0.0), valid
-        vectors[pooled] = mean[pooled] * np.nan_to_num(shrink[pooled])[:, None]
+    pooled = (n >= 2) & np.isfinite(own).all(axis=1)
+    delta = np.zeros_like(own)
+    delta[pooled] = mean[pooled] * np.nan_to_num(shrink[pooled])[:, None] - own[pooled]
     shape = grid.vectors.shape
-    filled = fill_invalid(vectors.reshape(shape), known.reshape(shape[:2]))
-    valid = valid.reshape(shape[:2])
-    return DisplacementField(grid.origin, grid.spacing, filled, valid)
+    # Nodes no neighbour measured (the frame's edges) take the correction of the pooled nodes
+    # nearest them, so that it does not stop short at the edge.
+    filled = fill_invalid(delta.reshape(shape), pooled.reshape(shape[:2]))
+    return DisplacementField(grid.origin, grid.spacing, filled, pooled.reshape(shape[:2]))

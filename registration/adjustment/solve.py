@@ -256,12 +256,19 @@ class _Problem:
         return np.where(np.isfinite(r), r, 1e6)
 
     def reestimate_noise(self, x: NDArray) -> bool:
-        """Raise each frame's control-point noise to what its residuals show (robustly: the
-        median point residual / 1.177, the median of a 2D normal's radius); whether any weight
-        changed by more than 20 %."""
+        """Raise each frame's control-point noise, and the links' noise, to what their
+        residuals show (robustly: the median point residual / 1.177, the median of a 2D
+        normal's radius); whether any weight changed by more than 20 %. The links' noise is one
+        figure for all: where the ground is not flat (relief seen from two places) links
+        disagree with any two frames' models, and at the expected noise of same-sensor matching
+        they would outweigh the control points that hold the frames' edges."""
         r = self._evaluate(x, False)
         changed, ci = False, 0
+        link_errors = []
         for kind, start, m in self.blocks:
+            if kind == "link":
+                e = r[start : start + m].reshape(-1, 2) / self.link_w
+                link_errors.append(np.hypot(e[:, 0], e[:, 1]))
             if kind != "control":
                 continue
             e = r[start : start + m].reshape(-1, 2) / self.control_w[ci]
@@ -270,6 +277,11 @@ class _Problem:
                 self.control_w[ci] = 1.0 / seen
                 changed = True
             ci += 1
+        if link_errors:
+            seen = float(np.median(np.concatenate(link_errors))) / 1.177
+            if seen * self.link_w > 1.2:
+                self.link_w = 1.0 / seen
+                changed = True
         return changed
 
     def per_frame_rms(self, x: NDArray, n: int) -> tuple[NDArray, NDArray]:

@@ -1,8 +1,8 @@
 """The sequence adjustment of a registered result folder (``PipelineConfig.adjust``; beyond the
 paper): once every frame is registered, each frame's model is estimated again together with its
 neighbours' (:mod:`registration.adjustment.sequence`), and its record rewritten, frame by frame
-and atomically, with the adjusted model, a predicted error, a flag and its local field made
-consistent with its neighbours' on the adjusted models (:mod:`registration.adjustment.fields`).
+and atomically, with the adjusted model, a predicted error, a flag and the field that makes its
+local stage consistent with its neighbours' (:mod:`registration.adjustment.fields`).
 The frame's own model and field stay (``model``, ``field_*``): the folder says what each
 frame's registration found and what the sequence made of it.
 """
@@ -127,6 +127,8 @@ class _Fields:
             if c is not None:
                 corrections.append(c)
         self.result.release(k - self.radius - 1)
+        if len(corrections) == 1:
+            return None  # no neighbour close enough: its own local stage
         return pool_corrections(grid, corrections, self.support)
 
 
@@ -169,8 +171,8 @@ def _write_adjusted(
     field_: DisplacementField | None,
 ) -> None:
     """Rewrite frame ``adjusted.k``'s record with the adjustment, and its arrays with the field
-    on the adjusted model (``adjusted_field_*``) where there is one; its own model and field
-    stay."""
+    that makes its local stage consistent with its neighbours' (``consistency_field_*``) where
+    there is one; its own model and field stay."""
     k = adjusted.k
     record = replace(result.records[k], adjusted_model=adjusted.model.to_dict()).with_stats(
         adjustment=adjusted.to_dict()
@@ -178,8 +180,8 @@ def _write_adjusted(
     if field_ is None:
         writer.write_record(k, record)
         return
-    arrays = {n: v for n, v in result.arrays(k).items() if not n.startswith("adjusted_field_")}
-    arrays.update({f"adjusted_field_{n}": v for n, v in field_.to_arrays().items()})
+    arrays = {n: v for n, v in result.arrays(k).items() if not n.startswith("consistency_field_")}
+    arrays.update({f"consistency_field_{n}": v for n, v in field_.to_arrays().items()})
     writer.write_frame(k, record, arrays)
 
 

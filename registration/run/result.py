@@ -66,9 +66,10 @@ class RegistrationResult:
       and flag; :class:`registration.adjustment.FrameAdjustment`).
     * ``frames/KKKKKK.npz``: the frame's control points (``src`` corrected px, ``dst`` base px,
       ``kept``, ``residuals``) and its local displacement field (``field_*`` arrays), measured
-      on its own model; with the adjustment, also the field on the adjusted model
-      (``adjusted_field_*``, :mod:`registration.adjustment.fields`), which stage ``"local"``
-      uses. :meth:`unadjusted` sets the adjustment aside.
+      on its own model; with the adjustment, where the frame has neighbours close enough, the
+      field that makes its local stage consistent with theirs (``consistency_field_*``,
+      :mod:`registration.adjustment.fields`), which stage ``"local"`` applies on top of its
+      own. :meth:`unadjusted` sets the adjustment aside.
     * ``mid_base.png``, ``mid_base_valid.png``: the reference frame in base pixels and its mask.
     * ``.lock``: held by the process writing the folder.
 
@@ -244,13 +245,12 @@ class RegistrationResult:
         return _field(self._npz(k), "field_")
 
     def local_stage(self, k: int):
-        """``(model, field)`` the frame's stage ``"local"`` maps through: the adjusted model
-        and the field made consistent on it where the sequence adjustment made one, else its
-        own; ``field`` None when it has none (``"local"`` is then ``"global"``)."""
-        adjusted = _field(self._npz(k), "adjusted_field_") if self.is_adjusted(k) else None
-        if adjusted is not None:
-            return self.model(k), adjusted
-        return self.own_model(k), self.field(k)
+        """``(model, field, consistency)``: the frame's own model and the local field measured
+        on it, and where the sequence adjustment made one, the field that makes its local stage
+        consistent with its neighbours' (:mod:`registration.adjustment.fields`), applied on top
+        (``x' + δ(x') = own_local(q)``); None where there is none."""
+        consistency = _field(self._npz(k), "consistency_field_") if self.is_adjusted(k) else None
+        return self.own_model(k), self.field(k), consistency
 
     def unadjusted(self) -> RegistrationResult:
         """This result as each frame's own registration left it: the sequence adjustment's
@@ -301,12 +301,17 @@ class RegistrationResult:
         _check_stage(stage)
         if not self._usable(k, stage):
             return np.full_like(pts, np.nan)
-        model, field = self.local_stage(k) if stage == "local" else (None, None)
+        model, field, consistency = self.local_stage(k) if stage == "local" else (None,) * 3
         if field is None:
             return self._global_frame_to_base(k, pts)
         from registration.geometry import local_frame_to_base
 
-        return local_frame_to_base(lambda q: self._global_frame_to_base(k, q, model), field, pts)
+        def own_local(q):
+            return local_frame_to_base(lambda p: self._global_frame_to_base(k, p, model), field, q)
+
+        if consistency is None:
+            return own_local(pts)
+        return local_frame_to_base(own_local, consistency, pts)
 
     def base_to_frame(self, k: int, xy: ArrayLike, stage: str = "local") -> NDArray[np.float64]:
         """``(N, 2)`` base pixels -> ``(N, 2)`` raw pixels of frame ``k`` (NaN where unknown)."""
@@ -315,12 +320,17 @@ class RegistrationResult:
         _check_stage(stage)
         if not self._usable(k, stage):
             return np.full_like(pts, np.nan)
-        model, field = self.local_stage(k) if stage == "local" else (None, None)
+        model, field, consistency = self.local_stage(k) if stage == "local" else (None,) * 3
         if field is None:
             return self._global_base_to_frame(k, pts)
         from registration.geometry import local_base_to_frame
 
-        return local_base_to_frame(lambda b: self._global_base_to_frame(k, b, model), field, pts)
+        def own_local(b):
+            return local_base_to_frame(lambda x: self._global_base_to_frame(k, x, model), field, b)
+
+        if consistency is None:
+            return own_local(pts)
+        return local_base_to_frame(own_local, consistency, pts)
 
     # -- map coordinates (georeferenced base) --------------------------------------------------
     def _require_georef(self):
