@@ -212,7 +212,13 @@ MUTATIONS: list[Mutation] = [
         "result_ignores_field",
         "the local stage of a result ignores its displacement field (field zeroed)",
         "registration/run/result.py",
-        [('field = self.field(k) if stage == "local" else None', "field = None", 2)],
+        [
+            (
+                'model, field, consistency = self.local_stage(k) if stage == "local" else (None,) * 3',
+                "model, field, consistency = (None,) * 3",
+                2,
+            )
+        ],
         ["tests/run/test_result.py", *E2E],
     ),
     # -- the new modules ---------------------------------------------------------------------
