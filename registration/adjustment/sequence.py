@@ -17,7 +17,7 @@ final reaches the same models, bit for bit.
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -116,6 +116,20 @@ class Window:
     start: int
     final_end: int
     end: int
+
+
+# Probes per frame at most (before the texture test): a 852x480 frame at the probes' 24 px
+# spacing has 710; a larger frame spaces them wider rather than measuring more.
+MAX_PROBES = 720
+
+
+def probes_for(grey: NDArray, probes: ProbeConfig) -> ProbeConfig:
+    """``probes`` with the spacing widened so that a frame of ``grey``'s size has at most
+    :data:`MAX_PROBES` (the links' cost and the solve's grow with their number: a 2560x1920
+    frame at 24 px would have 8500)."""
+    h, w = grey.shape[:2]
+    spacing = int(np.ceil(np.sqrt(w * h / MAX_PROBES)))
+    return probes if spacing <= probes.grid_px else replace(probes, grid_px=spacing)
 
 
 def window_plan(n_frames: int, config: SequenceAdjustConfig) -> list[Window]:
@@ -237,7 +251,7 @@ class SequenceEvidence:
         """Links between frames ``k`` and ``l``, measured once through their own models."""
         if (k, l) not in self._links:
             if k not in self._probes:
-                self._probes[k] = textured_probes(self.grey(k), probes)
+                self._probes[k] = textured_probes(self.grey(k), probes_for(self.grey(k), probes))
             self._links[(k, l)] = measure_links(
                 self.grey(k), self.grey(l), k, l, self.models[k], self.models[l], self.lens,
                 probes, self._probes[k], matcher,
