@@ -177,9 +177,9 @@ def run(args) -> dict:
     ours = adjusted.unadjusted()
     anchors = {k for k in range(n) if ours.records[k].stage == ANCHOR_STAGE}
     for stage in ("global", "local"):
-        runs[f"aerialreg default, {stage}"] = (ours, stage, ours_cpu)
+        runs[f"aerialreg, each frame alone, {stage}"] = (ours, stage, ours_cpu)
     for stage in ("global", "local"):
-        runs[f"aerialreg --adjust, {stage}"] = (adjusted, stage, ours_cpu + adjust_cpu)
+        runs[f"aerialreg default (adjusted), {stage}"] = (adjusted, stage, ours_cpu + adjust_cpu)
     for name, fn in (
         ("OpenCV per frame", register_per_frame),
         ("OpenCV chained", register_chained),
@@ -219,7 +219,7 @@ def run(args) -> dict:
     ]
     tail = (
         (
-            f"\n\n--adjust: {len(flagged)} frames flagged; predicted error (base px) median "
+            f"\n\nAdjusted: {len(flagged)} frames flagged; predicted error (base px) median "
             f"{np.median(predicted):.3f}, 90th percentile {np.percentile(predicted, 90):.3f}, "
             f"largest {np.max(predicted):.3f}; the adjustment's own CPU {adjust_cpu:.3f} s per frame "
             f"({100 * adjust_cpu / ours_cpu:.0f} % of the registration's)."
