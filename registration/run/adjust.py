@@ -65,7 +65,10 @@ def adjust_result(
     for adjusted, solution in adjust_sequence(evidence, config, final):
         if cancel is not None and cancel.is_set():
             break
-        field_ = None if adjusted.k in evidence.fixed else fields.consistent(adjusted.k, solution)
+        field_ = (
+            None if adjusted.k in evidence.fixed
+            else fields.consistent(adjusted.k, solution, adjusted.window)
+        )  # fmt: skip
         _write_adjusted(writer, result, adjusted, field_)
         written += 1
         if progress:
@@ -95,12 +98,12 @@ class _Fields:
             return np.where(np.isfinite(raw), lens.corrected_from_raw(raw), q)
 
         self.clip = clip
-        # Corrections of frame j on a grid, under one window's solution: the same for every
-        # frame of the window on that grid (the fields of a run share one).
+        # Corrections of frame j on a grid, under one window's solution (keyed by the window:
+        # the same for every frame of the window on that grid).
         self._corrections: dict = {}
 
-    def _correction(self, j: int, solution, grid: DisplacementField):
-        key = (j, id(solution), (grid.origin, grid.spacing, grid.shape))
+    def _correction(self, j: int, solution, window, grid: DisplacementField):
+        key = (j, window, (grid.origin, grid.spacing, grid.shape))
         if key not in self._corrections:
             field_j = self.result.field(j)
             self._corrections[key] = None if field_j is None else correction_at(
@@ -109,7 +112,9 @@ class _Fields:
             )  # fmt: skip
         return self._corrections[key]
 
-    def consistent(self, k: int, solution) -> DisplacementField | None:
+    def consistent(self, k: int, solution, window) -> DisplacementField | None:
+        """Frame k's consistency field from its neighbours in ``solution``, the models of the
+        window ``(start, end)`` that made it final; None without one."""
         own_field = self.result.field(k) if self.radius else None
         if own_field is None:
             return None
@@ -118,12 +123,12 @@ class _Fields:
         grid = refined_grid(own_field)
         outline = self.evidence.outline
         at = solution[k].apply(outline)
-        corrections = [self._correction(k, solution, grid)]
+        corrections = [self._correction(k, solution, window, grid)]
         for j in range(k - self.radius, k + self.radius + 1):
             if j == k or j not in solution:
                 continue
             apart = float(np.mean(np.hypot(*(solution[j].apply(outline) - at).T)))
-            c = self._correction(j, solution, grid) if apart <= self.baseline else None
+            c = self._correction(j, solution, window, grid) if apart <= self.baseline else None
             if c is not None:
                 corrections.append(c)
         self.result.release(k - self.radius - 1)
