@@ -205,7 +205,8 @@ class _Problem:
             v, j = models[c.k].param_jacobian(c.src, d)
             yield (c.k,), (v - c.dst) * w, ((j * w,) if with_jacobian else None)
 
-    def _evaluate(self, x: NDArray, with_jacobian: bool = False):
+    def _evaluate(self, x: NDArray) -> NDArray:
+        """The weighted residuals at ``x``, flat."""
         return np.concatenate([r.ravel() for _, r, _ in self._terms(x, False)] or [np.zeros(0)])
 
     def normal_equations(self, x: NDArray, f_scale: float):
@@ -218,10 +219,9 @@ class _Problem:
         for frames, r, jacs in self._terms(x, True):
             r = np.where(np.isfinite(r), r, 1e6)
             res.append(r.ravel())
-            w = 1.0 / np.sqrt(1.0 + (r**2).sum(1) / f_scale**2)  # per point
+            w2 = _robust_weights(r, f_scale)  # per coordinate, a point's two alike
             flat = [None if j is None else j.reshape(-1, j.shape[2]) for j in jacs]
-            wr = (r * w[:, None]).ravel()
-            w2 = np.repeat(w, 2)
+            wr = r.ravel() * w2
             for a, ja in zip(frames, flat, strict=True):
                 if ja is None:
                     continue
@@ -250,7 +250,7 @@ class _Problem:
         return normal, grad, np.concatenate(res)
 
     def residuals(self, x: NDArray) -> NDArray:
-        r = self._evaluate(x, False)
+        r = self._evaluate(x)
         # A model that folds (denominator through 0) gives inf: a large finite residual instead,
         # so the trust region shrinks rather than the solver stopping.
         return np.where(np.isfinite(r), r, 1e6)
@@ -262,7 +262,7 @@ class _Problem:
         figure for all: where the ground is not flat (relief seen from two places) links
         disagree with any two frames' models, and at the expected noise of same-sensor matching
         they would outweigh the control points that hold the frames' edges."""
-        r = self._evaluate(x, False)
+        r = self._evaluate(x)
         changed, ci = False, 0
         link_errors = []
         for kind, start, m in self.blocks:
@@ -285,7 +285,7 @@ class _Problem:
         return changed
 
     def per_frame_rms(self, x: NDArray, n: int) -> tuple[NDArray, NDArray]:
-        r = self._evaluate(x, False)
+        r = self._evaluate(x)
         sq = {"link": np.zeros(n), "control": np.zeros(n)}
         cnt = {"link": np.zeros(n), "control": np.zeros(n)}
         li = ci = 0
