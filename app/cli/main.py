@@ -25,6 +25,7 @@ COMMANDS = (
     "register",
     "evaluate",
     "export",
+    "traffic",
     "bench",
 )
 

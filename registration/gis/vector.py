@@ -113,11 +113,12 @@ def read_points_file(path: str | os.PathLike) -> dict[str, Any]:
 
 @dataclass
 class Layer:
-    """Features of one geometry type: ``geometries`` are ``(2,)`` points or ``(M, 2)`` closed
-    polygon rings in map coordinates; ``properties`` one dict per feature."""
+    """Features of one geometry type: ``geometries`` are ``(2,)`` points, ``(M, 2)`` line
+    strings or ``(M, 2)`` closed polygon rings in map coordinates; ``properties`` one dict per
+    feature."""
 
     name: str
-    geometry_type: str  # "Point" or "Polygon"
+    geometry_type: str  # "Point", "LineString" or "Polygon"
     geometries: list[NDArray]
     properties: list[dict[str, Any]]
 
@@ -139,6 +140,8 @@ def write_geojson(path: str | os.PathLike, layer: Layer, crs_wkt: str | None) ->
         g = np.asarray(geom, float)
         if layer.geometry_type == "Point":
             geometry = {"type": "Point", "coordinates": [float(g[0]), float(g[1])]}
+        elif layer.geometry_type == "LineString":
+            geometry = {"type": "LineString", "coordinates": g.tolist()}
         else:
             geometry = {"type": "Polygon", "coordinates": [g.tolist()]}
         features.append({"type": "Feature", "geometry": geometry, "properties": props})
@@ -156,13 +159,15 @@ def write_geojson(path: str | os.PathLike, layer: Layer, crs_wkt: str | None) ->
 def _wkb(geometry_type: str, g: NDArray) -> bytes:
     if geometry_type == "Point":
         return struct.pack("<BI2d", 1, 1, float(g[0]), float(g[1]))
-    ring = np.asarray(g, "<f8")
-    return struct.pack("<BIII", 1, 3, 1, len(ring)) + ring.tobytes()
+    coords = np.ascontiguousarray(g, "<f8")
+    if geometry_type == "LineString":
+        return struct.pack("<BII", 1, 2, len(coords)) + coords.tobytes()
+    return struct.pack("<BIII", 1, 3, 1, len(coords)) + coords.tobytes()
 
 
 def _gpkg_blob(geometry_type: str, g: NDArray, srs_id: int) -> bytes:
     """GeoPackage geometry: 'GP', version 0, flags (little endian; envelope [minx, maxx,
-    miny, maxy] for polygons), srs_id, then standard WKB."""
+    miny, maxy] for polygons and lines), srs_id, then standard WKB."""
     g = np.asarray(g, float)
     if geometry_type == "Point":
         return b"GP" + struct.pack("<BBi", 0, 0b01, srs_id) + _wkb(geometry_type, g)

@@ -712,13 +712,20 @@ def _roof(img, b: Building, m: float, rng):
         _rect(img, ux, uy, ux + uw, uy + uh, (v, v, v * 0.98))
 
 
-def traffic_snapshot(lay: Layout, seed: int, per_km: float, t: float = 0.0) -> NDArray[np.float64]:
-    """Vehicles on the lanes at time ``t`` (s): ``(V, 8)`` rows ``x, y, axis, length px, width px,
-    r, g, b``. Each vehicle drives along its lane at a constant speed (8-16 m/s) and wraps around
-    at the map's edge; the same ``seed`` gives the same traffic at every ``t``."""
+def traffic_states(lay: Layout, seed: int, per_km: float, t: float = 0.0) -> dict[str, NDArray]:
+    """Every vehicle on the lanes at time ``t`` (s), as arrays of one row per vehicle.
+
+    Each vehicle drives along its lane at a constant speed (8-16 m/s) and wraps around at the
+    map's edge; the same ``seed`` gives the same traffic at every ``t``. Keys: ``vehicle`` (its
+    index, stable over time), ``lap`` (how often it wrapped since ``t`` = 0: a wrap teleports
+    it, so ``(vehicle, lap)`` is one trajectory), ``x``, ``y`` (centre, px), ``axis`` (0: along
+    x), ``direction`` (±1 along the axis), ``speed`` (px/s), ``length``, ``width`` (px),
+    ``rgb`` ``(V, 3)``.
+    """
     rng = np.random.default_rng([lay.seed, 404, seed])
     m = 1.0 / lay.gsd
-    rows = []
+    parts: dict[str, list] = {k: [] for k in ("lap", "x", "y", "axis", "direction", "speed")}
+    parts.update(length=[], width=[], rgb=[])
     for axis, c, direction in lay.lanes():
         length = lay.width if axis == 0 else lay.height
         n = rng.poisson(per_km * length * lay.gsd / 1000.0)
@@ -728,12 +735,55 @@ def traffic_snapshot(lay: Layout, seed: int, per_km: float, t: float = 0.0) -> N
         vlen = np.where(kind < 0.9, rng.uniform(4.2, 5.2, n), rng.uniform(8, 12, n)) * m
         vwid = np.where(kind < 0.9, rng.uniform(1.7, 1.95, n), rng.uniform(2.4, 2.6, n)) * m
         cols = CAR_COLOURS[rng.choice(len(CAR_COLOURS), size=n, p=CAR_COLOUR_P)]
-        pos = np.mod(s0 + direction * speed * t, length)
+        # A lane flows at one speed (its first vehicle's) with every gap at least 1.5 m, so
+        # vehicles never drive through each other (the traffic truth has no overlaps).
+        speed[:] = speed[0] if n else 0.0
+        s0 = _spaced(s0, vlen, 1.5 * m, length)
+        on_road = np.isfinite(s0)
+        s0, speed, vlen, vwid, cols = (a[on_road] for a in (s0, speed, vlen, vwid, cols))
+        n = len(s0)
+        travelled = s0 + direction * speed * t
+        pos = np.mod(travelled, length)
         across = c + rng.normal(0, 0.15 * m, n)
-        for i in range(n):
-            x, y = (pos[i], across[i]) if axis == 0 else (across[i], pos[i])
-            rows.append([x, y, axis, vlen[i], vwid[i], *cols[i]])
-    return np.array(rows, np.float64).reshape(-1, 8)
+        parts["lap"].append(np.floor_divide(travelled, length).astype(np.int64))
+        parts["x"].append(pos if axis == 0 else across)
+        parts["y"].append(across if axis == 0 else pos)
+        parts["axis"].append(np.full(n, axis, np.int64))
+        parts["direction"].append(np.full(n, direction, np.int64))
+        parts["speed"].append(speed)
+        parts["length"].append(vlen)
+        parts["width"].append(vwid)
+        parts["rgb"].append(cols.reshape(-1, 3))
+    out = {
+        k: (np.concatenate(v) if v else np.zeros((0, 3) if k == "rgb" else 0))
+        for k, v in parts.items()
+    }
+    out["vehicle"] = np.arange(len(out["x"]), dtype=np.int64)
+    return out
+
+
+def _spaced(s0: NDArray, lengths: NDArray, gap: float, length: float) -> NDArray:
+    """Positions ``s0`` along a cyclic lane of ``length`` moved on, in order, until consecutive
+    vehicles of ``lengths`` are at least ``gap`` apart bumper to bumper. A vehicle that would
+    then reach the first one again round the cycle gets NaN (it is not on the road)."""
+    order = np.argsort(s0, kind="stable")
+    out = s0.astype(np.float64).copy()
+    for prev, i in zip(order[:-1], order[1:], strict=True):
+        out[i] = max(out[i], out[prev] + (lengths[prev] + lengths[i]) / 2.0 + gap)
+    if len(order) > 1:
+        first = order[0]
+        limit = out[first] + length - lengths[first] / 2.0 - gap
+        out[(out + lengths / 2.0 > limit) & (np.arange(len(out)) != first)] = np.nan
+    return out
+
+
+def traffic_snapshot(lay: Layout, seed: int, per_km: float, t: float = 0.0) -> NDArray[np.float64]:
+    """Vehicles on the lanes at time ``t`` (s) (:func:`traffic_states`) as ``(V, 8)`` rows
+    ``x, y, axis, length px, width px, r, g, b``, the form :func:`draw_car` paints."""
+    v = traffic_states(lay, seed, per_km, t)
+    return np.column_stack(
+        [v["x"], v["y"], v["axis"], v["length"], v["width"], v["rgb"]]
+    ).astype(np.float64).reshape(-1, 8)
 
 
 def second_sensor(image: NDArray[np.uint8], seed: int) -> NDArray[np.uint8]:

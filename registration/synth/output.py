@@ -31,7 +31,7 @@ from numpy.typing import NDArray
 
 from registration.io import write_bytes_atomic
 
-OWNED = ("frames", "base.png", "truth.json", "sequence.mp4")
+OWNED = ("frames", "base.png", "truth.json", "sequence.mp4", "vehicles.csv")
 STAGING_PREFIX = ".simulate-"
 TRUTH_NAME = "truth.json"
 
@@ -45,11 +45,15 @@ def encode_png(rgb: NDArray[np.uint8], name: str = "image") -> bytes:
     return buf.tobytes()
 
 
-def write_png(path: Path, rgb: NDArray[np.uint8]) -> str:
-    """Write an RGB (or grey) uint8 image as PNG, atomically; returns the file's SHA-256."""
-    data = encode_png(rgb, str(path))
+def write_bytes(path: Path, data: bytes) -> str:
+    """Write ``data`` to ``path`` atomically; return its SHA-256 (hex)."""
     write_bytes_atomic(path, data)
     return hashlib.sha256(data).hexdigest()
+
+
+def write_png(path: Path, rgb: NDArray[np.uint8]) -> str:
+    """Write an RGB (or grey) uint8 image as PNG, atomically; returns the file's SHA-256."""
+    return write_bytes(path, encode_png(rgb, str(path)))
 
 
 def sha256_file(path: Path) -> str:
@@ -107,13 +111,13 @@ def check_target(out: Path, force: bool) -> None:
     if is_simulator_output(out):
         raise FileExistsError(
             f"{out} already holds a simulated sequence; use --force (force=True in Python) to replace "
-            "its frames/, base.png, truth.json and sequence.mp4"
+            "its frames/, base.png, truth.json, sequence.mp4 and vehicles.csv"
         )
     shown = ", ".join(entries[:4]) + (", ..." if len(entries) > 4 else "")
     raise FileExistsError(
         f"{out} is not empty and is not a simulator output (holds {shown}); choose an empty or "
-        "new folder, or use --force (force=True in Python) to replace its frames/, base.png, truth.json "
-        "and sequence.mp4 (other files are left alone)"
+        "new folder, or use --force (force=True in Python) to replace its frames/, base.png, truth.json, "
+        "sequence.mp4 and vehicles.csv (other files are left alone)"
     )
 
 

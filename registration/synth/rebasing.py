@@ -46,6 +46,7 @@ def rebase(
     """
     from registration.synth.output import Staging, sha256_file, write_png
     from registration.synth.truth import load_truth
+    from registration.synth.vehicles import VEHICLES_NAME
 
     src = Path(src_dir)
     out = Path(out_dir)
@@ -89,8 +90,10 @@ def rebase(
             _link_or_copy(src / rel, stage.dir / rel)
             if rel not in files:
                 files[rel] = sha256_file(stage.dir / rel)
-        if (src / "sequence.mp4").is_file():
-            _link_or_copy(src / "sequence.mp4", stage.dir / "sequence.mp4")
+        # The vehicles' truth is in scene pixels: the new base_from_scene maps it.
+        for name in ("sequence.mp4", VEHICLES_NAME):
+            if (src / name).is_file():
+                _link_or_copy(src / name, stage.dir / name)
         new["files"] = files
         stage.commit(new)
     return out

@@ -11,6 +11,8 @@ Output layout of :func:`simulate` (``OUT``)::
                                 frame and the base; :func:`load_truth` recomputes the truth
                                 exactly from it
     OUT/sequence.mp4            the frames as H.264 video (cropped to even size), for viewing
+    OUT/vehicles.csv            the moving vehicles' true trajectories, per frame (procedural
+                                city with vehicles; :mod:`registration.synth.vehicles`)
 
 Nothing in ``OUT`` is overwritten without ``force``; everything is rendered into a staging folder
 and swapped in, ``truth.json`` last (:mod:`registration.synth.output`).
@@ -37,13 +39,14 @@ from registration.synth import city as citymod
 from registration.synth.basemap import base_map_info, warp_base
 from registration.synth.camera import SequenceGeometry
 from registration.synth.config import SimConfig
-from registration.synth.output import Staging, check_target, write_png
+from registration.synth.output import Staging, check_target, write_bytes, write_png
 from registration.synth.plan import (
     plan_procedural,
     plan_scene,
 )
 from registration.synth.render import FrameRenderer
 from registration.synth.truth import TRUTH_FORMAT, TRUTH_VERSION, read_rgb
+from registration.synth.vehicles import VEHICLES_NAME, vehicle_rows, vehicles_csv
 
 Progress = Callable[[int, int], None]
 
@@ -198,6 +201,9 @@ def simulate(
             progress(1, total)
         renderer = FrameRenderer(geom, scene_img, cfg, layout)
         _write_frames(stage.dir, renderer, cfg, files, progress, total)
+        if layout is not None and cfg.vehicles:
+            rows = [row for k in range(cfg.n_frames) for row in vehicle_rows(layout, cfg, geom, k)]
+            files[VEHICLES_NAME] = write_bytes(stage.dir / VEHICLES_NAME, vehicles_csv(rows))
         truth["files"] = files
         stage.commit(truth)
     if progress:

@@ -15,7 +15,7 @@ from numpy.typing import ArrayLike, NDArray
 from registration.coords import as_points
 from registration.mapping import STAGES
 from registration.synth.basemap import base_map_info
-from registration.synth.camera import SequenceGeometry, SimLens
+from registration.synth.camera import SequenceGeometry, SimLens, apply_homography
 
 TRUTH_FORMAT = "aerialreg-synth-truth"
 # 2: lens_k2, base_map, files (version 1 files read as lens_k2 = 0, base at heading 0, scale 1).
@@ -121,6 +121,30 @@ class SimTruth:
         """``(N, 2)`` base pixels -> ``(N, 2)`` raw pixels of frame ``k`` (NaN outside)."""
         k = self._check(k, stage)
         return self.geometry.raw_from_base(k, as_points(xy))
+
+    def vehicles(self) -> dict[str, NDArray] | None:
+        """The moving vehicles' true trajectories (``vehicles.csv``,
+        :mod:`registration.synth.vehicles`) with their centres in this truth's base pixels
+        (``x_base``, ``y_base``), their direction of travel there (``ux``, ``uy``, unit) and
+        ``base_px_per_m``; None when the sequence has no vehicle truth (a user scene, no
+        vehicles, or a file of an older simulator)."""
+        from registration.synth.vehicles import VEHICLES_NAME, read_vehicles
+
+        if self.root is None or not (self.root / VEHICLES_NAME).is_file():
+            return None
+        v = read_vehicles(self.root / VEHICLES_NAME)
+        h = np.asarray(self.geometry.base_from_scene, np.float64)
+        centre = np.column_stack([v["x_scene"], v["y_scene"]])
+        base = apply_homography(h, centre)
+        ahead = apply_homography(h, centre + np.column_stack([v["dx"], v["dy"]]))
+        step = ahead - base
+        norm = np.linalg.norm(step, axis=1)
+        v["x_base"], v["y_base"] = base[:, 0], base[:, 1]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            v["ux"], v["uy"] = step[:, 0] / norm, step[:, 1] / norm
+        # Base px per scene px (the base is a similarity of the scene) over metres per scene px.
+        v["base_px_per_m"] = np.sqrt(abs(np.linalg.det(h[:2, :2]))) / self.geometry.scene_gsd
+        return v
 
     def camera_altitude_m(self) -> float:
         return float(-self.geometry.pose.origin[2])

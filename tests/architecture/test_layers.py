@@ -32,6 +32,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("gis",),
     ("synth",),
     ("run",),
+    ("traffic",),
     ("evaluation",),
 ]
 RANK = {part: i for i, layer in enumerate(LAYERS) for part in layer}

@@ -135,7 +135,7 @@ def test_truth_is_the_last_file_written(tmp_path, monkeypatch):
     monkeypatch.setattr(outmod, "write_bytes_atomic", record)
     simulate(tmp_path, SimConfig(**TINY, n_frames=3))
     assert order[-1] == "truth.json" and order.count("truth.json") == 1
-    assert order[:-1] == ["base.png", "000000.png", "000001.png", "000002.png"]
+    assert order[:-1] == ["base.png", "000000.png", "000001.png", "000002.png", "vehicles.csv"]
 
 
 @pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
@@ -193,7 +193,7 @@ def test_sigkill_mid_render_keeps_the_old_run_and_next_run_cleans_up(tmp_path):
 def test_truth_records_every_file_digest(tmp_path):
     simulate(tmp_path, SimConfig(**TINY, n_frames=2))
     data = json.loads((tmp_path / "truth.json").read_text())
-    assert set(data["files"]) == {"base.png", "frames/000000.png", "frames/000001.png"}
+    assert set(data["files"]) == {"base.png", "frames/000000.png", "frames/000001.png", "vehicles.csv"}
     truth = load_truth(tmp_path)
     assert truth.verify_files() == []
     (tmp_path / "frames" / "000001.png").write_bytes(b"changed")

@@ -1,0 +1,122 @@
+"""``aerialreg traffic``: vehicles, tracks, speeds and the velocity field of a registered
+sequence."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+from app.cli.common import emit_json
+from app.progress import ProgressBar
+
+NAME = "traffic"
+HELP = (
+    "Track the vehicles on a registered sequence: inD-style tracks.csv / tracksMeta.csv / "
+    "recordingMeta.csv, latitude/longitude CSV, GeoJSON and GeoPackage trajectories and a "
+    "velocity-field GeoTIFF (resumable)."
+)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("result", metavar="RESULT", help="folder written by 'aerialreg register'")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder (resumes there)")
+    p.add_argument(
+        "--frames", help="the registered video / image folder / glob (default: RESULT's own)"
+    )
+    p.add_argument(
+        "--fps",
+        type=float,
+        help="frame rate, frames/s (needed for image folders; a video's timestamps otherwise)",
+    )
+    p.add_argument(
+        "--gsd",
+        type=float,
+        metavar="M",
+        help="metres per base-map pixel (needed when the base has no projected CRS in metres)",
+    )
+    p.add_argument(
+        "--exclude",
+        metavar="REGIONS.geojson",
+        help="polygons never to look for vehicles in (map coordinates of a georeferenced base, "
+        "else base pixels)",
+    )
+    p.add_argument("--json", action="store_true", help="print one JSON object with the summary")
+
+
+def read_regions(path: str, result):
+    """A base-sized bool mask of the GeoJSON polygons in ``path`` (one-line errors)."""
+    import cv2
+    import numpy as np
+
+    try:
+        doc = json.loads(Path(path).read_text())
+    except OSError as exc:
+        raise ValueError(f"--exclude {path}: {exc.strerror or exc}") from None
+    except ValueError as exc:
+        raise ValueError(f"--exclude {path} is not valid JSON ({exc})") from None
+    feats = doc.get("features", [doc]) if isinstance(doc, dict) else []
+    rings = []
+    for f in feats:
+        g = f.get("geometry", f) if isinstance(f, dict) else None
+        if not isinstance(g, dict) or g.get("type") not in ("Polygon", "MultiPolygon"):
+            continue
+        polys = [g["coordinates"]] if g["type"] == "Polygon" else g["coordinates"]
+        rings += [np.asarray(p[0], float) for p in polys]
+    if not rings:
+        raise ValueError(f"--exclude {path} holds no Polygon or MultiPolygon")
+    mask = np.zeros(result.base_size[::-1], np.uint8)
+    for r in rings:
+        b = result.georef.base_from_map(r) if result.georef is not None else r
+        cv2.fillPoly(mask, [np.round(b).astype(np.int32)], 1)
+    return mask.astype(bool)
+
+
+def run(args: argparse.Namespace) -> int:
+    import registration
+    from registration.io import open_frames
+    from registration.traffic import run_traffic
+
+    result = registration.load(args.result)
+    frames = open_frames(args.frames or result.meta["frames_source"])
+    if len(frames) != result.n_frames or tuple(frames.size) != tuple(result.frame_size):
+        raise ValueError(
+            f"the frames ({len(frames)} of {frames.size[0]}x{frames.size[1]}) are not the "
+            f"result's ({result.n_frames} of {result.frame_size[0]}x{result.frame_size[1]})"
+        )
+    exclude = read_regions(args.exclude, result) if args.exclude else None
+    bar: ProgressBar | None = None
+
+    def progress(done: int, total: int) -> None:
+        nonlocal bar
+        if bar is None:
+            bar = ProgressBar(total, "traffic").__enter__()
+        bar.update(done - bar.done)
+
+    t0 = time.perf_counter()
+    try:
+        summary = run_traffic(
+            result,
+            frames,
+            args.out,
+            fps=args.fps,
+            gsd_m=args.gsd,
+            exclude=exclude,
+            progress=progress,
+        )
+    finally:
+        if bar is not None:
+            bar.__exit__(None, None, None)
+    summary["total_s"] = round(time.perf_counter() - t0, 3)
+    if args.json:
+        emit_json(summary)
+        return 0
+    skipped = len(summary["skipped"])
+    sys.stdout.write(
+        f"{summary['n_tracks']} tracks from {summary['n_detections']} detections in "
+        f"{summary['n_used']} frames ({skipped} skipped) into {args.out} in "
+        f"{summary['total_s']:.1f} s\n"
+    )
+    return 0

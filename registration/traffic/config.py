@@ -1,0 +1,114 @@
+"""Settings of the traffic stage (:class:`TrafficConfig`), with their units and reasons.
+
+The paper stops at registered frames; its companion work (Rosten, Loveland & Hickman, "Automatic
+creation of urban velocity fields from aerial video", 2009) tracks what moves on them. Nothing
+here is the paper's, so the defaults are this project's, measured on the simulator's traffic and
+the real NUST flyover (docs/traffic.md).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+
+@dataclass(frozen=True)
+class TrafficConfig:
+    """How vehicles are found and tracked on the registered sequence.
+
+    Attributes:
+        cell_m: size of a pixel of the working grid on the map, metres. None = the frames' own
+            ground resolution (one working pixel per frame pixel at the reference frame's
+            centre), so nothing the camera resolved is lost and nothing is invented.
+        background_span_s: the background of a frame is the per-pixel median of frames up to
+            this long before and after it (s). A car 4.5 m long at 10 m/s covers a pixel for
+            0.45 s, so it is one sample of the median, not its value.
+        background_samples: frames sampled on each side within the span (evenly in time).
+        min_samples: fewest samples a map pixel needs for a background (else no detection
+            there: the edge of what the flight saw).
+        tolerance_px: the background is compared as a local range (its minimum and maximum over
+            this radius, working px): what registration leaves (relief, sub-pixel error) then
+            does not look like motion.
+        threshold_sigma: a pixel differs from the background when the difference passes this
+            many robust noise sigmas (measured per frame) ...
+        min_threshold_dn: ... and at least this many 8-bit levels (compression blocks).
+        seed_factor: a blob must hold at least one pixel this many times over the threshold
+            (hysteresis: the body of a car close to the road's colour stays attached to its
+            strongly differing parts, noise alone does not start a blob).
+        close_m: gaps up to this (metres) inside a blob are closed (windscreens, roof bars);
+            below the 1.3-1.8 m between cars in neighbouring lanes.
+        min_area_m2, max_area_m2: blob area of a vehicle, square metres (a motorbike's 1.5 to a
+            bus's 40).
+        max_length_m: longer blobs are not one vehicle.
+        min_width_m: narrower blobs are edges (relief, registration), not vehicles.
+        gate_m: a detection further than this (metres) from a track's prediction is not its.
+        max_gap_s: a track not seen for longer than this ends.
+        min_hits: detections before a track counts (fewer = noise).
+        min_travel_m: a track whose smoothed path ends less than this far from where it began
+            is not a moving vehicle (parked cars shaken by registration, roof edges, trees).
+        measurement_sigma_m: a detection's position noise, metres (Kalman filter).
+        accel_sigma_mps2: how fast a vehicle's velocity changes, m/s² per √s (the tracker's
+            constant-velocity model; the smoother's constant-acceleration model uses it as the
+            jerk's scale).
+        field_cell_m: cell of the velocity field, metres.
+        field_min_count: cells with fewer track points are left empty in the field.
+    """
+
+    cell_m: float | None = None
+    background_span_s: float = 2.4
+    background_samples: int = 6
+    min_samples: int = 5
+    tolerance_px: int = 1
+    threshold_sigma: float = 5.0
+    min_threshold_dn: float = 18.0
+    seed_factor: float = 1.8
+    close_m: float = 0.6
+    min_area_m2: float = 1.5
+    max_area_m2: float = 40.0
+    max_length_m: float = 14.0
+    min_width_m: float = 1.0
+    gate_m: float = 3.0
+    max_gap_s: float = 1.0
+    min_hits: int = 3
+    min_travel_m: float = 4.0
+    measurement_sigma_m: float = 0.25
+    accel_sigma_mps2: float = 2.0
+    field_cell_m: float = 5.0
+    field_min_count: int = 3
+
+    def validate(self) -> None:
+        """Raise a one-line ValueError naming the first bad value."""
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if v is None:
+                continue
+            if not (isinstance(v, (int, float)) and math.isfinite(v)):
+                raise ValueError(f"traffic setting {f.name} must be a finite number, got {v!r}")
+            if f.name == "tolerance_px":
+                if not 0 <= v <= 5:
+                    raise ValueError(f"traffic setting tolerance_px must be in 0..5, got {v}")
+            elif v <= 0:
+                raise ValueError(f"traffic setting {f.name} must be positive, got {v}")
+        if self.min_samples > 2 * self.background_samples:
+            raise ValueError(
+                f"traffic setting min_samples ({self.min_samples}) exceeds the frames sampled "
+                f"(2 x background_samples = {2 * self.background_samples})"
+            )
+        if self.min_area_m2 >= self.max_area_m2:
+            raise ValueError(
+                f"traffic setting min_area_m2 ({self.min_area_m2}) must be below max_area_m2 "
+                f"({self.max_area_m2})"
+            )
+
+    def to_dict(self) -> dict:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> TrafficConfig:
+        names = {f.name for f in fields(cls)}
+        unknown = sorted(set(d) - names)
+        if unknown:
+            raise ValueError(f"unknown traffic setting(s): {', '.join(unknown)}")
+        cfg = cls(**d)
+        cfg.validate()
+        return cfg

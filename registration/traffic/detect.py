@@ -1,0 +1,179 @@
+"""Vehicle candidates in one registered frame: blobs of difference to the still background.
+
+Pixels that leave the background's local range by more than the frame's noise threshold form
+blobs (hysteresis: a blob needs a core that differs strongly, :class:`TrafficConfig`); small gaps
+inside a car close; each blob the size and shape of a vehicle becomes a :class:`Detection` with
+its centre, size and orientation in base pixels and metres.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+
+from registration.traffic.background import (
+    WarpedFrame,
+    WorkGrid,
+    difference_image,
+    noise_sigma,
+)
+from registration.traffic.config import TrafficConfig
+
+
+@dataclass(frozen=True)
+class Detection:
+    """One vehicle candidate in frame ``k``.
+
+    Attributes:
+        k: the frame.
+        x, y: centre, base px.
+        length_m, width_m: sides of its smallest enclosing rotated rectangle, metres.
+        axis_deg: direction of its long side on the base, degrees from base +x towards +y,
+            in [0, 180) (a blob has an axis, not a direction of travel).
+        area_m2: its area, square metres.
+        contrast: its strongest difference to the background over the threshold (x).
+    """
+
+    k: int
+    x: float
+    y: float
+    length_m: float
+    width_m: float
+    axis_deg: float
+    area_m2: float
+    contrast: float
+
+    def to_dict(self) -> dict:
+        return {
+            key: (round(v, 4) if isinstance(v, float) else v) for key, v in asdict(self).items()
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Detection:
+        return cls(
+            int(d["k"]),
+            *(float(d[n]) for n in ("x", "y", "length_m", "width_m", "axis_deg")),
+            float(d["area_m2"]),
+            float(d["contrast"]),
+        )
+
+
+def shadow_mask(image: NDArray[np.uint8], background: NDArray[np.uint8]) -> NDArray[np.bool_]:
+    """Where the frame is the background darkened without a change of colour: every channel
+    scaled by about the same factor between :data:`SHADOW_RATIO` (a cast shadow on the ground,
+    or a black car: the two look alike by colour alone)."""
+    img = image.astype(np.float32) + 1.0
+    bg = background.astype(np.float32) + 1.0
+    ratio = img / bg
+    bright = ratio.mean(axis=2)
+    spread = np.abs(ratio - bright[..., None]).max(axis=2) / np.maximum(bright, 1e-3)
+    lo, hi = SHADOW_RATIO
+    return (bright > lo) & (bright < hi) & (spread < SHADOW_CHROMA)
+
+
+# A shadow keeps 15-80 % of the light on the ground and its colour within 15 %.
+SHADOW_RATIO = (0.15, 0.8)
+SHADOW_CHROMA = 0.15
+
+
+def foreground(
+    frame: WarpedFrame,
+    background: NDArray[np.uint8],
+    valid: NDArray[np.bool_],
+    config: TrafficConfig,
+    cell_m: float,
+) -> tuple[NDArray[np.int32], int, NDArray[np.float32]]:
+    """Blobs of ``frame`` against ``background`` (same box) where ``valid``: ``(labels (h, w)
+    int32, number of labels incl. 0, difference / threshold (h, w))``.
+
+    Pixels that differ only as a shadow are left out of a blob that has other pixels (a car's
+    own shadow would pull its centre by half the shadow's reach, ~0.5 m at a 55° sun); a blob of
+    shadow-like pixels alone is kept whole (a black or dark grey car).
+    """
+    diff = difference_image(frame.image, background, config.tolerance_px)
+    sigma = noise_sigma(frame.image, background, valid)
+    threshold = max(config.min_threshold_dn, config.threshold_sigma * sigma)
+    ratio = np.where(valid, diff / np.float32(threshold), 0).astype(np.float32)
+    moving = (ratio > 1.0) & valid
+    shadow = shadow_mask(frame.image, background) & moving
+    r = max(1, int(round(config.close_m / cell_m / 2.0)))
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    core = cv2.morphologyEx((moving & ~shadow).view(np.uint8), cv2.MORPH_CLOSE, kernel)
+    core &= valid.view(np.uint8)
+    dark = cv2.morphologyEx(shadow.view(np.uint8), cv2.MORPH_CLOSE, kernel) & valid.view(np.uint8)
+    n_core, labels = cv2.connectedComponents(core, connectivity=8, ltype=cv2.CV_32S)
+    n_dark, dark_labels = cv2.connectedComponents(dark, connectivity=8, ltype=cv2.CV_32S)
+    if n_dark > 1:
+        # Dark blobs that touch a coloured one are its shadow; the others are dark cars.
+        near = cv2.dilate(core, cv2.getStructuringElement(cv2.MORPH_RECT, (3, 3))) > 0
+        attached = np.zeros(n_dark, np.bool_)
+        attached[np.unique(dark_labels[near])] = True
+        own = (dark_labels > 0) & ~attached[dark_labels] & (labels == 0)
+        labels[own] = dark_labels[own] + (n_core - 1)
+        n_core += n_dark - 1
+    return labels, n_core, ratio
+
+
+def detect_vehicles(
+    frame: WarpedFrame,
+    background: NDArray[np.uint8],
+    count: NDArray[np.int32],
+    grid: WorkGrid,
+    metres_per_base_px: float,
+    config: TrafficConfig,
+) -> list[Detection]:
+    """Vehicle candidates of ``frame`` (:class:`Detection`, sorted by position) against its
+    ``background`` and per-pixel sample ``count`` (all over ``frame.box``)."""
+    cell_m = metres_per_base_px * grid.cell_base_px
+    valid = frame.mask & (count >= config.min_samples)
+    labels, n, ratio = foreground(frame, background, valid, config, cell_m)
+    if n <= 1:
+        return []
+    index = np.arange(1, n)
+    fg = labels > 0
+    peak = np.zeros(n, np.float32)
+    np.maximum.at(peak, labels[fg], ratio[fg])
+    peak = peak[1:]
+    area_px = np.bincount(labels[fg], minlength=n)[1:]
+    min_px = config.min_area_m2 / cell_m**2
+    max_px = config.max_area_m2 / cell_m**2
+    keep = (peak >= config.seed_factor) & (area_px >= min_px) & (area_px <= max_px)
+    if not keep.any():
+        return []
+    objects = ndimage.find_objects(labels)
+    out = []
+    x0, y0 = frame.box[:2]
+    for lab in index[keep]:
+        sl = objects[lab - 1]
+        ys, xs = np.nonzero(labels[sl] == lab)
+        xs = xs + sl[1].start
+        ys = ys + sl[0].start
+        pts = np.column_stack([xs, ys]).astype(np.float32)
+        (_, _), (a, b), ang = cv2.minAreaRect(pts)
+        # Pixel centres span one pixel less than the blob covers.
+        a, b = a + 1.0, b + 1.0
+        length, width = max(a, b) * cell_m, min(a, b) * cell_m
+        if length > config.max_length_m or width < config.min_width_m:
+            continue
+        axis = ang if a >= b else ang + 90.0
+        centre_work = np.array([[xs.mean() + x0, ys.mean() + y0]])
+        cx, cy = grid.base_from_work(centre_work)[0]
+        out.append(
+            Detection(
+                frame.k,
+                float(cx),
+                float(cy),
+                float(length),
+                float(width),
+                float(math.fmod(axis + 360.0, 180.0)),
+                float(len(xs) * cell_m**2),
+                float(peak[lab - 1]),
+            )
+        )
+    out.sort(key=lambda d: (d.y, d.x))
+    return out

@@ -1,0 +1,204 @@
+"""The traffic stage over a whole registered sequence: which frames to use, their backgrounds in
+blocks, detections frame by frame (written as they are found, so a run resumes), then tracks.
+
+:func:`detect_sequence` is the heavy part (one resampling per frame, one median per block);
+:func:`tracks_from_detections` is cheap and always redone from the stored detections.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from registration.io import write_bytes_atomic
+from registration.traffic.background import (
+    WarpedFrame,
+    WorkGrid,
+    median_background,
+    union_box,
+    warp_frame,
+)
+from registration.traffic.config import TrafficConfig
+from registration.traffic.detect import Detection, detect_vehicles
+from registration.traffic.timing import MetricFrame
+from registration.traffic.track import SmoothTrack, smooth_track, track_detections
+
+# Frames sharing one background: their median is computed once (at 30 frames/s a block is 12
+# frames; a car moves 4 m in it, far less than the ±2.4 s the samples span).
+BLOCK_S = 0.4
+
+
+def usable_frames(result) -> tuple[list[int], dict[int, str]]:
+    """``(frames to use, {frame: why not})``: registered frames the sequence adjustment did not
+    flag as unreliable (a flagged frame's position error would become a speed error)."""
+    use, skipped = [], {}
+    for k in range(result.n_frames):
+        status = result.status(k)
+        if status != "ok":
+            skipped[k] = status
+            continue
+        adj = (result.records[k].stats or {}).get("adjustment") or {}
+        if adj.get("flagged"):
+            skipped[k] = f"flagged: {adj['flagged']}"
+            continue
+        use.append(k)
+    return use, skipped
+
+
+@dataclass(frozen=True)
+class Block:
+    """Frames ``frames`` judged against the median of ``samples``."""
+
+    frames: tuple[int, ...]
+    samples: tuple[int, ...]
+
+
+def background_blocks(
+    frames: list[int], times: NDArray[np.float64], config: TrafficConfig
+) -> list[Block]:
+    """Consecutive usable ``frames`` grouped into :data:`BLOCK_S` blocks, each with the frames
+    nearest in time to ``background_samples`` evenly spaced instants on either side of it within
+    ``background_span_s`` (distinct, ascending)."""
+    if not frames:
+        return []
+    t = np.asarray([times[k] for k in frames])
+    groups: dict[int, list[int]] = {}
+    for k, tk in zip(frames, t, strict=True):
+        groups.setdefault(int(np.floor((tk - t[0]) / BLOCK_S)), []).append(k)
+    n = config.background_samples
+    offsets = config.background_span_s * np.arange(1, n + 1) / n
+    blocks = []
+    for members in groups.values():
+        tc = 0.5 * (times[members[0]] + times[members[-1]])
+        picks = set()
+        for want in np.concatenate([tc - offsets, tc + offsets]):
+            if want < t[0] - BLOCK_S or want > t[-1] + BLOCK_S:
+                continue
+            picks.add(frames[int(np.argmin(np.abs(t - want)))])
+        blocks.append(Block(tuple(members), tuple(sorted(picks))))
+    return blocks
+
+
+def detections_path(folder: Path, k: int) -> Path:
+    return folder / f"{k:06d}.json"
+
+
+def read_detections(folder: Path, k: int) -> list[Detection] | None:
+    """Frame ``k``'s stored detections, or None when missing or unreadable (then redone)."""
+    try:
+        doc = json.loads(detections_path(folder, k).read_text())
+        return [Detection.from_dict(d) for d in doc["detections"]]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def detect_sequence(
+    result,
+    frames,
+    grid: WorkGrid,
+    metric: MetricFrame,
+    times: NDArray[np.float64],
+    use: list[int],
+    config: TrafficConfig,
+    folder: Path,
+    *,
+    exclude: NDArray[np.bool_] | None = None,
+    progress: Callable[[int, int], None] | None = None,
+    cancel: Callable[[], bool] | None = None,
+) -> Iterator[tuple[int, list[Detection]]]:
+    """Detect vehicles in every usable frame, block by block, yielding ``(k, detections)`` in
+    frame order; each frame's detections are written to ``folder/KKKKKK.json`` (atomically)
+    before they are yielded, and frames already there are read, not redone.
+
+    ``frames``: the registered frames (``get(k)`` BGR). ``exclude``: working-grid mask of places
+    never to look at (the analyst's regions).
+    """
+    folder.mkdir(parents=True, exist_ok=True)
+    mpp = metric.metres_per_base_px()
+    blocks = background_blocks(use, times, config)
+    warped: dict[int, WarpedFrame | None] = {}
+    done = 0
+    for block in blocks:
+        if cancel is not None and cancel():
+            return
+        stored = {k: read_detections(folder, k) for k in block.frames}
+        todo = [k for k in block.frames if stored[k] is None]
+        if todo:
+            for k in sorted(set(block.samples) | set(todo)):
+                if k not in warped:
+                    warped[k] = warp_frame(result, k, frames.get(k), grid, exclude)
+            # Only what later blocks can still sample stays.
+            t_keep = times[block.frames[0]] - config.background_span_s - BLOCK_S
+            for k in [k for k in warped if times[k] < t_keep]:
+                del warped[k]
+            targets = [warped[k] for k in todo if warped[k] is not None]
+            samples = [warped[k] for k in block.samples if warped[k] is not None]
+            if targets:
+                box = union_box([w.box for w in targets])
+                background, count = median_background(samples, box)
+            for k in todo:
+                w = warped[k]
+                found = []
+                if w is not None:
+                    sy = slice(w.box[1] - box[1], w.box[3] - box[1])
+                    sx = slice(w.box[0] - box[0], w.box[2] - box[0])
+                    found = detect_vehicles(w, background[sy, sx], count[sy, sx], grid, mpp, config)
+                doc = {"k": k, "detections": [d.to_dict() for d in found]}
+                write_bytes_atomic(detections_path(folder, k), json.dumps(doc).encode() + b"\n")
+                # As stored (rounded): a resumed run then tracks exactly what a whole one does.
+                stored[k] = [Detection.from_dict(d) for d in doc["detections"]]
+        for k in block.frames:
+            done += 1
+            if progress is not None:
+                progress(done, len(use))
+            yield k, stored[k]
+
+
+def tracks_from_detections(
+    detections: dict[int, list[Detection]],
+    use: list[int],
+    times: NDArray[np.float64],
+    metric: MetricFrame,
+    config: TrafficConfig,
+) -> tuple[list[SmoothTrack], dict[int, tuple[float, float]]]:
+    """Tracks (:func:`track_detections`), smoothed (:func:`smooth_track`), of vehicles that
+    travelled at least ``config.min_travel_m`` (ids renumbered from 1 in order of first
+    appearance), and each one's ``(width m, length m)``: the median over its detections."""
+    xy = {
+        k: metric.metres_from_base(np.array([[d.x, d.y] for d in ds]).reshape(-1, 2))
+        for k, ds in detections.items()
+    }
+    tracks, sizes = [], {}
+    for r in track_detections(use, times, xy, config):
+        s = smooth_track(r, use, times, config)
+        if s.travel_m < config.min_travel_m:
+            continue
+        s.track_id = len(tracks) + 1
+        dets = [
+            detections[k][i] for k, i in zip(r.frames.tolist(), r.det_index.tolist(), strict=True)
+        ]
+        sizes[s.track_id] = (
+            float(np.median([d.width_m for d in dets])),
+            float(np.median([d.length_m for d in dets])),
+        )
+        tracks.append(s)
+    return tracks, sizes
+
+
+def result_fingerprint(result) -> str:
+    """SHA-256 of the result's ``result.json`` and every frame record: detections stored for
+    another registration are not reused."""
+    h = hashlib.sha256()
+    root = Path(result.out_dir)
+    for p in [root / "result.json", *sorted((root / "frames").glob("*.json"))]:
+        try:
+            h.update(p.name.encode() + p.read_bytes())
+        except OSError:
+            h.update(p.name.encode())
+    return h.hexdigest()

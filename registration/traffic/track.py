@@ -1,0 +1,244 @@
+"""Detections into trajectories: a constant-velocity Kalman filter per vehicle, Hungarian
+assignment between predictions and detections, then a forward-backward (Rauch-Tung-Striebel)
+constant-acceleration smoother over each trajectory.
+
+The filter and smoother are filterpy's (``filterpy.kalman``), the assignment scipy's
+``linear_sum_assignment``: the tracker the issue names rather than a home-made one. Norfair pins
+numpy < 2 and Roboflow's ``trackers`` pulls ``opencv-python`` (a second cv2 beside
+``opencv-contrib-python-headless``) and ``supervision``; filterpy is pure Python on numpy and
+scipy (docs/traffic.md).
+
+Everything here is in metres and seconds (:class:`~registration.traffic.timing.MetricFrame`):
+``x`` east, ``y`` north, times from the video's timestamps or the user's frame rate.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from filterpy.kalman import KalmanFilter
+from numpy.typing import NDArray
+from scipy.optimize import linear_sum_assignment
+
+from registration.traffic.config import TrafficConfig
+
+# A cost that no gated pair reaches (scipy needs finite costs).
+_FAR = 1e6
+
+
+@dataclass
+class _Live:
+    """A track being followed: its filter and what it was given."""
+
+    track_id: int
+    kf: KalmanFilter
+    t_last: float
+    frames: list[int] = field(default_factory=list)
+    times: list[float] = field(default_factory=list)
+    xy: list[NDArray] = field(default_factory=list)
+    det_index: list[int] = field(default_factory=list)
+
+
+@dataclass
+class RawTrack:
+    """A vehicle's detections in time order: ``frames`` ``(M,)``, ``times`` ``(M,)`` s,
+    ``xy`` ``(M, 2)`` metres, ``det_index`` ``(M,)`` (index of each detection in its frame's
+    list)."""
+
+    track_id: int
+    frames: NDArray[np.int64]
+    times: NDArray[np.float64]
+    xy: NDArray[np.float64]
+    det_index: NDArray[np.int64]
+
+
+def _cv_matrices(dt: float, q: float) -> tuple[NDArray, NDArray]:
+    """Constant-velocity transition and process noise (white acceleration of spectral density
+    ``q`` m²/s³) for state ``[x, y, vx, vy]``."""
+    f = np.eye(4)
+    f[0, 2] = f[1, 3] = dt
+    q1 = q * np.array([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]])
+    qm = np.zeros((4, 4))
+    qm[np.ix_([0, 2], [0, 2])] = q1
+    qm[np.ix_([1, 3], [1, 3])] = q1
+    return f, qm
+
+
+def _new_filter(xy: NDArray, config: TrafficConfig) -> KalmanFilter:
+    kf = KalmanFilter(dim_x=4, dim_z=2)
+    kf.x = np.array([xy[0], xy[1], 0.0, 0.0])
+    # Unknown velocity: anything up to ~30 m/s (1 sigma 15 m/s).
+    kf.P = np.diag([config.measurement_sigma_m**2] * 2 + [15.0**2] * 2)
+    kf.H = np.array([[1.0, 0, 0, 0], [0, 1.0, 0, 0]])
+    kf.R = np.eye(2) * config.measurement_sigma_m**2
+    return kf
+
+
+def track_detections(
+    frames: list[int],
+    times: NDArray[np.float64],
+    detections: dict[int, NDArray[np.float64]],
+    config: TrafficConfig,
+) -> list[RawTrack]:
+    """Follow vehicles through ``frames`` (ascending; frames left out, e.g. failed ones, are
+    simply gaps) at ``times[k]`` (s) given each frame's detections ``(N_k, 2)`` metres.
+
+    Returns the tracks with at least ``config.min_hits`` detections, in order of their first
+    detection (ids count from 1 in that order; ties broken by position: reproducible).
+    """
+    q = config.accel_sigma_mps2**2
+    gate = config.gate_m
+    live: list[_Live] = []
+    done: list[_Live] = []
+    next_id = 0
+    for k in frames:
+        t = float(times[k])
+        dets = np.asarray(detections.get(k, np.zeros((0, 2))), np.float64).reshape(-1, 2)
+        # End the tracks not seen for too long.
+        still = []
+        for tr in live:
+            (done if t - tr.t_last > config.max_gap_s else still).append(tr)
+        live = still
+        preds = []
+        for tr in live:
+            f, qm = _cv_matrices(t - tr.t_last, q)
+            x = f @ tr.kf.x
+            p = f @ tr.kf.P @ f.T + qm
+            preds.append((x, p, f, qm))
+        cost = np.full((len(live), len(dets)), _FAR)
+        if live and len(dets):
+            pxy = np.array([p[0][:2] for p in preds])
+            dist = np.linalg.norm(pxy[:, None, :] - dets[None, :, :], axis=2)
+            cost = np.where(dist <= gate, dist, _FAR)
+        rows, cols = linear_sum_assignment(cost) if cost.size else ([], [])
+        used = set()
+        for r, c in zip(rows, cols, strict=True):
+            if cost[r, c] >= _FAR:
+                continue
+            tr = live[r]
+            x, p, f, qm = preds[r]
+            tr.kf.x, tr.kf.P = x, p
+            tr.kf.update(dets[c])
+            tr.t_last = t
+            tr.frames.append(k)
+            tr.times.append(t)
+            tr.xy.append(dets[c].copy())
+            tr.det_index.append(int(c))
+            used.add(int(c))
+        for c in range(len(dets)):
+            if c in used:
+                continue
+            next_id += 1
+            tr = _Live(next_id, _new_filter(dets[c], config), t)
+            tr.frames.append(k)
+            tr.times.append(t)
+            tr.xy.append(dets[c].copy())
+            tr.det_index.append(c)
+            live.append(tr)
+    done.extend(live)
+    kept = [tr for tr in done if len(tr.frames) >= config.min_hits]
+    kept.sort(key=lambda tr: (tr.frames[0], tr.xy[0][1], tr.xy[0][0]))
+    return [
+        RawTrack(
+            i + 1,
+            np.asarray(tr.frames, np.int64),
+            np.asarray(tr.times, np.float64),
+            np.asarray(tr.xy, np.float64),
+            np.asarray(tr.det_index, np.int64),
+        )
+        for i, tr in enumerate(kept)
+    ]
+
+
+@dataclass
+class SmoothTrack:
+    """A trajectory after the forward-backward smoother, one row per frame from its first to
+    its last detection (frames between detections included, ``observed`` False there).
+
+    ``frames`` ``(M,)``, ``times`` ``(M,)`` s, ``xy`` ``(M, 2)`` m, ``velocity`` ``(M, 2)``
+    m/s, ``acceleration`` ``(M, 2)`` m/s², ``position_sigma_m`` ``(M,)`` (the smoother's
+    1-sigma position uncertainty), ``observed`` ``(M,)`` bool.
+    """
+
+    track_id: int
+    frames: NDArray[np.int64]
+    times: NDArray[np.float64]
+    xy: NDArray[np.float64]
+    velocity: NDArray[np.float64]
+    acceleration: NDArray[np.float64]
+    position_sigma_m: NDArray[np.float64]
+    observed: NDArray[np.bool_]
+
+    @property
+    def speed(self) -> NDArray[np.float64]:
+        return np.linalg.norm(self.velocity, axis=1)
+
+    @property
+    def travel_m(self) -> float:
+        """Distance from the first to the last smoothed position."""
+        return float(np.linalg.norm(self.xy[-1] - self.xy[0]))
+
+
+def _ca_matrices(dt: float, q: float) -> tuple[NDArray, NDArray]:
+    """Constant-acceleration transition and process noise (white jerk of spectral density
+    ``q``) for state ``[x, y, vx, vy, ax, ay]``."""
+    f1 = np.array([[1.0, dt, dt * dt / 2], [0, 1.0, dt], [0, 0, 1.0]])
+    q1 = q * np.array(
+        [
+            [dt**5 / 20, dt**4 / 8, dt**3 / 6],
+            [dt**4 / 8, dt**3 / 3, dt**2 / 2],
+            [dt**3 / 6, dt**2 / 2, dt],
+        ]
+    )
+    order = [0, 2, 4], [1, 3, 5]
+    f, qm = np.zeros((6, 6)), np.zeros((6, 6))
+    for idx in order:
+        f[np.ix_(idx, idx)] = f1
+        qm[np.ix_(idx, idx)] = q1
+    return f, qm
+
+
+def smooth_track(
+    raw: RawTrack, frames: list[int], times: NDArray[np.float64], config: TrafficConfig
+) -> SmoothTrack:
+    """Forward Kalman filter and Rauch-Tung-Striebel smoother (filterpy) over ``raw``'s span of
+    ``frames`` (the usable frames, ascending) with a constant-acceleration model."""
+    first, last = int(raw.frames[0]), int(raw.frames[-1])
+    span = [k for k in frames if first <= k <= last]
+    seen = dict(zip(raw.frames.tolist(), raw.xy, strict=True))
+    q = config.accel_sigma_mps2**2
+    kf = KalmanFilter(dim_x=6, dim_z=2)
+    kf.x = np.array([raw.xy[0][0], raw.xy[0][1], 0, 0, 0, 0], np.float64)
+    h = np.zeros((2, 6))
+    h[0, 0] = h[1, 1] = 1.0
+    kf.H = h
+    kf.R = np.eye(2) * config.measurement_sigma_m**2
+    # State [x, y, vx, vy, ax, ay]; unknown velocity and acceleration at the start.
+    kf.P = np.diag([config.measurement_sigma_m**2] * 2 + [15.0**2] * 2 + [3.0**2] * 2)
+    xs, ps, fs, qs = [], [], [], []
+    t_prev = float(times[span[0]])
+    for k in span:
+        f, qm = _ca_matrices(float(times[k]) - t_prev, q)
+        if k != span[0]:
+            kf.predict(F=f, Q=qm)
+        if k in seen:
+            kf.update(seen[k])
+        xs.append(kf.x.copy())
+        ps.append(kf.P.copy())
+        fs.append(f)
+        qs.append(qm)
+        t_prev = float(times[k])
+    # filterpy's smoother steps from k to k + 1 with Fs[k + 1], Qs[k + 1]: the transition into
+    # k + 1, as built here.
+    sx, sp, _, _ = kf.rts_smoother(np.array(xs), np.array(ps), fs, qs)
+    return SmoothTrack(
+        raw.track_id,
+        np.asarray(span, np.int64),
+        np.asarray([times[k] for k in span], np.float64),
+        sx[:, 0:2].copy(),
+        sx[:, 2:4].copy(),
+        sx[:, 4:6].copy(),
+        np.sqrt(0.5 * (sp[:, 0, 0] + sp[:, 1, 1])),
+        np.array([k in seen for k in span]),
+    )

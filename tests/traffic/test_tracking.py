@@ -1,0 +1,190 @@
+"""The traffic stage's parts against known answers: the median background, the tracker and
+smoother on planted trajectories, frame times and metres, and the output files."""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+
+import numpy as np
+import pytest
+
+from registration.traffic import MetricFrame, TrafficConfig, frame_times, video_frame_times
+from registration.traffic.background import WarpedFrame, _sorting_network, median_background
+from registration.traffic.outputs import (
+    TRACK_COLUMNS,
+    velocity_field,
+    write_ind_csvs,
+    write_trajectory_layers,
+)
+from registration.traffic.track import smooth_track, track_detections
+
+
+def test_sorting_network_sorts_every_binary_input():
+    # The 0-1 principle: a comparator network that sorts every 0/1 input sorts everything.
+    for n in range(1, 13):
+        net = _sorting_network(n)
+        for code in range(2**n):
+            a = [(code >> i) & 1 for i in range(n)]
+            for i, j in net:
+                if a[i] > a[j]:
+                    a[i], a[j] = a[j], a[i]
+            assert a == sorted(a), n
+
+
+def test_median_background_is_the_median_of_the_samples_present(rng):
+    samples = []
+    for i in range(9):
+        x0, y0 = (int(v) for v in rng.integers(0, 12, 2))
+        image = rng.integers(1, 255, (30, 40, 3), dtype=np.uint8)
+        mask = rng.random((30, 40)) < 0.7
+        samples.append(WarpedFrame(i, image, mask, (x0, y0, x0 + 40, y0 + 30)))
+    box = (3, 4, 50, 44)
+    med, count = median_background(samples, box)
+    for y in range(0, 40, 3):
+        for x in range(0, 47, 2):
+            vals = [
+                s.image[y + 4 - s.box[1], x + 3 - s.box[0]]
+                for s in samples
+                if 0 <= x + 3 - s.box[0] < 40
+                and 0 <= y + 4 - s.box[1] < 30
+                and s.mask[y + 4 - s.box[1], x + 3 - s.box[0]]
+            ]
+            assert count[y, x] == len(vals)
+            if vals:
+                lower = np.sort(np.array(vals), axis=0)[(len(vals) - 1) // 2]
+                np.testing.assert_array_equal(med[y, x], lower)
+
+
+def _planted(rng, n_frames=40, fps=5.0, sigma=0.15):
+    """Three vehicles at constant velocity (m, m/s) seen at ``fps`` with position noise; the
+    second is missed in frames 10-11 and a false detection sits far from all in frame 20."""
+    starts = np.array([[0.0, 0.0], [0.0, 3.5], [60.0, -3.5]])
+    vel = np.array([[12.0, 0.0], [9.0, 0.0], [-10.0, 0.5]])
+    times = np.arange(n_frames) / fps
+    dets = {}
+    for k, t in enumerate(times):
+        xy = starts + vel * t + rng.normal(0, sigma, (3, 2))
+        if k in (10, 11):
+            xy = xy[[0, 2]]
+        if k == 20:
+            xy = np.vstack([xy, [[30.0, 40.0]]])
+        dets[k] = xy
+    return starts, vel, times, dets
+
+
+def test_tracker_follows_planted_vehicles_through_a_gap(rng):
+    starts, vel, times, dets = _planted(rng)
+    cfg = TrafficConfig()
+    frames = list(range(len(times)))
+    raw = track_detections(frames, times, dets, cfg)
+    # The lone false detection never makes min_hits; the missed frames do not split a track.
+    assert len(raw) == 3
+    for r in raw:
+        assert len(r.frames) in (38, 40)
+    smooth = [smooth_track(r, frames, times, cfg) for r in raw]
+    for s in smooth:
+        i = int(np.argmin(np.linalg.norm(starts - s.xy[0], axis=1)))
+        true_xy = starts[i] + vel[i] * s.times[:, None]
+        assert np.sqrt(np.mean(np.sum((s.xy - true_xy) ** 2, axis=1))) < 0.15
+        assert np.sqrt(np.mean(np.sum((s.velocity - vel[i]) ** 2, axis=1))) < 0.3
+        assert np.abs(s.acceleration).mean() < 0.5
+        # The gap frames are filled by the smoother and marked as not observed.
+        assert len(s.frames) == 40 and s.observed.sum() == len(raw[smooth.index(s)].frames)
+
+
+def test_tracks_are_reproducible(rng):
+    _, _, times, dets = _planted(rng)
+    frames = list(range(len(times)))
+    a = track_detections(frames, times, dets, TrafficConfig())
+    b = track_detections(frames, times, dets, TrafficConfig())
+    assert [r.track_id for r in a] == [r.track_id for r in b]
+    for x, y in zip(a, b, strict=True):
+        np.testing.assert_array_equal(x.xy, y.xy)
+
+
+def test_frame_times_from_fps_and_bad_rates():
+    t, src = frame_times(4, fps=5.0)
+    np.testing.assert_allclose(t, [0, 0.2, 0.4, 0.6])
+    assert "5" in src
+    for bad in (0, -3, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="frame rate must be a positive"):
+            frame_times(4, fps=bad)
+    with pytest.raises(ValueError, match="give the frame rate"):
+        frame_times(4)
+
+
+def test_video_timestamps_come_from_the_container(tmp_path):
+    import imageio.v2 as iio
+
+    path = tmp_path / "v.mp4"
+    with iio.get_writer(path, fps=7.5, codec="libx264", macro_block_size=1) as w:
+        for k in range(9):
+            w.append_data(np.full((32, 48, 3), 20 * k, np.uint8))
+    t = video_frame_times(path)
+    np.testing.assert_allclose(t, np.arange(9) / 7.5, atol=1e-3)
+    with pytest.raises(ValueError, match="has 9 timestamps for 10 frames"):
+        frame_times(10, video=path)
+
+
+def test_metric_frame_needs_metres():
+    from registration.gis.georef import GeoReference
+
+    with pytest.raises(ValueError, match="no georeference.*--gsd"):
+        MetricFrame.for_result(None, None)
+    with pytest.raises(ValueError, match="ground sampling distance must be positive"):
+        MetricFrame.for_result(None, 0.0)
+    geo = GeoReference((0.5, 0.0, 300000.0, 0.0, -0.5, 3700000.0), "EPSG:32643")
+    m = MetricFrame.for_result(geo, None)
+    # conventions.md: base pixel (x, y) is at A * (x + 0.5, y + 0.5).
+    np.testing.assert_allclose(m.metres_from_base([[0, 0]]), [[300000.25, 3699999.75]])
+    np.testing.assert_allclose(m.base_from_metres(m.metres_from_base([[7.3, 2.1]])), [[7.3, 2.1]])
+    degrees = GeoReference((1e-5, 0.0, 73.0, 0.0, -1e-5, 33.6), "EPSG:4326")
+    with pytest.raises(ValueError, match="degree.*--gsd"):
+        MetricFrame.for_result(degrees, None)
+    assert MetricFrame.for_result(degrees, 0.3).metres_from_base([[10, 10]])[0, 1] == -3.0
+
+
+def test_outputs_hold_the_planted_tracks(rng, tmp_path):
+    starts, vel, times, dets = _planted(rng)
+    cfg = TrafficConfig()
+    frames = list(range(len(times)))
+    tracks = [
+        smooth_track(r, frames, times, cfg) for r in track_detections(frames, times, dets, cfg)
+    ]
+    metric = MetricFrame(None, 0.5)
+    write_ind_csvs(
+        tmp_path, tracks, {t.track_id: (1.8, 4.5) for t in tracks}, metric, 5.0, 7.8, "--fps 5"
+    )
+    import csv
+
+    rows = list(csv.DictReader(open(tmp_path / "tracks.csv")))
+    assert tuple(rows[0]) == TRACK_COLUMNS
+    first = [r for r in rows if r["trackId"] == "1"]
+    v = np.array([[float(r["xVelocity"]), float(r["yVelocity"])] for r in first])
+    lon = np.array([float(r["lonVelocity"]) for r in first])
+    # The longitudinal velocity is the speed; the lateral one ~0 for a straight drive.
+    np.testing.assert_allclose(lon, np.linalg.norm(v, axis=1), atol=1e-2)
+    assert max(abs(float(r["latVelocity"])) for r in first) < 0.05
+    headings = {r["trackId"]: float(r["heading"]) for r in rows}
+    assert sorted(round(h / 90) % 4 for h in headings.values()) == [0, 0, 2]
+    paths = write_trajectory_layers(tmp_path, tracks, metric)
+    doc = json.loads(paths[0].read_text())
+    assert [f["geometry"]["type"] for f in doc["features"]] == ["LineString"] * 3
+    con = sqlite3.connect(paths[1])
+    assert con.execute("SELECT COUNT(*) FROM trajectories").fetchone()[0] == 3
+    assert (
+        con.execute("SELECT geometry_type_name FROM gpkg_geometry_columns").fetchone()[0]
+        == "LINESTRING"
+    )
+    bands, _ = velocity_field(tracks, 5.0, 3)
+    speed = bands[2][np.isfinite(bands[2])]
+    assert speed.size and np.all((speed > 8.5) & (speed < 12.6))
+    assert np.nansum(bands[4]) == sum(len(t.frames) for t in tracks)
+
+
+def test_bad_settings_say_which():
+    with pytest.raises(ValueError, match="gate_m must be positive"):
+        TrafficConfig(gate_m=0).validate()
+    with pytest.raises(ValueError, match="min_samples"):
+        TrafficConfig(min_samples=20).validate()
