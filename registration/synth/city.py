@@ -735,13 +735,6 @@ def traffic_states(lay: Layout, seed: int, per_km: float, t: float = 0.0) -> dic
         vlen = np.where(kind < 0.9, rng.uniform(4.2, 5.2, n), rng.uniform(8, 12, n)) * m
         vwid = np.where(kind < 0.9, rng.uniform(1.7, 1.95, n), rng.uniform(2.4, 2.6, n)) * m
         cols = CAR_COLOURS[rng.choice(len(CAR_COLOURS), size=n, p=CAR_COLOUR_P)]
-        # A lane flows at one speed (its first vehicle's) with every gap at least 1.5 m, so
-        # vehicles never drive through each other (the traffic truth has no overlaps).
-        speed[:] = speed[0] if n else 0.0
-        s0 = _spaced(s0, vlen, 1.5 * m, length)
-        on_road = np.isfinite(s0)
-        s0, speed, vlen, vwid, cols = (a[on_road] for a in (s0, speed, vlen, vwid, cols))
-        n = len(s0)
         travelled = s0 + direction * speed * t
         pos = np.mod(travelled, length)
         across = c + rng.normal(0, 0.15 * m, n)
@@ -762,28 +755,15 @@ def traffic_states(lay: Layout, seed: int, per_km: float, t: float = 0.0) -> dic
     return out
 
 
-def _spaced(s0: NDArray, lengths: NDArray, gap: float, length: float) -> NDArray:
-    """Positions ``s0`` along a cyclic lane of ``length`` moved on, in order, until consecutive
-    vehicles of ``lengths`` are at least ``gap`` apart bumper to bumper. A vehicle that would
-    then reach the first one again round the cycle gets NaN (it is not on the road)."""
-    order = np.argsort(s0, kind="stable")
-    out = s0.astype(np.float64).copy()
-    for prev, i in zip(order[:-1], order[1:], strict=True):
-        out[i] = max(out[i], out[prev] + (lengths[prev] + lengths[i]) / 2.0 + gap)
-    if len(order) > 1:
-        first = order[0]
-        limit = out[first] + length - lengths[first] / 2.0 - gap
-        out[(out + lengths / 2.0 > limit) & (np.arange(len(out)) != first)] = np.nan
-    return out
-
-
 def traffic_snapshot(lay: Layout, seed: int, per_km: float, t: float = 0.0) -> NDArray[np.float64]:
     """Vehicles on the lanes at time ``t`` (s) (:func:`traffic_states`) as ``(V, 8)`` rows
     ``x, y, axis, length px, width px, r, g, b``, the form :func:`draw_car` paints."""
     v = traffic_states(lay, seed, per_km, t)
-    return np.column_stack(
-        [v["x"], v["y"], v["axis"], v["length"], v["width"], v["rgb"]]
-    ).astype(np.float64).reshape(-1, 8)
+    return (
+        np.column_stack([v["x"], v["y"], v["axis"], v["length"], v["width"], v["rgb"]])
+        .astype(np.float64)
+        .reshape(-1, 8)
+    )
 
 
 def second_sensor(image: NDArray[np.uint8], seed: int) -> NDArray[np.uint8]:

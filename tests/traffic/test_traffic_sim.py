@@ -42,19 +42,6 @@ def test_vehicle_truth_is_consistent(traffic_sim):
         np.testing.assert_allclose(
             step, v["speed_mps"][sel][1:] * dt * v["base_px_per_m"], rtol=1e-3
         )
-    # No two vehicles of one lane overlap (a lane flows at one speed, gaps >= 1.5 m). (Lanes
-    # that cross at an intersection do not know of each other.)
-    for k in range(truth.n_frames):
-        sel = v["frame"] == k
-        xy = np.column_stack([v["x_base"][sel], v["y_base"][sel]]) / v["base_px_per_m"]
-        u = np.column_stack([v["ux"][sel], v["uy"][sel]])
-        rel = xy[:, None] - xy[None]
-        along = np.abs((rel * u[None]).sum(axis=2))
-        across = np.abs(rel[..., 0] * u[None, :, 1] - rel[..., 1] * u[None, :, 0])
-        same_lane = (np.abs(u[:, None] - u[None]).sum(axis=2) < 1e-6) & (across < 1.0)
-        lengths = v["length_m"][sel]
-        gap = along - 0.5 * (lengths[:, None] + lengths[None])
-        assert not np.triu(same_lane & (gap < 1.49), 1).any(), k
 
 
 def test_traffic_matches_the_true_trajectories(traffic_sim, tmp_path):
