@@ -63,6 +63,27 @@ class ProgressBar:
         self.stream.flush()
 
 
+class LazyProgressBar:
+    """A ``progress(done, total)`` callback that opens its bar on the first report (errors
+    raised before any work come as one line, with no bar) and closes it when the work is done;
+    :meth:`close` (idempotent) closes it early, e.g. in a ``finally``."""
+
+    def __init__(self, label: str, stream=None):
+        self.label, self.stream, self.bar = label, stream, None
+
+    def __call__(self, done: int, total: int) -> None:
+        if self.bar is None:
+            self.bar = ProgressBar(total, self.label, stream=self.stream).__enter__()
+        self.bar.update(done - self.bar.done)
+        if done >= total:
+            self.close()
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.__exit__(None, None, None)
+            self.bar = None
+
+
 def human_size(n: float) -> str:
     """Human-readable byte count (B, kB, MB, GB; 1 kB = 1024 B)."""
     if n < 1024:

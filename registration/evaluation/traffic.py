@@ -56,12 +56,8 @@ def score_traffic(tracks, truth, frames: list[int], max_distance_m: float = MAX_
         raise ImportError(
             "scoring traffic needs motmetrics: pip install 'aerialreg[eval]'"
         ) from exc
-    v = truth.vehicles()
-    if v is None:
-        raise ValueError(
-            f"{truth.root}: the simulated sequence has no vehicle truth (vehicles.csv)"
-        )
-    metric = truth_metric_frame(truth)
+    v = _vehicles(truth)
+    metric = MetricFrame(None, 1.0 / float(v["base_px_per_m"]))
     true_xy = metric.metres_from_base(np.column_stack([v["x_base"], v["y_base"]]))
     ux, uy = v["ux"], -v["uy"]  # base y runs down, metres' y up
     true_vel = np.column_stack([ux, uy]) * v["speed_mps"][:, None]
@@ -113,9 +109,14 @@ def score_traffic(tracks, truth, frames: list[int], max_distance_m: float = MAX_
 
 def truth_metric_frame(truth) -> MetricFrame:
     """The metric frame of a simulated base: its pixels at the truth's metres per base pixel."""
+    return MetricFrame(None, 1.0 / float(_vehicles(truth)["base_px_per_m"]))
+
+
+def _vehicles(truth) -> dict:
+    """``truth.vehicles()``; a one-line ValueError when the sequence has none."""
     v = truth.vehicles()
     if v is None:
         raise ValueError(
             f"{truth.root}: the simulated sequence has no vehicle truth (vehicles.csv)"
         )
-    return MetricFrame(None, 1.0 / float(v["base_px_per_m"]))
+    return v

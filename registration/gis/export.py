@@ -56,6 +56,7 @@ from registration.gis.vector import (
 )
 from registration.io import (
     atomic_path,
+    check_frames_match,
     write_bytes_atomic,
     write_image_atomic,
     write_json_atomic,
@@ -501,11 +502,7 @@ def _check_frames(result, frames):
         from registration.io import open_frames
 
         frames = open_frames(result.meta["frames_source"])
-    if len(frames) != result.n_frames or tuple(frames.size) != tuple(result.frame_size):
-        raise ValueError(
-            f"the frames ({len(frames)} of {frames.size[0]}x{frames.size[1]}) are not the "
-            f"result's ({result.n_frames} of {result.frame_size[0]}x{result.frame_size[1]})"
-        )
+    check_frames_match(frames, result.n_frames, result.frame_size)
     return frames
 
 

@@ -11,7 +11,13 @@ from registration.io.atomic import (
     write_npz_atomic,
 )
 from registration.io.files import SAMPLE_BYTES, file_fingerprint, file_sha256, read_text_file
-from registration.io.frames import VIDEO_BACKWARD_BLOCK, FrameReadError, FrameSource, open_frames
+from registration.io.frames import (
+    VIDEO_BACKWARD_BLOCK,
+    FrameReadError,
+    FrameSource,
+    check_frames_match,
+    open_frames,
+)
 from registration.io.images import (
     MAX_FRAME_PIXELS,
     MIN_IMAGE_SIDE,
@@ -34,6 +40,7 @@ __all__ = [
     "file_sha256",
     "image_header_size",
     "incomplete_image",
+    "check_frames_match",
     "open_frames",
     "read_image",
     "read_text_file",

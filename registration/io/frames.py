@@ -291,6 +291,16 @@ def _one_line(exc: BaseException) -> str:
     return text.splitlines()[0] if text else type(exc).__name__
 
 
+def check_frames_match(frames, n_frames: int, frame_size: tuple[int, int]) -> None:
+    """Raise a one-line ValueError unless ``frames`` holds ``n_frames`` frames of
+    ``frame_size`` ``(W, H)`` (the frames a result was registered from)."""
+    if len(frames) != n_frames or tuple(frames.size) != tuple(frame_size):
+        raise ValueError(
+            f"the frames ({len(frames)} of {frames.size[0]}x{frames.size[1]}) are not the "
+            f"result's ({n_frames} of {frame_size[0]}x{frame_size[1]})"
+        )
+
+
 def open_frames(spec: str | os.PathLike) -> FrameSource:
     """Open a video file, a directory of images or a glob pattern (see :class:`FrameSource`)."""
     return FrameSource(spec)

@@ -224,7 +224,12 @@ def test_rerun_into_same_folder_needs_force_and_leaves_no_stale_frames(tmp_path)
     assert not (tmp_path / "sequence.mp4").exists()
     truth = load_truth(tmp_path)
     assert truth.n_frames == 2 and truth.verify_files() == []
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["base.png", "frames", "truth.json", "vehicles.csv"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "base.png",
+        "frames",
+        "truth.json",
+        "vehicles.csv",
+    ]
 
 
 def test_video_written_with_even_size(tmp_path):

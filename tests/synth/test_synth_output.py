@@ -193,7 +193,12 @@ def test_sigkill_mid_render_keeps_the_old_run_and_next_run_cleans_up(tmp_path):
 def test_truth_records_every_file_digest(tmp_path):
     simulate(tmp_path, SimConfig(**TINY, n_frames=2))
     data = json.loads((tmp_path / "truth.json").read_text())
-    assert set(data["files"]) == {"base.png", "frames/000000.png", "frames/000001.png", "vehicles.csv"}
+    assert set(data["files"]) == {
+        "base.png",
+        "frames/000000.png",
+        "frames/000001.png",
+        "vehicles.csv",
+    }
     truth = load_truth(tmp_path)
     assert truth.verify_files() == []
     (tmp_path / "frames" / "000001.png").write_bytes(b"changed")

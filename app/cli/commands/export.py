@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 
 from app.cli.common import emit_json
-from app.progress import ProgressBar
+from app.progress import LazyProgressBar
 
 NAME = "export"
 HELP = (
@@ -128,14 +128,7 @@ def run(args: argparse.Namespace) -> int:
     options.validate()
     frames = open_frames(args.frames) if args.frames else None
     out_dir = Path(args.to) if args.to else Path(args.out) / "export"
-    bar: ProgressBar | None = None
-
-    def progress(done: int, total: int) -> None:
-        nonlocal bar
-        if bar is None:
-            bar = ProgressBar(total, "export").__enter__()
-        bar.update(done - bar.done)
-
+    progress = LazyProgressBar("export")
     t0 = time.perf_counter()
     try:
         summary = export_result(
@@ -149,8 +142,7 @@ def run(args: argparse.Namespace) -> int:
             progress=progress,
         )
     finally:
-        if bar is not None:
-            bar.__exit__(None, None, None)
+        progress.close()
     summary["total_s"] = round(time.perf_counter() - t0, 3)
     if args.json:
         emit_json(summary)

@@ -9,7 +9,7 @@ import time
 from pathlib import Path
 
 from app.cli.common import UsageError, emit_json, parse_size
-from app.progress import ProgressBar
+from app.progress import LazyProgressBar
 
 NAME = "simulate"
 HELP = (
@@ -184,26 +184,6 @@ def _output_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
-class _LazyBar:
-    """A progress callback that opens its bar on the first report (planning errors come before
-    it, as one line) and closes it when the work is done."""
-
-    def __init__(self, label: str):
-        self.label, self.bar = label, None
-
-    def __call__(self, done: int, total: int) -> None:
-        if self.bar is None:
-            self.bar = ProgressBar(total, self.label, stream=sys.stderr).__enter__()
-        self.bar.update(done - self.bar.done)
-        if done >= total:
-            self.close()
-
-    def close(self) -> None:
-        if self.bar is not None:
-            self.bar.__exit__(None, None, None)
-            self.bar = None
-
-
 def _overrides(args: argparse.Namespace) -> dict:
     out = {}
     for opt, field in _FIELDS.items():
@@ -247,7 +227,7 @@ def _demo(args: argparse.Namespace) -> Path:
             f"--demo takes no OUT, --scene, --base, --profile, --rebase, --force or flight "
             f"options (it lives in the user cache), got {(given or list(_overrides(args)))[0]}"
         )
-    bar = _LazyBar("demo")
+    bar = LazyProgressBar("demo")
     try:
         return demo_sequence(bar, rebuild=args.rebuild)
     finally:
@@ -313,7 +293,7 @@ def _simulate(args: argparse.Namespace) -> Path:
         scene=args.scene,
         base=args.base,
         base_from_scene=base_from_scene,
-        progress=_LazyBar("simulate"),
+        progress=LazyProgressBar("simulate"),
         force=args.force,
     )
 

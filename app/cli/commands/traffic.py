@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 
 from app.cli.common import emit_json
-from app.progress import ProgressBar
+from app.progress import LazyProgressBar
 
 NAME = "traffic"
 HELP = (
@@ -76,25 +76,14 @@ def read_regions(path: str, result):
 
 def run(args: argparse.Namespace) -> int:
     import registration
-    from registration.io import open_frames
+    from registration.io import check_frames_match, open_frames
     from registration.traffic import run_traffic
 
     result = registration.load(args.result)
     frames = open_frames(args.frames or result.meta["frames_source"])
-    if len(frames) != result.n_frames or tuple(frames.size) != tuple(result.frame_size):
-        raise ValueError(
-            f"the frames ({len(frames)} of {frames.size[0]}x{frames.size[1]}) are not the "
-            f"result's ({result.n_frames} of {result.frame_size[0]}x{result.frame_size[1]})"
-        )
+    check_frames_match(frames, result.n_frames, result.frame_size)
     exclude = read_regions(args.exclude, result) if args.exclude else None
-    bar: ProgressBar | None = None
-
-    def progress(done: int, total: int) -> None:
-        nonlocal bar
-        if bar is None:
-            bar = ProgressBar(total, "traffic").__enter__()
-        bar.update(done - bar.done)
-
+    progress = LazyProgressBar("traffic")
     t0 = time.perf_counter()
     try:
         summary = run_traffic(
@@ -107,8 +96,7 @@ def run(args: argparse.Namespace) -> int:
             progress=progress,
         )
     finally:
-        if bar is not None:
-            bar.__exit__(None, None, None)
+        progress.close()
     summary["total_s"] = round(time.perf_counter() - t0, 3)
     if args.json:
         emit_json(summary)
