@@ -44,7 +44,13 @@ VERSION = 1
 MIN_FRAMES = 3
 
 
-def _identity(result, config: TrafficConfig, times, time_source: str, metric: MetricFrame) -> dict:
+def _identity(
+    result, config: TrafficConfig, times, time_source: str, metric: MetricFrame, exclude
+) -> dict:
+    excluded = None
+    if exclude is not None:
+        mask = np.ascontiguousarray(exclude, np.bool_)
+        excluded = hashlib.sha256(repr(mask.shape).encode() + np.packbits(mask).tobytes())
     return {
         "format": FORMAT,
         "version": VERSION,
@@ -54,6 +60,7 @@ def _identity(result, config: TrafficConfig, times, time_source: str, metric: Me
         "time_source": time_source,
         "times_sha256": hashlib.sha256(np.asarray(times).tobytes()).hexdigest(),
         "metric": metric.description,
+        "exclude_sha256": None if excluded is None else excluded.hexdigest(),
     }
 
 
@@ -71,18 +78,22 @@ def _check_folder(out: Path, identity: dict) -> None:
         old = json.loads(path.read_text())
     except (OSError, ValueError):
         raise FileExistsError(f"{path} is unreadable; remove it or choose a new folder") from None
-    for key in ("format", "result_sha256", "config", "times_sha256", "metric"):
+    for key, what in _IDENTITY_KEYS.items():
         if old.get(key) != identity.get(key):
-            what = {
-                "result_sha256": "the registration result",
-                "times_sha256": "the frame times",
-                "config": "the settings",
-                "metric": "the metric frame",
-            }.get(key, key)
             raise FileExistsError(
-                f"{out} holds traffic of another run ({what} differs); choose a new folder or "
-                "remove it"
+                f"{out} holds traffic of another run ({what}); choose a new folder or remove it"
             )
+
+
+# What must agree for a run to resume in a folder, and how to say that it does not.
+_IDENTITY_KEYS = {
+    "format": "another format",
+    "result_sha256": "the registration result differs",
+    "config": "the settings differ",
+    "times_sha256": "the frame times differ",
+    "metric": "the metric frame differs",
+    "exclude_sha256": "the excluded regions differ",
+}
 
 
 def run_traffic(
@@ -125,7 +136,13 @@ def run_traffic(
             f"{len(use)} usable frame(s) of {result.n_frames} in {result.out_dir} (failed or "
             f"flagged: {len(skipped)}); traffic needs at least {MIN_FRAMES}"
         )
-    identity = _identity(result, config, times, time_source, metric)
+    if exclude is not None and tuple(np.shape(exclude)) != tuple(result.base_size[::-1]):
+        h, w = np.shape(exclude)[:2]
+        raise ValueError(
+            f"excluded regions are a {w}x{h} mask, the base map is "
+            f"{result.base_size[0]}x{result.base_size[1]}"
+        )
+    identity = _identity(result, config, times, time_source, metric, exclude)
     _check_folder(out, identity)
     out.mkdir(parents=True, exist_ok=True)
     write_bytes_atomic(out / "traffic.json", json.dumps(identity, indent=1).encode() + b"\n")

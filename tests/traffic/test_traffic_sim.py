@@ -99,8 +99,36 @@ def test_traffic_resumes_and_refuses_another_run(traffic_sim, tmp_path):
     fresh = run_traffic(result, frames, tmp_path / "fresh", fps=5.0, gsd_m=0.3)
     assert (tmp_path / "fresh" / "tracks.csv").read_bytes() == tracks
     assert fresh["n_tracks"] == full["n_tracks"]
-    with pytest.raises(FileExistsError, match="frame times differs"):
+    with pytest.raises(FileExistsError, match="frame times differ"):
         run_traffic(result, frames, out, fps=6.0, gsd_m=0.3)
     with pytest.raises(ValueError, match="frame times unknown"):
         run_traffic(result, frames, tmp_path / "x", gsd_m=0.3)
     assert json.loads((out / "traffic.json").read_text())["format"] == "aerialreg-traffic"
+
+
+def test_excluded_regions_hold_no_vehicles_and_are_part_of_the_run(traffic_sim, tmp_path):
+    from registration.io import open_frames
+    from registration.traffic import run_traffic
+    from registration.traffic.sequence import read_detections
+
+    root, result = traffic_sim
+    frames = open_frames(root / "sim" / "frames")
+    w, h = result.base_size
+    half = w // 2
+    exclude = np.zeros((h, w), bool)
+    exclude[:, :half] = True
+    out = tmp_path / "t"
+    run_traffic(result, frames, out, fps=5.0, gsd_m=0.3, exclude=exclude)
+    xs = [d.x for k in range(result.n_frames) for d in read_detections(out / "detections", k)]
+    whole = tmp_path / "whole"
+    run_traffic(result, frames, whole, fps=5.0, gsd_m=0.3)
+    xs_all = [d.x for k in range(result.n_frames) for d in read_detections(whole / "detections", k)]
+    # Vehicles on both halves without the regions; none in the excluded half with them.
+    assert sum(x < half - 10 for x in xs_all) > 20 and sum(x >= half for x in xs_all) > 20
+    assert xs and min(xs) >= half - 1
+    with pytest.raises(FileExistsError, match="excluded regions differ"):
+        run_traffic(result, frames, out, fps=5.0, gsd_m=0.3)
+    with pytest.raises(ValueError, match="excluded regions are a 10x10 mask"):
+        run_traffic(
+            result, frames, tmp_path / "x", fps=5.0, gsd_m=0.3, exclude=np.ones((10, 10), bool)
+        )
