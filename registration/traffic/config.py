@@ -46,6 +46,13 @@ class TrafficConfig:
         min_hits: detections before a track counts (fewer = noise).
         min_travel_m: a track whose smoothed path ends less than this far from where it began
             is not a moving vehicle (parked cars shaken by registration, roof edges, trees).
+        min_duration_s: a track shorter than this (s, first to last detection) is noise
+            chained by chance (at 30 frames/s three detections span 0.07 s).
+        min_speed_mps: a track slower than this on average is not moving traffic: roofs and
+            trees whose relief shifts as the camera flies on (the real flyover: 1-2.5 m/s),
+            pedestrians; a car crawling in a queue slower than this is lost too.
+        max_speed_mps: a track whose smoothed speed ever passes this is not a vehicle in town
+            (noise blobs chained into a track; 45 m/s is 162 km/h).
         measurement_sigma_m: a detection's position noise, metres (Kalman filter).
         accel_sigma_mps2: how fast a vehicle's velocity changes, m/s² per √s (the tracker's
             constant-velocity model; the smoother's constant-acceleration model uses it as the
@@ -71,6 +78,9 @@ class TrafficConfig:
     max_gap_s: float = 1.0
     min_hits: int = 3
     min_travel_m: float = 4.0
+    min_duration_s: float = 1.0
+    min_speed_mps: float = 2.0
+    max_speed_mps: float = 45.0
     measurement_sigma_m: float = 0.25
     accel_sigma_mps2: float = 2.0
     field_cell_m: float = 5.0

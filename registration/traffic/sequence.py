@@ -167,8 +167,8 @@ def tracks_from_detections(
     metric: MetricFrame,
     config: TrafficConfig,
 ) -> tuple[list[SmoothTrack], dict[int, tuple[float, float]]]:
-    """Tracks (:func:`track_detections`), smoothed (:func:`smooth_track`), of vehicles that
-    travelled at least ``config.min_travel_m`` (ids renumbered from 1 in order of first
+    """Tracks (:func:`track_detections`), smoothed (:func:`smooth_track`), of moving vehicles
+    (:func:`_moving_vehicle`) (ids renumbered from 1 in order of first
     appearance), and each one's ``(width m, length m)``: the median over its detections."""
     xy = {
         k: metric.metres_from_base(np.array([[d.x, d.y] for d in ds]).reshape(-1, 2))
@@ -177,7 +177,7 @@ def tracks_from_detections(
     tracks, sizes = [], {}
     for r in track_detections(use, times, xy, config):
         s = smooth_track(r, use, times, config)
-        if s.travel_m < config.min_travel_m:
+        if not _moving_vehicle(s, config):
             continue
         s.track_id = len(tracks) + 1
         dets = [
@@ -189,6 +189,18 @@ def tracks_from_detections(
         )
         tracks.append(s)
     return tracks, sizes
+
+
+def _moving_vehicle(track: SmoothTrack, config: TrafficConfig) -> bool:
+    """Whether a smoothed track is moving traffic: long enough in time and space, on average
+    faster than roof relief and pedestrians, never faster than town traffic."""
+    speed = track.speed
+    return (
+        track.times[-1] - track.times[0] >= config.min_duration_s
+        and track.travel_m >= config.min_travel_m
+        and speed.mean() >= config.min_speed_mps
+        and speed.max() <= config.max_speed_mps
+    )
 
 
 def result_fingerprint(result) -> str:

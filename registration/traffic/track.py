@@ -25,6 +25,9 @@ from registration.traffic.config import TrafficConfig
 
 # A cost that no gated pair reaches (scipy needs finite costs).
 _FAR = 1e6
+# A detection pairs with a track only within the 99 % ellipse of its predicted position
+# (chi-square, 2 degrees of freedom).
+GATE_CHI2 = 9.21
 
 
 @dataclass
@@ -89,6 +92,7 @@ def track_detections(
     """
     q = config.accel_sigma_mps2**2
     gate = config.gate_m
+    r_meas = np.eye(2) * config.measurement_sigma_m**2
     live: list[_Live] = []
     done: list[_Live] = []
     next_id = 0
@@ -109,8 +113,13 @@ def track_detections(
         cost = np.full((len(live), len(dets)), _FAR)
         if live and len(dets):
             pxy = np.array([p[0][:2] for p in preds])
-            dist = np.linalg.norm(pxy[:, None, :] - dets[None, :, :], axis=2)
-            cost = np.where(dist <= gate, dist, _FAR)
+            resid = dets[None, :, :] - pxy[:, None, :]
+            dist = np.linalg.norm(resid, axis=2)
+            # Within the prediction's own uncertainty too: at 30 frames/s a new track's reach
+            # is ~1.5 m, not the 3 m (90 m/s) of a fixed gate; at 5 frames/s the fixed one binds.
+            s_inv = np.linalg.inv(np.array([p[1][:2, :2] for p in preds]) + r_meas)
+            d2 = np.einsum("tdi,tij,tdj->td", resid, s_inv, resid)
+            cost = np.where((dist <= gate) & (d2 <= GATE_CHI2), dist, _FAR)
         rows, cols = linear_sum_assignment(cost) if cost.size else ([], [])
         used = set()
         for r, c in zip(rows, cols, strict=True):

@@ -188,3 +188,37 @@ def test_bad_settings_say_which():
         TrafficConfig(gate_m=0).validate()
     with pytest.raises(ValueError, match="min_samples"):
         TrafficConfig(min_samples=20).validate()
+
+
+def test_gate_follows_the_time_step(rng):
+    # A new track's next detection 2.5 m on: at 30 frames/s that is 75 m/s, within the fixed
+    # 3 m gate but outside the prediction's 99 % ellipse; at 2 frames/s (5 m/s) it joins.
+    cfg = TrafficConfig()
+    for fps, joined in ((30.0, False), (2.0, True)):
+        times = np.arange(6) / fps
+        dets = {0: np.array([[0.0, 0.0]])}
+        dets.update({k: np.array([[2.5, 0.0]]) for k in range(1, 6)})
+        raw = track_detections(list(range(6)), times, dets, cfg)
+        assert [len(r.frames) for r in raw] == ([6] if joined else [5]), fps
+
+
+def test_tracks_that_are_not_moving_traffic_are_dropped(rng):
+    from registration.traffic.detect import Detection
+    from registration.traffic.sequence import tracks_from_detections
+
+    fps, n = 10.0, 40
+    times = np.arange(n) / fps
+    # A car at 10 m/s, a roof edge creeping at 1 m/s and a 0.5 s blip, 1 m/px, y up = -row.
+    dets = {}
+    for k, t in enumerate(times):
+        ds = [Detection(k, 10 * t, 0.0, 4.5, 1.8, 0.0, 8.0, 3.0)]
+        ds.append(Detection(k, 100 + 1.0 * t, 50.0, 4.0, 2.0, 0.0, 8.0, 3.0))
+        if k < 5:
+            ds.append(Detection(k, 200 + 20 * t, 100.0, 4.0, 2.0, 0.0, 8.0, 3.0))
+        dets[k] = ds
+    tracks, sizes = tracks_from_detections(
+        dets, list(range(n)), times, MetricFrame(None, 1.0), TrafficConfig()
+    )
+    assert len(tracks) == 1
+    np.testing.assert_allclose(np.median(tracks[0].speed), 10.0, atol=0.1)
+    assert sizes[1] == (1.8, 4.5)
