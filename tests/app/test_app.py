@@ -599,7 +599,12 @@ def test_sequence_adjusted_together_shows_predicted_errors(fitted):
     assert np.allclose(predicted[: r.n_frames], expected)
     seq.set_frame(1)
     app.worker.wait_idle()
-    assert "predicted error" in seq.panel.frame_md.content
+    # The frame's line gives its own record's figures, not just their names.
+    adj = r.records[1].stats["adjustment"]
+    assert (
+        f"predicted error {adj['predicted_error_px']:.2f} base px, {adj['n_links']} link points, "
+        f"{adj['n_controls']} control points to the map" in seq.panel.frame_md.content
+    )
     assert "flagged" not in seq.panel.frame_md.content
 
 
