@@ -119,6 +119,24 @@ def warp_frame(result, k: int, frame: NDArray, grid: WorkGrid, exclude=None) -> 
     return WarpedFrame(k, np.ascontiguousarray(image[..., :3]), mask, box)
 
 
+@dataclass
+class Background:
+    """The still ground over a box: ``image`` ``(h, w, 3)`` uint8 (the samples' median),
+    ``count`` ``(h, w)`` int32 (samples with data) and ``spread`` ``(h, w)`` float32 (their
+    quartile spread, 8-bit levels: :func:`_quartile_spread`)."""
+
+    image: NDArray[np.uint8]
+    count: NDArray[np.int32]
+    spread: NDArray[np.float32]
+    box: Box
+
+    def crop(self, box: Box) -> Background:
+        """The part over ``box`` (inside this one)."""
+        sy = slice(box[1] - self.box[1], box[3] - self.box[1])
+        sx = slice(box[0] - self.box[0], box[2] - self.box[0])
+        return Background(self.image[sy, sx], self.count[sy, sx], self.spread[sy, sx], box)
+
+
 def union_box(boxes: list[Box]) -> Box:
     x0 = min(b[0] for b in boxes)
     y0 = min(b[1] for b in boxes)
@@ -152,11 +170,9 @@ def _sorting_network(n: int) -> list[tuple[int, int]]:
     return pairs
 
 
-def median_background(
-    samples: list[WarpedFrame], box: Box
-) -> tuple[NDArray[np.uint8], NDArray[np.int32]]:
-    """Per-pixel median (the lower one for an even count) of ``samples`` over ``box`` and the
-    number of samples that had data there: ``((h, w, 3) uint8, (h, w) int32)``.
+def median_background(samples: list[WarpedFrame], box: Box) -> Background:
+    """The per-pixel median (the lower one for an even count) of ``samples`` over ``box``, the
+    number of samples that had data there and their quartile spread (:class:`Background`).
 
     Where a sample has no data its place is filled with 0 or 255, as many of each as keep the
     median of all ``n`` on the median of the samples present, so one sorting network serves
@@ -177,7 +193,7 @@ def median_background(
         present.append(m)
         count += m
     if n == 0:
-        return np.zeros((h, w, 3), np.uint8), count
+        return Background(np.zeros((h, w, 3), np.uint8), count, np.zeros((h, w), np.float32), box)
     # Sorted: `low` zeros, the present values, the rest 255; the network's middle element (index
     # (n - 1) // 2) is then the present values' lower median (count - 1) // 2.
     low = (n - 1) // 2 - (np.maximum(count, 1) - 1) // 2
@@ -198,7 +214,27 @@ def median_background(
     for a, b in _sorting_network(n):
         pa, pb = planes[a], planes[b]
         planes[a], planes[b] = cv2.min(pa, pb), cv2.max(pa, pb)
-    return planes[(n - 1) // 2].reshape(h, w, 3), count
+    median = planes[(n - 1) // 2].reshape(h, w, 3)
+    return Background(median, count, _quartile_spread(planes, low, count), box)
+
+
+def _quartile_spread(planes, low, count) -> NDArray[np.float32]:
+    """``(h, w)``: the spread of the present samples between their lower and upper quartile
+    (max over channels, 8-bit levels; 0 with fewer than 4). A passing car is one or two
+    samples and leaves it at the noise; a roof whose relief shifts as the camera flies on, or
+    a tree in the wind, changes every sample."""
+    h = count.shape[0]
+    stack = np.stack(planes).reshape(len(planes), h, -1, 3)
+    q = count // 4
+    lo_idx = np.minimum(low + q, len(planes) - 1)
+    hi_idx = np.clip(low + count - 1 - q, 0, len(planes) - 1)
+
+    def at(idx):
+        return np.take_along_axis(stack, idx[None, :, :, None].repeat(3, axis=3), axis=0)[0]
+
+    spread = (at(hi_idx).astype(np.int16) - at(lo_idx).astype(np.int16)).max(axis=2)
+    spread[count < 4] = 0
+    return spread.astype(np.float32)
 
 
 def difference_image(

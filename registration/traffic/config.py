@@ -31,7 +31,9 @@ class TrafficConfig:
             does not look like motion.
         threshold_sigma: a pixel differs from the background when the difference passes this
             many robust noise sigmas (measured per frame) ...
-        min_threshold_dn: ... and at least this many 8-bit levels (compression blocks).
+        min_threshold_dn: ... and at least this many 8-bit levels (compression blocks) ...
+        spread_factor: ... and at least this many times the background's own quartile spread
+            over time there (relief that shifts as the camera flies on, trees in the wind).
         seed_factor: a blob must hold at least one pixel this many times over the threshold
             (hysteresis: the body of a car close to the road's colour stays attached to its
             strongly differing parts, noise alone does not start a blob).
@@ -68,6 +70,7 @@ class TrafficConfig:
     tolerance_px: int = 1
     threshold_sigma: float = 5.0
     min_threshold_dn: float = 18.0
+    spread_factor: float = 1.0
     seed_factor: float = 1.8
     close_m: float = 0.6
     min_area_m2: float = 1.5

@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from registration.traffic.background import (
+    Background,
     WarpedFrame,
     WorkGrid,
     difference_image,
@@ -83,7 +84,7 @@ SHADOW_CHROMA = 0.15
 
 def foreground(
     frame: WarpedFrame,
-    background: NDArray[np.uint8],
+    background: Background,
     valid: NDArray[np.bool_],
     config: TrafficConfig,
     cell_m: float,
@@ -91,16 +92,22 @@ def foreground(
     """Blobs of ``frame`` against ``background`` (same box) where ``valid``: ``(labels (h, w)
     int32, number of labels incl. 0, difference / threshold (h, w))``.
 
+    The threshold is the frame's noise threshold, raised where the background itself varies
+    over time (``config.spread_factor`` times its quartile spread): roofs whose relief shifts
+    as the camera flies on, trees in the wind.
+
     Pixels that differ only as a shadow are left out of a blob that has other pixels (a car's
     own shadow would pull its centre by half the shadow's reach, ~0.5 m at a 55° sun); a blob of
     shadow-like pixels alone is kept whole (a black or dark grey car).
     """
-    diff = difference_image(frame.image, background, config.tolerance_px)
-    sigma = noise_sigma(frame.image, background, valid)
-    threshold = max(config.min_threshold_dn, config.threshold_sigma * sigma)
-    ratio = np.where(valid, diff / np.float32(threshold), 0).astype(np.float32)
+    still = background.image
+    diff = difference_image(frame.image, still, config.tolerance_px)
+    sigma = noise_sigma(frame.image, still, valid)
+    floor = np.float32(max(config.min_threshold_dn, config.threshold_sigma * sigma))
+    threshold = np.maximum(floor, np.float32(config.spread_factor) * background.spread)
+    ratio = np.where(valid, diff / threshold, 0).astype(np.float32)
     moving = (ratio > 1.0) & valid
-    shadow = shadow_mask(frame.image, background) & moving
+    shadow = shadow_mask(frame.image, still) & moving
     r = max(1, int(round(config.close_m / cell_m / 2.0)))
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
     core = cv2.morphologyEx((moving & ~shadow).view(np.uint8), cv2.MORPH_CLOSE, kernel)
@@ -121,16 +128,15 @@ def foreground(
 
 def detect_vehicles(
     frame: WarpedFrame,
-    background: NDArray[np.uint8],
-    count: NDArray[np.int32],
+    background: Background,
     grid: WorkGrid,
     metres_per_base_px: float,
     config: TrafficConfig,
 ) -> list[Detection]:
     """Vehicle candidates of ``frame`` (:class:`Detection`, sorted by position) against its
-    ``background`` and per-pixel sample ``count`` (all over ``frame.box``)."""
+    ``background`` (over ``frame.box``)."""
     cell_m = metres_per_base_px * grid.cell_base_px
-    valid = frame.mask & (count >= config.min_samples)
+    valid = frame.mask & (background.count >= config.min_samples)
     labels, n, ratio = foreground(frame, background, valid, config, cell_m)
     if n <= 1:
         return []

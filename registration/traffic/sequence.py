@@ -140,15 +140,12 @@ def detect_sequence(
             targets = [warped[k] for k in todo if warped[k] is not None]
             samples = [warped[k] for k in block.samples if warped[k] is not None]
             if targets:
-                box = union_box([w.box for w in targets])
-                background, count = median_background(samples, box)
+                background = median_background(samples, union_box([w.box for w in targets]))
             for k in todo:
                 w = warped[k]
                 found = []
                 if w is not None:
-                    sy = slice(w.box[1] - box[1], w.box[3] - box[1])
-                    sx = slice(w.box[0] - box[0], w.box[2] - box[0])
-                    found = detect_vehicles(w, background[sy, sx], count[sy, sx], grid, mpp, config)
+                    found = detect_vehicles(w, background.crop(w.box), grid, mpp, config)
                 doc = {"k": k, "detections": [d.to_dict() for d in found]}
                 write_bytes_atomic(detections_path(folder, k), json.dumps(doc).encode() + b"\n")
                 # As stored (rounded): a resumed run then tracks exactly what a whole one does.

@@ -40,7 +40,8 @@ def test_median_background_is_the_median_of_the_samples_present(rng):
         mask = rng.random((30, 40)) < 0.7
         samples.append(WarpedFrame(i, image, mask, (x0, y0, x0 + 40, y0 + 30)))
     box = (3, 4, 50, 44)
-    med, count = median_background(samples, box)
+    bg = median_background(samples, box)
+    med, count = bg.image, bg.count
     for y in range(0, 40, 3):
         for x in range(0, 47, 2):
             vals = [
@@ -222,3 +223,29 @@ def test_tracks_that_are_not_moving_traffic_are_dropped(rng):
     assert len(tracks) == 1
     np.testing.assert_allclose(np.median(tracks[0].speed), 10.0, atol=0.1)
     assert sizes[1] == (1.8, 4.5)
+
+
+def test_quartile_spread_ignores_a_passing_car_but_not_a_shifting_edge(rng):
+    h, w, n = 20, 30, 12
+    road = np.full((h, w, 3), 90, np.uint8)
+    samples = []
+    for i in range(n):
+        img = np.clip(road + rng.normal(0, 2, road.shape), 0, 255).astype(np.uint8)
+        if i in (4, 5):
+            img[5:10, 5:15] = (230, 230, 230)  # a white car passing through two samples
+        # An edge (a roof against the ground) that moves one pixel per sample.
+        img[:, 16 + i :] = 200
+        mask = np.ones((h, w), bool)
+        if i == 0:
+            mask[:, :3] = False  # one sample has no data on the left
+        samples.append(WarpedFrame(i, img, mask, (0, 0, w, h)))
+    bg = median_background(samples, (0, 0, w, h))
+    assert bg.spread[5:10, 5:15].max() <= 10  # the car leaves the spread at the noise
+    assert np.abs(bg.image[5:10, 5:15].astype(int) - 90).max() <= 6  # and the median the road
+    # Where the edge passes, the samples' middle half spans ground and roof.
+    assert bg.spread[:, 19:24].min() >= 100
+    # Against numpy's order statistics where a sample is missing (count 11).
+    stack = np.stack([s.image for s in samples[1:]]).astype(int)
+    lo = np.sort(stack[:, :, :3], axis=0)[11 // 4]
+    hi = np.sort(stack[:, :, :3], axis=0)[11 - 1 - 11 // 4]
+    np.testing.assert_array_equal(bg.spread[:, :3], (hi - lo).max(axis=2))
