@@ -34,6 +34,13 @@ def pixel_grid(width: int, height: int) -> NDArray[np.float32]:
     return np.stack([xs, ys], axis=-1)
 
 
+def finite_points(points: NDArray) -> NDArray[np.bool_]:
+    """``(...)`` bool: whether both coordinates of each ``(..., 2)`` point are finite
+    (``np.isfinite(points).all(axis=-1)`` without numpy's slow reduction over a length-2
+    innermost axis: ~4x faster on a frame's source map)."""
+    return np.isfinite(points[..., 0]) & np.isfinite(points[..., 1])
+
+
 def as_uint8_mask(mask: NDArray) -> NDArray[np.uint8]:
     """A bool (or 0/1) mask as uint8 for :func:`remap`: a bool array is viewed, not copied (a
     copy of a map-sized mask per frame cost 2-18 ms)."""
@@ -93,7 +100,7 @@ def _finite_map(source_map: NDArray) -> NDArray[np.float32]:
     if np.isfinite(m).all() and m.min() > _OUTSIDE and m.max() < -_OUTSIDE:
         return m
     m = m.copy() if m is source_map else m
-    bad = ~np.isfinite(m).all(axis=2)
+    bad = ~finite_points(m)
     if bad.any():
         m[bad] = _OUTSIDE
     np.clip(m, _OUTSIDE, -_OUTSIDE, out=m)
@@ -257,7 +264,7 @@ def _straddling_cells(coarse: NDArray, source_size: tuple[int, int]) -> NDArray[
     sx, sy = coarse[..., 0], coarse[..., 1]
     with np.errstate(invalid="ignore"):
         sides = np.stack([sx < -0.5, sx > w - 0.5, sy < -0.5, sy > h - 0.5])
-    finite = np.isfinite(coarse).all(axis=2)
+    finite = finite_points(coarse)
 
     def all4(a: NDArray) -> NDArray:
         return a[..., :-1, :-1] & a[..., 1:, :-1] & a[..., :-1, 1:] & a[..., 1:, 1:]

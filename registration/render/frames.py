@@ -78,7 +78,7 @@ def render_registered(
     if step > 1:
         # The coarse map is NaN wherever one of the surrounding nodes falls outside the frame,
         # which would eat up to ``step`` px of every frame border: evaluate that band exactly.
-        nan = ~np.isfinite(source).all(axis=2)
+        nan = ~warp.finite_points(source)
         if nan.any() and not nan.all():
             k = np.ones((2 * step + 1, 2 * step + 1), np.uint8)
             band = nan & (cv2.dilate((~nan).astype(np.uint8), k) > 0)
@@ -91,7 +91,7 @@ def render_registered(
     fw, fh = image_size(frame_raw)
     with np.errstate(invalid="ignore"):
         mask = (
-            np.isfinite(source).all(axis=2)
+            warp.finite_points(source)
             & (source[..., 0] >= -0.5)
             & (source[..., 0] <= fw - 0.5)
             & (source[..., 1] >= -0.5)
