@@ -16,4 +16,5 @@ SUITES = (
     "export",
     "app",
     "flyover",
+    "traffic",
 )

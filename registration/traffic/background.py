@@ -200,15 +200,16 @@ def median_background(samples: list[WarpedFrame], box: Box) -> Background:
     missing_before = np.zeros((h, w), np.int32)
     planes = []
     for s, m in zip(samples, present, strict=True):
-        fill = ((missing_before >= low).view(np.uint8) * np.uint8(255))[:, :, None]
-        plane = np.empty((h, w, 3), np.uint8)
-        plane[:] = fill
+        # cv2 for the per-sample copies: numpy's masked copies cost ~10x more here.
+        fill = cv2.compare(missing_before, low, cv2.CMP_GE)  # 255 where it goes high
+        plane = cv2.merge([fill, fill, fill])
         ov = _overlap(box, s.box)
         if ov is not None:
             sy = slice(ov[1] - s.box[1], ov[3] - s.box[1])
             sx = slice(ov[0] - s.box[0], ov[2] - s.box[0])
             ty, tx = slice(ov[1] - y0, ov[3] - y0), slice(ov[0] - x0, ov[2] - x0)
-            np.copyto(plane[ty, tx], s.image[sy, sx], where=m[ty, tx, None])
+            region = plane[ty, tx]
+            cv2.copyTo(s.image[sy, sx], m[ty, tx].view(np.uint8), region)
         missing_before += ~m
         planes.append(plane.reshape(h, w * 3))
     for a, b in _sorting_network(n):
@@ -223,16 +224,15 @@ def _quartile_spread(planes, low, count) -> NDArray[np.float32]:
     (max over channels, 8-bit levels; 0 with fewer than 4). A passing car is one or two
     samples and leaves it at the noise; a roof whose relief shifts as the camera flies on, or
     a tree in the wind, changes every sample."""
-    h = count.shape[0]
-    stack = np.stack(planes).reshape(len(planes), h, -1, 3)
     q = count // 4
-    lo_idx = np.minimum(low + q, len(planes) - 1)
-    hi_idx = np.clip(low + count - 1 - q, 0, len(planes) - 1)
-
-    def at(idx):
-        return np.take_along_axis(stack, idx[None, :, :, None].repeat(3, axis=3), axis=0)[0]
-
-    spread = (at(hi_idx).astype(np.int16) - at(lo_idx).astype(np.int16)).max(axis=2)
+    lo_idx = np.minimum(low + q, len(planes) - 1).repeat(3, axis=1)
+    hi_idx = np.clip(low + count - 1 - q, 0, len(planes) - 1).repeat(3, axis=1)
+    lo_val = np.zeros(planes[0].shape, np.int16)
+    hi_val = np.zeros(planes[0].shape, np.int16)
+    for i, plane in enumerate(planes):  # sorted planes; each pixel picks its own two
+        np.copyto(lo_val, plane, where=lo_idx == i)
+        np.copyto(hi_val, plane, where=hi_idx == i)
+    spread = channel_max((hi_val - lo_val).reshape(count.shape[0], -1, 3))
     spread[count < 4] = 0
     return spread.astype(np.float32)
 
@@ -250,7 +250,13 @@ def difference_image(
     else:
         lo = hi = background.astype(np.int16)
     over = np.maximum(img - hi, lo - img)
-    return np.maximum(over.max(axis=2), 0).astype(np.float32)
+    return np.maximum(channel_max(over), 0).astype(np.float32)
+
+
+def channel_max(a: NDArray) -> NDArray:
+    """``a``'s largest value over its 3 channels (last axis): numpy's ``max(axis=2)`` without
+    its slow reduction over a short innermost axis (5x faster here)."""
+    return np.maximum(np.maximum(a[..., 0], a[..., 1]), a[..., 2])
 
 
 def noise_sigma(image: NDArray[np.uint8], background: NDArray[np.uint8], valid) -> float:

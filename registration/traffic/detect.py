@@ -20,6 +20,7 @@ from registration.traffic.background import (
     Background,
     WarpedFrame,
     WorkGrid,
+    channel_max,
     difference_image,
     noise_sigma,
 )
@@ -71,8 +72,9 @@ def shadow_mask(image: NDArray[np.uint8], background: NDArray[np.uint8]) -> NDAr
     img = image.astype(np.float32) + 1.0
     bg = background.astype(np.float32) + 1.0
     ratio = img / bg
-    bright = ratio.mean(axis=2)
-    spread = np.abs(ratio - bright[..., None]).max(axis=2) / np.maximum(bright, 1e-3)
+    # numpy's mean over the channels, summed in the same order, without its slow reduction.
+    bright = (ratio[..., 0] + ratio[..., 1] + ratio[..., 2]) / np.float32(3)
+    spread = channel_max(np.abs(ratio - bright[..., None])) / np.maximum(bright, 1e-3)
     lo, hi = SHADOW_RATIO
     return (bright > lo) & (bright < hi) & (spread < SHADOW_CHROMA)
 

@@ -20,6 +20,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+from numpy.typing import NDArray
 
 from registration.io import write_bytes_atomic
 from registration.traffic.background import WorkGrid
@@ -96,6 +97,46 @@ _IDENTITY_KEYS = {
 }
 
 
+def find_traffic(
+    result,
+    frames,
+    folder: Path,
+    metric: MetricFrame,
+    times: NDArray[np.float64],
+    use: list[int],
+    config: TrafficConfig,
+    *,
+    exclude: NDArray[np.bool_] | None = None,
+    progress: Callable[[int, int], None] | None = None,
+    cancel: Callable[[], bool] | None = None,
+):
+    """Detections (stored in ``folder``, :func:`detect_sequence`) and tracks of ``result``'s
+    usable frames ``use``: ``(tracks, sizes, detections, grid)``
+    (:func:`tracks_from_detections`), or None when ``cancel`` stopped it first. ``result``
+    needs only the result interface (``frame_to_base``, ``base_to_frame``, ``frame_size``,
+    ``base_size``, ``reference_frame``): the benchmark runs it on plain OpenCV's homographies.
+    ``exclude``: a base-sized bool mask (:func:`run_traffic`)."""
+    grid = WorkGrid.for_result(
+        result, result.reference_frame, metric.metres_per_base_px(), config.cell_m
+    )
+    mask = None
+    if exclude is not None:
+        import cv2
+
+        mask = cv2.resize(exclude.astype(np.uint8), grid.size, interpolation=cv2.INTER_NEAREST)
+        mask = mask.astype(bool)
+    detections = dict(
+        detect_sequence(
+            result, frames, grid, metric, times, use, config, folder,
+            exclude=mask, progress=progress, cancel=cancel,
+        )
+    )  # fmt: skip
+    if len(detections) < len(use):
+        return None
+    tracks, sizes = tracks_from_detections(detections, use, times, metric, config)
+    return tracks, sizes, detections, grid
+
+
 def run_traffic(
     result,
     frames,
@@ -146,33 +187,14 @@ def run_traffic(
     _check_folder(out, identity)
     out.mkdir(parents=True, exist_ok=True)
     write_bytes_atomic(out / "traffic.json", json.dumps(identity, indent=1).encode() + b"\n")
-    grid = WorkGrid.for_result(
-        result, result.reference_frame, metric.metres_per_base_px(), config.cell_m
-    )
-    mask = None
-    if exclude is not None:
-        import cv2
-
-        mask = cv2.resize(exclude.astype(np.uint8), grid.size, interpolation=cv2.INTER_NEAREST)
-        mask = mask.astype(bool)
-    detections = dict(
-        detect_sequence(
-            result,
-            frames,
-            grid,
-            metric,
-            times,
-            use,
-            config,
-            out / "detections",
-            exclude=mask,
-            progress=progress,
-            cancel=cancel,
-        )
-    )
-    if len(detections) < len(use):
-        return {"out": str(out), "cancelled": True, "frames_done": len(detections)}
-    tracks, sizes = tracks_from_detections(detections, use, times, metric, config)
+    found = find_traffic(
+        result, frames, out / "detections", metric, times, use, config,
+        exclude=exclude, progress=progress, cancel=cancel,
+    )  # fmt: skip
+    if found is None:
+        done = len(list((out / "detections").glob("*.json")))
+        return {"out": str(out), "cancelled": True, "frames_done": done}
+    tracks, sizes, detections, grid = found
     span = float(times[use[-1]] - times[use[0]])
     rate = (len(use) - 1) / span if span > 0 else float("nan")
     files = write_ind_csvs(out, tracks, sizes, metric, rate, span, time_source)

@@ -936,7 +936,7 @@ def test_app_bad_option(sims, tmp_path, capsys, kind, needle):
         ("scene-missing", "image not found"),
         ("scene-without-base", "--scene and --base go together"),
         ("profile-unknown", "invalid choice: 'nosuch'"),
-        ("profile-other-suite", "--profile goes with the suites register and scaleout only"),
+        ("profile-other-suite", "--profile goes with the suites register, scaleout, traffic only"),
         ("speed-options-other-suite", "--speed-options goes with the register suite only"),
     ],
 )

@@ -22,10 +22,11 @@ SUITES = (
     "export",
     "app",
     "flyover",
+    "traffic",
 )
 # Frames a suite takes when --frames is not given, where it is not DEFAULT_FRAMES: the real
-# flyover video is scored whole.
-SUITE_FRAMES = {"flyover": 600}
+# flyover video is scored whole; traffic needs tracks (5 s at 5 frames/s).
+SUITE_FRAMES = {"flyover": 600, "traffic": 25}
 MAX_FRAMES = 1000
 DEFAULT_SIZE, DEFAULT_FRAMES = "1280x960", 6
 # Size and frames of a --profile run unless --size/--frames say otherwise: a few minutes of
@@ -35,7 +36,7 @@ PROFILE_RUNS = {
     "paper-hard": ("1280x960", 25),
     "long-flight": ("640x480", 120),
 }
-PROFILE_SUITES = ("register", "scaleout")
+PROFILE_SUITES = ("register", "scaleout", "traffic")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -60,7 +61,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--profile",
         choices=tuple(PROFILE_RUNS),
-        help=f"{' and '.join(PROFILE_SUITES)}: simulate this `aerialreg simulate --profile` flight "
+        help=f"{', '.join(PROFILE_SUITES)}: simulate this `aerialreg simulate --profile` flight "
         f"(default size and frames: {runs})",
     )
     p.add_argument(
@@ -96,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
     if unknown:
         raise UsageError(f"unknown bench suite {unknown[0]!r}; choose from {', '.join(SUITES)}")
     if args.profile and any(s not in PROFILE_SUITES for s in suites):
-        raise UsageError(f"--profile goes with the suites {' and '.join(PROFILE_SUITES)} only")
+        raise UsageError(f"--profile goes with the suites {', '.join(PROFILE_SUITES)} only")
     if args.speed_options and suites != ["register"]:
         raise UsageError("--speed-options goes with the register suite only")
     size, frames = PROFILE_RUNS.get(args.profile, (DEFAULT_SIZE, DEFAULT_FRAMES))

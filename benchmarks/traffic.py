@@ -1,0 +1,115 @@
+"""Traffic (issue 35) on a simulated flight against the simulator's true trajectories: the
+traffic stage on aerialreg's registration (default preset) and, in the same run, on plain OpenCV
+stabilisation (SIFT + FLANN + MAGSAC, every frame chained to the reference frame and that one
+to the map: :func:`registration.evaluation.register_baseline`): what the registration buys.
+
+Scores (:func:`registration.evaluation.traffic.score_traffic`, motmetrics CLEAR-MOT): MOTA,
+precision, recall, identity switches, position RMSE (m) and speed RMSE (m/s) of the matched
+track points. CPU: user + system seconds of this process per frame (all threads), for the
+registration and for the traffic stage, and their ratio (the issue's budget: 30 %)."""
+
+from __future__ import annotations
+
+import resource
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+TITLE = "Traffic: vehicles tracked on aerialreg's registration vs plain OpenCV stabilisation"
+
+
+def _cpu() -> float:
+    use = resource.getrusage(resource.RUSAGE_SELF)
+    return use.ru_utime + use.ru_stime
+
+
+class _Homographies:
+    """Plain OpenCV's homographies with what the traffic stage asks of a result."""
+
+    def __init__(self, baseline, base_size, reference_frame: int):
+        self.baseline = baseline
+        self.base_size = tuple(base_size)
+        self.frame_size = baseline.frame_size
+        self.reference_frame = reference_frame
+        self.n_frames = baseline.n_frames
+
+    def frame_to_base(self, k, xy, stage="local"):
+        return self.baseline.frame_to_base(k, xy, stage)
+
+    def base_to_frame(self, k, xy, stage="local"):
+        return self.baseline.base_to_frame(k, xy, stage)
+
+
+def _score(result, seq, folder: Path, use: list[int]) -> dict:
+    from registration.evaluation.traffic import score_traffic, truth_metric_frame
+    from registration.traffic import TrafficConfig
+    from registration.traffic.runner import find_traffic
+
+    metric = truth_metric_frame(seq.truth)
+    times = np.arange(seq.truth.n_frames) / float(seq.truth.config["fps"])
+    cpu = _cpu()
+    tracks, _, _, _ = find_traffic(result, seq.frames, folder, metric, times, use, TrafficConfig())
+    cpu = _cpu() - cpu
+    return score_traffic(tracks, seq.truth, use).to_dict() | {"cpu_s_per_frame": cpu / len(use)}
+
+
+def run(args) -> dict:
+    from benchmarks.sequence import simulated_sequence
+    from registration.evaluation import register_baseline
+    from registration.run import get_preset, register_sequence
+    from registration.traffic.sequence import usable_frames
+
+    tmp = Path(tempfile.mkdtemp(prefix="aerialreg-bench-traffic-"))
+    seq = simulated_sequence(args, tmp / "sim", "bench traffic")
+    cpu = _cpu()
+    result = register_sequence(
+        seq.frames, seq.base, seq.truth.gamma, tmp / "reg", config=get_preset("default"),
+        preset="default", seed=seq.seed,
+    )  # fmt: skip
+    reg_cpu = (_cpu() - cpu) / result.n_frames
+    sys.stderr.write(f"bench traffic: registered, {reg_cpu:.2f} s CPU per frame\n")
+    use, _ = usable_frames(result)
+    rows = {"aerialreg": _score(result, seq, tmp / "ours", use)}
+    sys.stderr.write("bench traffic: traffic on aerialreg's registration done\n")
+    cpu = _cpu()
+    baseline = register_baseline(seq.frames, seq.base, seq.truth.gamma)
+    base_cpu = (_cpu() - cpu) / baseline.n_frames
+    plain = _Homographies(baseline, result.base_size, baseline.reference_frame)
+    plain_use = [k for k, h in enumerate(baseline.homographies) if h is not None]
+    rows["opencv"] = _score(plain, seq, tmp / "opencv", plain_use)
+    sys.stderr.write("bench traffic: traffic on plain OpenCV done\n")
+    rows["aerialreg"]["registration_cpu_s_per_frame"] = reg_cpu
+    rows["opencv"]["registration_cpu_s_per_frame"] = base_cpu
+    return {
+        "size": list(args.size_wh),
+        "frames": args.frames,
+        "profile": args.profile or "default",
+        "rows": rows,
+        "markdown": _markdown(rows, args),
+    }
+
+
+def _markdown(rows: dict, args) -> str:
+    w, h = args.size_wh
+    flight = f"profile {args.profile}" if args.profile else "default flight"
+    lines = [
+        f"{args.frames} simulated frames {w}x{h} ({flight}), seed {args.seed}; scored against "
+        "the simulator's vehicle truth (motmetrics, pairs within 2 m); CPU = user + system "
+        "seconds per frame of this process.",
+        "",
+        "| registration | MOTA | precision | recall | ID switches | position RMSE m | "
+        "speed RMSE m/s | registration CPU s | traffic CPU s | traffic / registration |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    names = {"aerialreg": "aerialreg (default preset)", "opencv": "plain OpenCV stabilisation"}
+    for key, r in rows.items():
+        ratio = r["cpu_s_per_frame"] / r["registration_cpu_s_per_frame"]
+        lines.append(
+            f"| {names[key]} | {r['mota']:.3f} | {r['precision']:.3f} | {r['recall']:.3f} | "
+            f"{r['id_switches']} | {r['position_rmse_m']:.3f} | {r['speed_rmse_mps']:.3f} | "
+            f"{r['registration_cpu_s_per_frame']:.3f} | {r['cpu_s_per_frame']:.3f} | "
+            f"{100 * ratio:.0f} % |"
+        )
+    return "\n".join(lines)
