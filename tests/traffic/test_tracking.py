@@ -249,3 +249,44 @@ def test_quartile_spread_ignores_a_passing_car_but_not_a_shifting_edge(rng):
     lo = np.sort(stack[:, :, :3], axis=0)[11 // 4]
     hi = np.sort(stack[:, :, :3], axis=0)[11 - 1 - 11 // 4]
     np.testing.assert_array_equal(bg.spread[:, :3], (hi - lo).max(axis=2))
+
+
+class _Truth:
+    """A truth with planted vehicles (what score_traffic reads)."""
+
+    def __init__(self, rows):
+        cols = ["frame", "track_id", "x_base", "y_base", "ux", "uy", "speed_mps", "length_m"]
+        self.v = {c: np.array([r[i] for r in rows], float) for i, c in enumerate(cols)}
+        self.v["frame"] = self.v["frame"].astype(int)
+        self.v["track_id"] = self.v["track_id"].astype(int)
+        self.v["width_m"] = np.full(len(rows), 1.8)
+        self.v["base_px_per_m"] = 1.0
+        self.root = None
+
+    def vehicles(self):
+        return self.v
+
+
+def test_separable_scoring_leaves_out_touching_vehicles_and_their_pairs():
+    from registration.evaluation.traffic import score_traffic, touching
+    from registration.traffic.track import SmoothTrack
+
+    # Frame 0: vehicles 1 and 2 overlap in one lane (1 m apart), vehicle 3 alone 20 m on;
+    # base px = metres here, y down in base px, up in metres.
+    rows = [(0, 1, 0.0, 0.0, 1, 0, 10, 4.5), (0, 2, 1.0, 0.0, 1, 0, 10, 4.5)]
+    rows.append((0, 3, 20.0, 0.0, 1, 0, 10, 4.5))
+    truth = _Truth(rows)
+    np.testing.assert_array_equal(touching(truth.v, np.arange(3)), [True, True, False])
+
+    def track(i, x):
+        one = np.array([[x, 0.0]])
+        return SmoothTrack(i, np.array([0]), np.zeros(1), one, np.array([[10.0, 0]]),
+                           np.zeros((1, 2)), np.zeros(1), np.ones(1, bool))  # fmt: skip
+
+    tracks = [track(1, 0.5), track(2, 20.2)]
+    full = score_traffic(tracks, truth, [0])
+    assert (full.truth_objects, full.misses, full.false_positives) == (3, 1, 0)
+    sep = score_traffic(tracks, truth, [0], separable_only=True)
+    # Only vehicle 3 counts, and the track point on the pair is neither a hit nor a false one.
+    assert (sep.truth_objects, sep.misses, sep.false_positives) == (1, 0, 0)
+    assert sep.precision == 1.0 and abs(sep.position_rmse_m - 0.2) < 1e-9
