@@ -29,3 +29,25 @@ def test_traffic_bench_scores_both_registrations_against_the_truth(capsys):
     table = out["markdown"]
     assert "| aerialreg (default preset) |" in table and "| plain OpenCV stabilisation |" in table
     assert table.count(", separable vehicles |") == 2
+
+
+@pytest.mark.parametrize(
+    "argv, size, frames",
+    [
+        (["traffic"], "1280x960", 25),
+        (["traffic", "--profile", "long-flight"], "640x480", 120),
+        (["traffic", "--profile", "paper-hard"], "1280x960", 25),
+        (["traffic", "--frames", "9"], "1280x960", 9),
+    ],
+)
+def test_traffic_bench_takes_the_profile_s_flight(monkeypatch, capsys, argv, size, frames):
+    """A profile's own size and frames (a long flight is 120 frames), else the suite's 25."""
+    import types
+
+    from app.cli.commands import bench
+
+    seen = {}
+    stub = types.SimpleNamespace(TITLE="t", run=lambda args: seen.update(vars(args)) or {})
+    monkeypatch.setattr(bench, "suite_module", lambda name: stub)
+    assert cli_main(["bench", *argv]) == 0
+    assert (seen["size"], seen["frames"]) == (size, frames)

@@ -24,8 +24,8 @@ SUITES = (
     "flyover",
     "traffic",
 )
-# Frames a suite takes when --frames is not given, where it is not DEFAULT_FRAMES: the real
-# flyover video is scored whole; traffic needs tracks (5 s at 5 frames/s).
+# Frames a suite takes when neither --frames nor --profile is given, where it is not
+# DEFAULT_FRAMES: the real flyover video is scored whole; traffic needs tracks (5 s at 5 frames/s).
 SUITE_FRAMES = {"flyover": 600, "traffic": 25}
 MAX_FRAMES = 1000
 DEFAULT_SIZE, DEFAULT_FRAMES = "1280x960", 6
@@ -101,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
     if args.speed_options and suites != ["register"]:
         raise UsageError("--speed-options goes with the register suite only")
     size, frames = PROFILE_RUNS.get(args.profile, (DEFAULT_SIZE, DEFAULT_FRAMES))
-    if len(suites) == 1 and suites[0] in SUITE_FRAMES:
+    if len(suites) == 1 and suites[0] in SUITE_FRAMES and not args.profile:
         frames = SUITE_FRAMES[suites[0]]
     args.size = size if args.size is None else args.size
     args.frames = frames if args.frames is None else args.frames
