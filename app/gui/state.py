@@ -7,6 +7,7 @@ Table 2), so views read the state, never each other.
 from __future__ import annotations
 
 import copy
+import math
 import threading
 from dataclasses import dataclass, field
 from typing import Any
@@ -27,6 +28,41 @@ STEPS = (
     "evaluated",
 )
 UNDO_DEPTH = 50
+
+
+@dataclass(frozen=True)
+class PendingMark:
+    """A mark proposed to the analyst and not yet confirmed (it counts nowhere until then).
+
+    Attributes:
+        score: the correlation of the match (NaN when none).
+        offset_px: distance from the registration's prediction, raw px (NaN when not refined).
+        confirmable: False when the mark is only the registration's prediction, which measures
+            nothing: the analyst must click the point instead.
+        note: why it was not refined, or what suggested it.
+    """
+
+    score: float = math.nan
+    offset_px: float = math.nan
+    confirmable: bool = True
+    note: str = ""
+
+    def to_json(self) -> list:
+        return [_num(self.score), _num(self.offset_px), bool(self.confirmable), self.note]
+
+    @classmethod
+    def from_json(cls, values: list) -> PendingMark:
+        """From :meth:`to_json`'s list (or an older project's ``[score]``)."""
+        score = math.nan if values[0] is None else float(values[0])
+        if len(values) < 4:
+            return cls(score)
+        offset = math.nan if values[1] is None else float(values[1])
+        return cls(score, offset, bool(values[2]), str(values[3]))
+
+
+def _num(value: float) -> float | None:
+    """JSON has no NaN: None for it."""
+    return float(value) if math.isfinite(value) else None
 
 
 @dataclass
@@ -81,7 +117,7 @@ class AppState:
         seq_frame, overlay, opacity, vector_scale, stage: Sequence view settings
             (``vector_scale`` 0 = automatic).
         points: marked ground points ``{name: {frame index: (x, y) raw px}}``.
-        pending: marks proposed by correlation and not yet confirmed ``{(name, frame): NCC}``.
+        pending: marks proposed and not yet confirmed ``{(name, frame): PendingMark}``.
         point_name, eval_frame: the point being marked and the frame shown in Evaluate.
         anchor: what Table 2 measures a point's motion from (:data:`ANCHORS`).
         report: the last ``registration.evaluation.report.EvaluationReport`` of Table 2 (not saved).
@@ -122,7 +158,7 @@ class AppState:
     vector_scale: float = 0.0
     stage: str = "local"
     points: dict[str, dict[int, tuple[float, float]]] = field(default_factory=dict)
-    pending: dict[tuple[str, int], float] = field(default_factory=dict)
+    pending: dict[tuple[str, int], PendingMark] = field(default_factory=dict)
     point_name: str = "NW"
     eval_frame: int = 0
     anchor: str = ANCHORS[0]
@@ -272,7 +308,7 @@ class AppState:
                     for p, frames in value.items()
                 }
             elif name == "pending":
-                value = [[p, int(k), float(s)] for (p, k), s in sorted(value.items())]
+                value = [[p, int(k), *m.to_json()] for (p, k), m in sorted(value.items())]
             elif name == "lines":
                 value = [[[float(x), float(y)] for x, y in line] for line in value]
             elif name == "cp_edits":
@@ -303,7 +339,7 @@ class AppState:
                         for p, frames in value.items()
                     }
                 elif name == "pending":
-                    value = {(str(p), int(k)): float(s) for p, k, s in value}
+                    value = {(str(e[0]), int(e[1])): PendingMark.from_json(e[2:]) for e in value}
                 elif name == "lines":
                     value = [[(float(x), float(y)) for x, y in line] for line in value]
                 elif name in (

@@ -26,8 +26,18 @@ from registration.evaluation.points import (
     PointMarks,
     evaluate_points,
     point_positions,
-    propose_point,
     read_points_csv,
+)
+from registration.evaluation.proposals import (
+    MarkProposal,
+    PatchStructure,
+    ProposalConfig,
+    SuggestedPoint,
+    patch_structure,
+    propose_mark,
+    propose_through,
+    propose_unregistered,
+    suggest_points,
 )
 from registration.evaluation.report import find_excursions
 from registration.evaluation.table2 import LOCATIONS, STAGES, EvaluationConfig, Table2, table_frames
@@ -58,7 +68,15 @@ __all__ = [
     "find_excursions",
     "homography",
     "point_positions",
-    "propose_point",
+    "MarkProposal",
+    "PatchStructure",
+    "ProposalConfig",
+    "SuggestedPoint",
+    "patch_structure",
+    "propose_mark",
+    "propose_through",
+    "propose_unregistered",
+    "suggest_points",
     "read_points_csv",
     "register_baseline",
     "register_chained",

@@ -1,6 +1,6 @@
 """Hand-marked ground points (paper section 6): the ``POINTS.csv`` file the app and the CLI
-share, the points' registered positions in every frame, Table 2 from them, and proposals of where
-a marked point lies in the next frame.
+share, the points' registered positions in every frame and Table 2 from them (proposals of where
+a marked point lies in another frame: ``proposals``).
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import NDArray
 
 from registration.evaluation.report import (
     EvaluationReport,
@@ -263,74 +263,3 @@ def evaluate_points(
         reference_frame=ref,
         n_frames=int(result.n_frames),
     )
-
-
-@dataclass(frozen=True)
-class PointProposal:
-    """Where :func:`propose_point` found the point: ``xy`` (2,) px (NaN if not found) and the
-    NCC ``score`` of the match."""
-
-    xy: NDArray[np.float64]
-    score: float
-
-
-def propose_point(
-    image_a: NDArray,
-    xy: ArrayLike,
-    image_b: NDArray,
-    *,
-    template_px: int = 41,
-    search_px: int = 64,
-    min_score: float = 0.5,
-) -> PointProposal:
-    """Propose the position in ``image_b`` of the point marked at ``xy`` in ``image_a`` (to help
-    marking the same ground point in the next frame): normalised cross-correlation of a
-    ``template_px`` template around ``xy`` over +-``search_px``, sub-pixel by a parabola fit.
-
-    Args:
-        image_a, image_b: ``(H, W[, 3])`` uint8 frames (e.g. consecutive raw frames).
-        xy: ``(2,)`` the marked point in ``image_a``, px.
-
-    Returns:
-        A :class:`PointProposal`; ``xy`` is NaN when the template leaves ``image_a`` or the best
-        score is below ``min_score``.
-    """
-    import cv2
-
-    def grey(img):
-        img = np.asarray(img)
-        return cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) if img.ndim == 3 else img
-
-    a, b = grey(image_a), grey(image_b)
-    x, y = (float(v) for v in np.asarray(xy, float).reshape(2))
-    nan = PointProposal(np.full(2, np.nan), float("nan"))
-    ht = template_px // 2
-    cx, cy = int(round(x)), int(round(y))
-    if cx - ht < 0 or cy - ht < 0 or cx + ht + 1 > a.shape[1] or cy + ht + 1 > a.shape[0]:
-        return nan
-    tmpl = a[cy - ht : cy + ht + 1, cx - ht : cx + ht + 1]
-    x0, y0 = max(cx - ht - search_px, 0), max(cy - ht - search_px, 0)
-    x1 = min(cx + ht + search_px + 1, b.shape[1])
-    y1 = min(cy + ht + search_px + 1, b.shape[0])
-    if x1 - x0 < tmpl.shape[1] or y1 - y0 < tmpl.shape[0] or float(tmpl.std()) < 1e-6:
-        return nan
-    res = cv2.matchTemplate(b[y0:y1, x0:x1], tmpl, cv2.TM_CCOEFF_NORMED)
-    _, score, _, (px, py) = cv2.minMaxLoc(res)
-    if score < min_score:
-        return PointProposal(np.full(2, np.nan), float(score))
-    sx = sy = 0.0
-    if 0 < px < res.shape[1] - 1:
-        sx = _parabola(res[py, px - 1], res[py, px], res[py, px + 1])
-    if 0 < py < res.shape[0] - 1:
-        sy = _parabola(res[py - 1, px], res[py, px], res[py + 1, px])
-    # Template centre in b, plus the sub-pixel part of the marked point.
-    bx = x0 + px + sx + ht + (x - cx)
-    by = y0 + py + sy + ht + (y - cy)
-    return PointProposal(np.array([bx, by]), float(score))
-
-
-def _parabola(left: float, centre: float, right: float) -> float:
-    den = left - 2.0 * centre + right
-    if den >= 0:
-        return 0.0
-    return float(np.clip(0.5 * (left - right) / den, -0.5, 0.5))

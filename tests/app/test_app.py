@@ -622,41 +622,69 @@ def test_sequence_text_follows_the_seed(tmp_path, small_seq, make_app):
 
 
 def test_evaluate_pending_proposals_count_nowhere(registered):
+    """Suggested points and refined proposals are pending until confirmed; a proposal left at
+    the registration's prediction (an edge) cannot be confirmed; Table 2 counts only confirmed
+    marks."""
     from registration.evaluation import read_points_csv
 
-    app, truth, bxy = registered
+    app, truth, _ = registered
     app.set_mode("Evaluate")
     ev = app.views["Evaluate"]
-    b = np.array([bxy])
-    for k in (0, 1):
-        ev.set_frame(k)
-        click(app, ev.scene.planes["frame"], truth.base_to_frame(k, b)[0])
+    ev.set_frame(0)
+    assert ev.suggest()
+    app.jobs.join(120)
+    app.worker.wait_idle()
+    suggested = sorted(p for (p, k) in app.state.pending if k == 0)
+    assert "NW" in suggested, app.errors
+    assert "suggested: a corner seen in" in ev.panel.marks_html.content
+    ev.set_point("NW")
+    assert ev.confirm()
+    nw0 = np.array([app.state.points["NW"][0]])
+    # Frame 1 is confirmed by a click at the truth; frame 2 is proposed.
+    ev.set_frame(1)
+    click(app, ev.scene.planes["frame"], truth.base_to_frame(1, truth.frame_to_base(0, nw0))[0])
     assert ev.propose_next()
     app.worker.wait_idle()
     assert app.state.eval_frame == 2 and ("NW", 2) in app.state.pending
-    score = app.state.pending[("NW", 2)]
+    mark = app.state.pending[("NW", 2)]
+    assert mark.confirmable and np.isfinite(mark.offset_px), mark
     proposed = np.array(app.state.points["NW"][2])
-    assert np.hypot(*(proposed - truth.base_to_frame(2, b)[0])) < 3.0
-    # Shown as pending with its NCC score, left out of POINTS.csv and of Table 2.
-    assert f"proposed, NCC {score:.2f}" in ev.panel.marks_html.content
+    assert np.hypot(*(proposed - truth.base_to_frame(2, truth.frame_to_base(0, nw0))[0])) < 0.3
+    # Shown as pending with its NCC score and its offset, left out of POINTS.csv and Table 2.
+    assert f"proposed, NCC {mark.score:.2f}" in ev.panel.marks_html.content
+    assert "<th>offset</th>" in ev.panel.marks_html.content
     marks = read_points_csv(app.project.points_path, 4, (640, 480))
     assert sorted(marks.marks["NW"]) == [0, 1]
     assert "# proposed, not confirmed" in app.project.points_path.read_text()
     assert ev.compute_table()
     app.jobs.join(60)
     report = app.state.report
-    assert report.table.n["local"] == [1] and report.table.frames["NW"] == [1]
-    assert "1 pending proposals left out" in ev.panel.table_md.content
+    assert report.table.frames["NW"] == [1]
+    assert "pending proposals left out" in ev.panel.table_md.content
     assert app.views["Evaluate"].panel.table_panel.visible
     # Confirmed, it counts.
-    ev.confirm()
+    ev.set_point("NW")
+    ev.set_frame(2)
+    assert ev.confirm()
     assert ("NW", 2) not in app.state.pending
     assert ev.compute_table()
     app.jobs.join(60)
     assert app.state.report.table.frames["NW"] == [1, 2]
     # Each mark shows its residual (local stage, px from the reference position).
     res = ev.mark_residuals()
-    assert res[("NW", 0)] == pytest.approx(0.0) and res[("NW", 2)] < 3.0
+    assert res[("NW", 0)] == pytest.approx(0.0) and res[("NW", 2)] < 1.0
+    # A point on an edge: the proposal stays at the prediction and cannot be confirmed.
+    edge = _edge_point(app.inputs.frame(0))
+    ev.new_point()
+    name = app.state.point_name
+    ev.set_frame(0)
+    click(app, ev.scene.planes["frame"], edge)
+    assert ev.propose_next()
+    app.worker.wait_idle()
+    mark = app.state.pending[(name, 1)]
+    assert not mark.confirmable and "along an edge" in mark.note
+    assert "predicted only (along an edge" in ev.panel.marks_html.content
+    assert not ev.confirm() and (name, 1) in app.state.pending
     # Table 2 is downloadable (CSV and markdown) and saved.
     assert ev.download_table("csv") and ev.download_table("markdown")
     assert (app.project.folder / "TABLE2.csv").exists() and (
@@ -666,6 +694,24 @@ def test_evaluate_pending_proposals_count_nowhere(registered):
     # The mean anchor is a control of the app (the library's hint names it).
     ev.panel.anchor.value = "mean"
     assert app.state.anchor == "mean"
+
+
+def _edge_point(image) -> tuple[float, float]:
+    """A point of ``image`` whose patch is a clean edge (strong texture one way only)."""
+    import cv2
+
+    from registration.evaluation import patch_structure
+
+    grey = cv2.cvtColor(np.asarray(image), cv2.COLOR_RGB2GRAY)
+    best = None
+    for y in range(40, grey.shape[0] - 40, 4):
+        for x in range(40, grey.shape[1] - 40, 4):
+            s = patch_structure(grey[y - 15 : y + 16, x - 15 : x + 16])
+            strength = s.texture**2 / max(s.isotropy, 1e-9)
+            if s.isotropy < 0.03 and (best is None or strength > best[0]):
+                best = (strength, (float(x), float(y)))
+    assert best is not None
+    return best[1]
 
 
 def test_evaluate_marks_points(tmp_path, small_seq, make_app):

@@ -610,19 +610,25 @@ def test_scrub_plot_click_and_table2(browser, registered_app):
     over.click(position={"x": fx * box["width"], "y": box["height"] / 2})
     wait_until(lambda: app.shown["Sequence"][0] == 1, what="the chart click to show frame 1")
     page.shot("sequence")
-    # Evaluate: two marks and a proposal; the unconfirmed proposal is not in Table 2.
+    # Evaluate: a suggested point confirmed, a mark and a proposal; the unconfirmed proposal is
+    # not in Table 2.
     page.view_button("Evaluate").click()
     wait_until(lambda: app.state.mode == "Evaluate", what="Evaluate view")
     app.worker.wait_idle()
     ev = app.views["Evaluate"]
     page.wait_node("/evaluate/frame")
     fgeom = ev.scene.planes["frame"].geom
-    for k in (0, 1):
-        ev.set_frame(k)
-        app.worker.wait_idle()
-        time.sleep(0.5)
-        page.click_pixel("/evaluate/frame", fgeom, truth.base_to_frame(k, bxy[None])[0])
-        wait_until(lambda k=k: k in app.state.points.get("NW", {}), what=f"the mark in frame {k}")
+    page.button("Suggest").click()
+    wait_until(lambda: ("NW", 0) in app.state.pending, what="suggested points")
+    page.page.wait_for_selector("text=suggested: a corner", timeout=15000)
+    page.button("Confirm").click()
+    wait_until(lambda: ("NW", 0) not in app.state.pending, what="the suggestion confirmed")
+    ground = truth.frame_to_base(0, np.array([app.state.points["NW"][0]]))
+    ev.set_frame(1)
+    app.worker.wait_idle()
+    time.sleep(0.5)
+    page.click_pixel("/evaluate/frame", fgeom, truth.base_to_frame(1, ground)[0])
+    wait_until(lambda: 1 in app.state.points.get("NW", {}), what="the mark in frame 1")
     page.button("Propose next").click()
     wait_until(lambda: ("NW", 2) in app.state.pending, what="a proposal in frame 2")
     page.page.wait_for_selector("text=proposed, NCC", timeout=15000)

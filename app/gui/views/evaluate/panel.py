@@ -25,7 +25,9 @@ class EvaluatePanel:
     def __init__(self, gui) -> None:
         self.frame_slider = gui.add_slider("Frame", 0, 1, 1, 0)
         self.point_dd = gui.add_dropdown("Point", POINT_NAMES[:1], initial_value=POINT_NAMES[0])
-        self.mark = gui.add_button_group("Mark", ("New point", "Propose next", "Confirm", "Delete"))
+        self.mark = gui.add_button_group(
+            "Mark", ("New point", "Suggest", "Propose next", "Confirm", "Delete")
+        )
         self.hint_md = gui.add_markdown("")
         self.marks_html = gui.add_html("")
         self.anchor = gui.add_dropdown(
@@ -59,6 +61,7 @@ class EvaluatePanel:
         *,
         new_point: ClientCallback,
         propose_next: ClientCallback,
+        suggest: ClientCallback,
         confirm: ClientCallback,
         delete: ClientCallback,
     ) -> None:
@@ -67,6 +70,7 @@ class EvaluatePanel:
             self.mark,
             {
                 "New point": new_point,
+                "Suggest": suggest,
                 "Propose next": propose_next,
                 "Confirm": confirm,
                 "Delete": delete,
@@ -114,7 +118,8 @@ class EvaluatePanel:
         self.table_panel.visible = visible
 
     def show_marks(self, rows: list[dict], current: str) -> None:
-        """``rows``: point, frame, x, y, pending (NCC or None), residual (px or None)."""
+        """``rows``: point, frame, x, y, pending (``PendingMark`` or None), residual (base px or
+        None), offset (raw px from the registration's prediction, or None)."""
         if not rows:
             self.marks_html.content = ""
             self.hint_md.content = (
@@ -123,12 +128,8 @@ class EvaluatePanel:
             return
         body = []
         for r in rows:
-            status = "marked" if r["pending"] is None else f"proposed, NCC {r['pending']:.2f}"
-            res = (
-                "–"
-                if r["residual"] is None or not np.isfinite(r["residual"])
-                else f"{r['residual']:.2f}"
-            )
+            status = _status(r["pending"])
+            res, off = _num(r["residual"]), _num(r.get("offset"))
             cls = "pending" if r["pending"] is not None else ""
             if r["point"] == current and r["current_frame"]:
                 cls += " selected"
@@ -137,7 +138,7 @@ class EvaluatePanel:
                 f"window.aerialreg.send('eval-mark', [{_js_str(r['point'])}, {r['frame']}])\">"
                 f"<td style='text-align:left'>{escape_md(r['point'])}</td><td>{r['frame']}</td>"
                 f"<td>{r['x']:.1f}</td><td>{r['y']:.1f}</td>"
-                f"<td style='text-align:left'>{status}</td><td>{res}</td></tr>"
+                f"<td style='text-align:left'>{escape_md(status)}</td><td>{off}</td><td>{res}</td></tr>"
             )
         n_pending = sum(r["pending"] is not None for r in rows)
         self.hint_md.content = (
@@ -147,11 +148,14 @@ class EvaluatePanel:
                 if n_pending
                 else ""
             )
-            + ". Residual: distance (base px, local stage) from the point's anchor position."
+            + ". Offset: raw px from where the registration puts the point (from its first "
+            "confirmed mark); residual: base px from the point's anchor position, what Table 2 "
+            "averages."
         )
         self.marks_html.content = (
             '<div class="aerialreg-scroll"><table class="aerialreg-table"><thead><tr><th>point</th>'
-            "<th>frame</th><th>x</th><th>y</th><th>status</th><th>res. (px)</th></tr></thead>"
+            "<th>frame</th><th>x</th><th>y</th><th>status</th><th>offset</th><th>res. (px)</th>"
+            "</tr></thead>"
             f"<tbody>{''.join(body)}</tbody></table></div>"
         )
 
@@ -163,6 +167,21 @@ class EvaluatePanel:
         self.table2_md.content = markdown
         self.table_panel.visible = True
         self.table_panel.float(x=16, y=-16, width=820)
+
+
+def _num(value: float | None) -> str:
+    return "–" if value is None or not np.isfinite(value) else f"{value:.2f}"
+
+
+def _status(mark) -> str:
+    """A mark's status cell: marked, proposed (refined, with its correlation), or why not."""
+    if mark is None:
+        return "marked"
+    if not mark.confirmable:
+        return f"predicted only ({mark.note}): click the point"
+    if np.isfinite(mark.score):
+        return f"proposed, NCC {mark.score:.2f}"
+    return mark.note or "proposed"
 
 
 def _js_str(text: str) -> str:

@@ -1,12 +1,15 @@
 """Evaluate view: mark the same ground points in several frames, then the paper's Table 2 (section 6).
 
 Points are marked on the raw frames (raw pixels, as POINTS.csv stores them). A click sets the
-current point in the shown frame (a new click moves it). "Propose in next frame" finds the point
-in the next frame by normalised cross-correlation (or, where that finds nothing, through the
-registration result) and shows the proposal (orange, with its NCC score) as *pending*: it counts
-nowhere (not in Table 2, not in POINTS.csv) until the analyst confirms it as is or moves it with a
-click. Each mark shows its residual after registration: its distance (base px, local stage) from
-the point's anchor position, the quantity Table 2 averages. Table 2 comes from
+current point in the shown frame (a new click moves it). "Suggest" offers corners worth marking
+near the paper's five locations. "Propose next" places the point in the next frame where the
+registration predicts it from the point's first confirmed mark and refines it by correlation only
+where the patch fixes both directions (``registration.evaluation.proposals``); the proposal
+(orange) is *pending*: it counts nowhere (not in Table 2, not in POINTS.csv) until the analyst
+confirms it or moves it with a click, and one left at the prediction (along an edge, bland,
+ambiguous) cannot be confirmed. Each mark shows its offset from the registration's prediction
+(raw px) and its residual (base px, local stage, from the point's anchor position, the quantity
+Table 2 averages). Table 2 comes from
 ``registration.evaluation`` with the anchor chosen here, is shown in its own wide panel and can
 be downloaded as CSV and markdown.
 """
@@ -20,7 +23,7 @@ import numpy as np
 
 from app.gui import scene2d
 from app.gui.context import Client
-from app.gui.state import ANCHORS
+from app.gui.state import ANCHORS, PendingMark
 from app.gui.views.base import View
 from app.gui.views.evaluate.panel import POINT_NAMES, EvaluatePanel, TableFormat
 from app.gui.views.evaluate.scene import EvaluateScene
@@ -51,6 +54,7 @@ class EvaluateView(View):
         p.on_mark_actions(
             new_point=lambda client: self.new_point(),
             propose_next=self.propose_next,
+            suggest=self.suggest,
             confirm=self.confirm,
             delete=lambda client: self.delete_mark(),
         )
@@ -168,13 +172,20 @@ class EvaluateView(View):
         """Accept the proposal for the current point in the shown frame as it is."""
         with self.state.lock:
             key = (self.state.point_name, self.state.eval_frame)
-            if key not in self.state.pending:
-                ok = False
-            else:
+            mark = self.state.pending.get(key)
+            if mark is not None and mark.confirmable:
                 del self.state.pending[key]
                 self.state.revision += 1
-                ok = True
-        if not ok:
+        if mark is not None and not mark.confirmable:
+            self.notify(
+                client,
+                "Click the point instead",
+                "This proposal is only where the registration puts the point "
+                f"({mark.note}); confirming it would measure nothing.",
+                "yellow",
+            )
+            return False
+        if mark is None:
             self.notify(
                 client,
                 "Nothing to confirm",
@@ -239,15 +250,37 @@ class EvaluateView(View):
                 out[(p, k)] = float(np.hypot(*(xy - a))) if a is not None else float("nan")
         return out
 
+    def mark_offsets(self) -> dict[tuple[str, int], float]:
+        """Per mark: its distance (raw px) from where the registration (local stage) predicts
+        it from the point's first confirmed mark; the image's view of the registration's error
+        there, shown beside the residual."""
+        with self.state.lock:
+            r = self.state.result
+            marks = {p: dict(m) for p, m in self.state.points.items() if m}
+            confirmed = self.state.confirmed_marks()
+        out: dict[tuple[str, int], float] = {}
+        if r is None:
+            return out
+        for p, by_frame in marks.items():
+            origin = sorted(confirmed.get(p, {}).items())
+            if not origin:
+                continue
+            k0, xy0 = origin[0]
+            b = r.frame_to_base(k0, np.asarray([xy0], float), "local")
+            for k, xy in by_frame.items():
+                pred = r.base_to_frame(k, b, "local")[0]
+                out[(p, k)] = float(np.hypot(*(np.asarray(xy) - pred)))
+        return out
+
     def mark_rows(self) -> list[dict]:
         with self.state.lock:
             pts = {p: dict(m) for p, m in self.state.points.items()}
             pending = dict(self.state.pending)
             k0 = self.state.eval_frame
         try:
-            res = self.mark_residuals()
+            res, offsets = self.mark_residuals(), self.mark_offsets()
         except (ValueError, IndexError):
-            res = {}
+            res, offsets = {}, {}
         rows = []
         for p in sorted(pts, key=_natural):
             for k, (x, y) in sorted(pts[p].items()):
@@ -259,6 +292,7 @@ class EvaluateView(View):
                         "y": y,
                         "pending": pending.get((p, k)),
                         "residual": res.get((p, k)),
+                        "offset": offsets.get((p, k)),
                         "current_frame": k == k0,
                     }
                 )
@@ -275,12 +309,11 @@ class EvaluateView(View):
         with self.state.lock:
             pending = sorted(self.state.pending.items())
             pts = {p: dict(m) for p, m in self.state.points.items()}
-        for (p, k), score in pending:
+        for (p, k), mark in pending:
             xy = pts.get(p, {}).get(k)
             if xy is not None:
-                buf.write(
-                    f"# proposed, not confirmed (NCC {score:.3f}): {p},{k},{xy[0]:.3f},{xy[1]:.3f}\n"
-                )
+                why = f"NCC {mark.score:.3f}" if np.isfinite(mark.score) else mark.note
+                buf.write(f"# proposed, not confirmed ({why}): {p},{k},{xy[0]:.3f},{xy[1]:.3f}\n")
         return buf.getvalue()
 
     def write_points_csv(self) -> str:
@@ -308,13 +341,19 @@ class EvaluateView(View):
     def propose_next(self, client: Client = None) -> bool:
         """Propose the current point in the next frame, pending until confirmed.
 
-        By normalised cross-correlation (``registration.evaluation.points.propose_point``); where that
-        finds nothing, from the registration result (frame k -> base -> frame k+1, local stage).
+        With a registration result the proposal starts at the registration's prediction from
+        the point's first confirmed mark and is refined by correlation only where the patch
+        fixes both directions (``registration.evaluation.propose_through``); otherwise it stays
+        at the prediction, says why, and cannot be confirmed. Before any registration it is
+        searched around the same position in the next frame.
         """
         inp = self.ctx.inputs
         with self.state.lock:
             name, k = self.state.point_name, self.state.eval_frame
             xy = self.state.points.get(name, {}).get(k)
+            # Proposals start from the point's first confirmed mark, never from earlier
+            # proposals (chained correlation slides along roads).
+            origin = sorted(self.state.confirmed_marks().get(name, {}).items()) or [(k, xy)]
             result = self.state.result
         if inp is None:
             return False
@@ -328,28 +367,90 @@ class EvaluateView(View):
             return False
 
         def work() -> None:
-            prop = evaluation.propose_point(inp.frame(k), xy, inp.frame(k + 1))
-            p, score = prop.xy, prop.score
-            if not np.all(np.isfinite(p)) and result is not None:
-                # NCC finds nothing where its template leaves the frame (points near the border)
-                # or on bland ground; the registration still maps such points wherever both
-                # frames are registered (no NCC score then).
-                b = result.frame_to_base(k, np.asarray([xy], float), "local")
-                p, score = result.base_to_frame(k + 1, b, "local")[0], float("nan")
-            if not np.all(np.isfinite(p)):
+            if result is not None:
+                k0, xy0 = origin[0]
+                prop = evaluation.propose_through(
+                    result, inp.frame(k0), k0, xy0, inp.frame(k + 1), k + 1
+                )
+            else:
+                prop = evaluation.propose_unregistered(inp.frame(k), xy, inp.frame(k + 1))
+            if not np.all(np.isfinite(prop.xy)):
                 self.notify(
-                    client, "No proposal", f"{name} could not be found in frame {k + 1}", "yellow"
+                    client,
+                    "No proposal",
+                    f"{name} could not be placed in frame {k + 1}: {prop.reason}",
+                    "yellow",
                 )
                 return
+            mark = PendingMark(prop.score, prop.offset_px, prop.refined, prop.reason)
             with self.state.lock:
-                self.state.points.setdefault(name, {})[k + 1] = (float(p[0]), float(p[1]))
-                self.state.pending[(name, k + 1)] = float(score)
+                self.state.points.setdefault(name, {})[k + 1] = (
+                    float(prop.xy[0]),
+                    float(prop.xy[1]),
+                )
+                self.state.pending[(name, k + 1)] = mark
                 self.state.revision += 1
             self.set_frame(k + 1)
             self._points_changed()
+            if not prop.refined:
+                self.notify(
+                    client,
+                    "Not refined: click the point",
+                    f"{name} in frame {k + 1} is only where the registration puts it "
+                    f"({prop.reason}).",
+                    "yellow",
+                )
 
         self.submit("propose", work)
         return True
+
+    def suggest(self, client: Client = None) -> bool:
+        """Suggest points worth marking in the shown frame, one near each of the paper's five
+        locations (``registration.evaluation.suggest_points``), as pending marks to confirm."""
+        inp = self.ctx.inputs
+        with self.state.lock:
+            result, k = self.state.result, self.state.eval_frame
+        if inp is None:
+            return False
+        if result is None:
+            self.notify(
+                client, "No result", "Register the sequence first (Sequence view)", "yellow"
+            )
+            return False
+
+        def job(progress) -> None:
+            progress(0, 1, "looking for corners seen in several frames")
+            found = evaluation.suggest_points(result, inp.frame, k)
+            if progress.cancel.is_set():
+                return
+            with self.state.lock:
+                added = []
+                for s in found:
+                    if k in self.state.points.get(s.location, {}):
+                        continue  # the analyst's own mark stays
+                    self.state.points.setdefault(s.location, {})[k] = (
+                        float(s.xy[0]),
+                        float(s.xy[1]),
+                    )
+                    self.state.pending[(s.location, k)] = PendingMark(
+                        note=f"suggested: a corner seen in {s.n_frames} frames"
+                    )
+                    added.append(s.location)
+                self.state.revision += 1
+            progress(1, 1)
+            self._points_changed()
+            self.notify(
+                client,
+                "Suggested points",
+                (
+                    f"{', '.join(added)} in frame {k}: confirm the ones on the ground"
+                    if added
+                    else f"no new point found in frame {k}"
+                ),
+                "blue",
+            )
+
+        return self.ctx.run_job("suggest points", job, client)
 
     def compute_table(self, client: Client = None) -> bool:
         """Table 2 (paper section 6) from the confirmed marks and the registration result."""
