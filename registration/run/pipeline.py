@@ -49,6 +49,7 @@ from registration.run.records import MID_BASE, FrameRecord
 from registration.run.records import frame_arrays as _frame_arrays
 from registration.run.records import frame_stats as _stats
 from registration.run.result import RegistrationResult
+from registration.run.result_folder import LOCK_NAME, folder_state, remove_result
 from registration.run.writer import ResultWriter
 
 Progress = Callable[[int, int], None]
@@ -163,6 +164,38 @@ def register_sequence(
         frames, base, gamma, seed, reference_frame, base_valid, base_georef, base_path, config,
         preset,
     )  # fmt: skip
+    # A run that fails at the reference frame has computed nothing: when it made the folder
+    # (or found it empty), it leaves it as it was, so that a run with a corrected click or γ
+    # needs no --force.
+    before = folder_state(out_dir)
+    try:
+        return _register(
+            frames, base, gamma, out_dir, meta, config, seed, base_valid, reference_frame,
+            resume, force, progress, cancel, reference, executor, overlap, adjust_progress,
+        )  # fmt: skip
+    except (RegistrationFailed, ReferenceFrameUnusable) as exc:
+        if before in ("missing", "empty") and exc.frame == reference_frame:
+            _discard_failed_start(out_dir, made_folder=before == "missing")
+        raise
+
+
+def _discard_failed_start(out_dir: Path, *, made_folder: bool) -> None:
+    """Remove what a run that failed at its reference frame wrote into a folder it found
+    empty (and the folder and its lock file when the run made it)."""
+    remove_result(out_dir)
+    if made_folder:
+        (out_dir / LOCK_NAME).unlink(missing_ok=True)
+        try:
+            out_dir.rmdir()  # only when nothing else is in it
+        except OSError:
+            pass
+
+
+def _register(
+    frames, base, gamma, out_dir, meta, config, seed, base_valid, reference_frame, resume,
+    force, progress, cancel, reference, executor, overlap, adjust_progress,
+) -> RegistrationResult:  # fmt: skip
+    """:func:`register_sequence` after its inputs were checked."""
     with ResultWriter.create(out_dir, meta, frames=frames, resume=resume, force=force) as writer:
         n = len(frames)
         n_done = sum(writer.done(k) for k in range(n))

@@ -35,7 +35,7 @@ from registration.synth import SimConfig, load_truth, simulate
 REPO = Path(__file__).resolve().parents[2]
 N = 6
 SIZE = (480, 360)
-PROGRESS = re.compile(r"^[\w ]+: \d+/\d+ \(\d+%\)")
+PROGRESS = re.compile(r"^[\w ()]+: \d+/\d+ \(\d+%\)")
 
 
 # ------------------------------------------------------------------------------------------
@@ -139,6 +139,8 @@ def register_args(sim: Path, out: Path, frames: Path | None = None) -> list[str]
         frames or sim / "frames",
         "--out",
         out,
+        "--gamma",
+        "0.7",
     ]
 
 
@@ -248,6 +250,8 @@ def test_resume_with_another_base_map_of_the_same_size_is_refused(
         sims[0] / "frames",
         "--out",
         out,
+        "--gamma",
+        "0.7",
         "--resume",
     )
     assert_refused(code, err, "register", "the base map", "other pixels")
@@ -565,6 +569,44 @@ def test_register_gamma_outside_the_harris_range(sims, tmp_path, capsys):
     assert not (tmp_path / "out").exists()
 
 
+def test_a_wrong_click_leaves_no_result_behind(sims, tmp_path, capsys):
+    """A run refused at the reference frame (a click 60 px off) computed nothing: it leaves no
+    folder, and the run with the corrected click needs no --force."""
+    truth = load_truth(sims[0])
+    w, h = truth.frame_size
+    bx, by = truth.frame_to_base(0, [[w / 2, h / 2]])[0]
+    out = tmp_path / "reg"
+    code, _, err = cli(
+        capsys, *register_args(sims[0], out), "--seed", f"{w / 2},{h / 2},{bx - 9},{by - 60}"
+    )
+    assert_refused(code, err, "register", "check the click")
+    assert not out.exists()
+    # Into a folder the user made (and keeps other files in): only the run's own files go.
+    out.mkdir()
+    code, _, err = cli(
+        capsys, *register_args(sims[0], out), "--seed", f"{w / 2},{h / 2},{bx - 9},{by - 60}"
+    )
+    assert_refused(code, err, "register", "check the click")
+    assert out.is_dir() and not (out / "result.json").exists() and not (out / "frames").exists()
+    code, _, err = cli(capsys, *register_args(sims[0], out), "--seed", f"{w / 2},{h / 2},{bx},{by}")
+    assert code == 0, err
+
+
+def test_gamma_auto_refuses_an_estimate_it_cannot_trust(sims, tmp_path, capsys):
+    """A motionless flight cannot show the lens (the estimate runs to the end of its range):
+    one line saying how to give γ, no result."""
+    frames = tmp_path / "still"
+    frames.mkdir()
+    for k in range(4):
+        shutil.copy(sims[0] / "frames" / "000000.png", frames / f"{k:06d}.png")
+    out = tmp_path / "reg"
+    args = [a for a in register_args(sims[0], out, frames) if a not in ("--gamma", "0.7")]
+    code, _, err = cli(capsys, *args)  # the default is --gamma auto
+    line = assert_refused(code, err, "register", "gamma could not be estimated", "--gamma G")
+    assert "end of the searched range" in line
+    assert not out.exists()
+
+
 def make_bad_image(kind: str, folder: Path, source: Path) -> Path:
     """A bad image file of ``kind`` in ``folder`` (``source``: a good image to damage)."""
     path = folder / f"{kind}.png"
@@ -613,7 +655,16 @@ def test_register_bad_base_map(sims, tmp_path, capsys, kind, needle):
     base = make_bad_image(kind, tmp_path, sims[0] / "base.png")
     out = tmp_path / "out"
     code, _, err = cli(
-        capsys, "register", "--base", base, "--frames", sims[0] / "frames", "--out", out
+        capsys,
+        "register",
+        "--base",
+        base,
+        "--frames",
+        sims[0] / "frames",
+        "--out",
+        out,
+        "--gamma",
+        "0.7",
     )
     assert_refused(code, err, "register", needle, str(base))
     assert not out.exists()
@@ -650,7 +701,16 @@ def test_register_bad_frame_source(sims, tmp_path, capsys, kind, needle):
     frames = make_bad_frames(kind, tmp_path)
     out = tmp_path / "out"
     code, _, err = cli(
-        capsys, "register", "--base", sims[0] / "base.png", "--frames", frames, "--out", out
+        capsys,
+        "register",
+        "--base",
+        sims[0] / "base.png",
+        "--frames",
+        frames,
+        "--out",
+        out,
+        "--gamma",
+        "0.7",
     )
     assert_refused(code, err, "register", needle)
     assert not out.exists()

@@ -244,7 +244,7 @@ def test_match_in_raw_covers_the_corners(sim, tmp_path):
 )
 def test_register_cli_bad_input(sim, tmp_path, capsys, extra, message):
     args = ["register", "--base", str(sim / "base.png"), "--frames", str(sim / "frames")]
-    code = cli_main([*args, "--out", str(tmp_path / "o"), *extra])
+    code = cli_main([*args, "--out", str(tmp_path / "o"), "--gamma", "0.7", *extra])
     err = capsys.readouterr().err.strip()
     assert code == 2
     assert len(err.splitlines()) == 1 and message in err
@@ -253,7 +253,7 @@ def test_register_cli_bad_input(sim, tmp_path, capsys, extra, message):
 def test_register_cli_missing_frames(sim, tmp_path, capsys):
     code = cli_main(
         ["register", "--base", str(sim / "base.png"), "--frames", str(tmp_path / "nope"),
-         "--out", str(tmp_path / "o")]
+         "--out", str(tmp_path / "o"), "--gamma", "0.7"]
     )  # fmt: skip
     err = capsys.readouterr().err.strip()
     assert code == 2 and "frames not found" in err and len(err.splitlines()) == 1
