@@ -5,6 +5,7 @@ mask that matching respects.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -84,7 +85,8 @@ def read_base_map(
     Args:
         path: the file.
         crs: CRS of the map (EPSG code, ``"EPSG:32643"``, WKT): for a world file without
-            ``.prj``, or to override the file's.
+            ``.prj``, or to override the file's; ``"none"`` ignores the file's georeference (a
+            map in local units whose tag cannot be true).
         nodata: ``"auto"`` (default): the file's own no-data (tag, alpha, mask) plus a black
             collar: pixels black in every band (after the palette) *connected to the image
             border*, how rotated orthophotos are filled even without a no-data tag; dark
@@ -105,12 +107,22 @@ def read_base_map(
         raise ValueError(f"image file {p} is empty")
     if not (nodata in ("auto", "file") or isinstance(nodata, (int, float))):
         raise ValueError(f"nodata must be 'auto', 'file' or a number, got {nodata!r}")
+    ignore_georef = _is_none(crs)
+    crs = None if ignore_georef else crs
     if p.suffix.lower() in PLAIN_SUFFIXES:
         base = _read_plain_base(p, crs, nodata)
     else:
         base = _read_gdal_base(p, crs, nodata)
+    if ignore_georef and base.georef is not None:
+        base = dataclasses.replace(
+            base, georef=None, notes=[*base.notes, "georeference ignored (CRS none)"]
+        )
     if not base.valid.any():
         raise ValueError(f"base map {p.name} has no valid pixels (all no-data)")
+    if base.georef is not None:
+        from registration.gis.georef import check_plausible
+
+        check_plausible(base.georef, base.size, f"base map {p.name}")
     return base
 
 
@@ -124,6 +136,22 @@ def read_georeference(path: str | os.PathLike, *, crs: Any = None):
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"georeference file not found: {p}")
+    if _is_none(crs):
+        return None, _read_georeference(p, None)[1]
+    georef, size = _read_georeference(p, crs)
+    if georef is not None:
+        from registration.gis.georef import check_plausible
+
+        check_plausible(georef, size, f"georeference {p.name}")
+    return georef, size
+
+
+def _is_none(crs: Any) -> bool:
+    """``crs`` "none": the map is used without its file's georeference (a map in local units)."""
+    return isinstance(crs, str) and crs.strip().lower() == "none"
+
+
+def _read_georeference(p: Path, crs: Any):
     if p.suffix.lower() in PLAIN_SUFFIXES:
         base = _read_plain_base(p, crs, "file")
         return base.georef, base.size

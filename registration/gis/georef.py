@@ -52,6 +52,58 @@ def parse_crs(crs: Any) -> Any:
         raise ValueError(f"not a coordinate reference system: {shown!r} ({exc})") from None
 
 
+def check_map_crs(crs: Any, what: str = "the base map's CRS") -> None:
+    """ValueError (one line) unless ``crs`` is a horizontal 2-D CRS, projected or geographic:
+    base-map pixels are positions on the ground, which a vertical, geocentric, 3-D or compound
+    CRS cannot give."""
+    c = parse_crs(crs)
+    kind = c.type_name
+    if (c.is_projected or c.is_geographic) and len(c.axis_info) == 2 and not c.is_compound:
+        return
+    name = c.name if len(c.name) <= 60 else c.name[:57] + "..."
+    epsg = c.to_epsg()
+    shown = f"EPSG:{epsg} ({name})" if epsg else repr(name)
+    raise ValueError(
+        f"{what} {shown} is a {kind}: a base map needs a horizontal projected or geographic "
+        "2-D CRS (for example its UTM zone, or EPSG:4326)"
+    )
+
+
+# A geographic map's pixels larger than this (degrees) is not an orthophoto: most likely a map in
+# local metres tagged with a geographic CRS.
+MAX_GEOGRAPHIC_PIXEL_DEG = 1.0
+
+
+def check_plausible(georef: GeoReference, size: tuple[int, int], name: str) -> None:
+    """ValueError (one line) for a georeference that cannot be true of a ``size`` (width,
+    height) map called ``name``: a CRS that is not horizontal 2-D (:func:`check_map_crs`), or a
+    geographic CRS whose pixels are larger than ``MAX_GEOGRAPHIC_PIXEL_DEG`` or whose corners
+    leave latitude ±90° or longitude -180..360°."""
+    if georef.crs is None:
+        return
+    check_map_crs(georef.crs, f"{name}'s CRS")
+    if not georef.crs.is_geographic:
+        return
+    w, h = size
+    corners = georef.map_from_base(
+        np.array([[-0.5, -0.5], [w - 0.5, -0.5], [-0.5, h - 0.5], [w - 0.5, h - 0.5]])
+    )
+    px = max(georef.pixel_size)
+    lon, lat = corners[:, 0], corners[:, 1]
+    if (
+        px > MAX_GEOGRAPHIC_PIXEL_DEG
+        or np.abs(lat).max() > 90.0
+        or lon.min() < -180.0
+        or lon.max() > 360.0
+    ):
+        raise ValueError(
+            f"{name} is tagged with the geographic CRS {georef.crs.name!r} but its pixels are "
+            f"{px:.4g} degrees and it spans latitude {lat.min():.4g}..{lat.max():.4g}, "
+            f"longitude {lon.min():.4g}..{lon.max():.4g}: its coordinates are not degrees "
+            "(give its real CRS with --base-crs, or --base-crs none to use it without one)"
+        )
+
+
 @dataclass(frozen=True)
 class GeoReference:
     """Where a base map lies on the Earth: its affine transform and coordinate reference system.

@@ -270,3 +270,46 @@ def test_plain_colour_base_reads_as_the_same_bgr_pixels_as_a_frame(tmp_path):
     np.testing.assert_array_equal(bm.image, read_image(path))
     np.testing.assert_array_equal(bm.image[0, 0], (255, 0, 0))
     assert bm.georef is None
+
+
+def test_impossible_geographic_georeferences_are_refused(tmp_path):
+    """A map in local metres tagged WGS 84 (0.182 'degree' pixels reaching latitude 92.8°, the
+    issue's case) is refused in one line naming the figures; a grid in real degrees over
+    Islamabad reads, and so do the metres with the CRS they are really in."""
+    rng = np.random.default_rng(0)
+    img = rng.integers(0, 255, (3, 510, 600), dtype=np.uint8)
+    bad = write_tif(tmp_path / "metres.tif", img, (0.182, 0, 0.0, 0, -0.182, 92.8), "EPSG:4326")
+    with pytest.raises(ValueError) as exc:
+        read_base_map(bad.name)
+    msg = str(exc.value)
+    assert "\n" not in msg and "metres.tif" in msg and "pixels are 0.182 degrees" in msg
+    assert "latitude -0.02..92.8" in msg and "--base-crs" in msg
+    with pytest.raises(ValueError, match="not degrees"):
+        read_georeference(bad.name)
+    good = write_tif(tmp_path / "deg.tif", img, (2e-6, 0, 73.0, 0, -2e-6, 33.64), "EPSG:4326")
+    assert read_base_map(good.name).georef.crs.is_geographic
+    # The same metres, with the CRS they are really in, read; or, with CRS "none", as a plain
+    # image without a georeference.
+    assert read_base_map(bad.name, crs="EPSG:32643").georef.epsg == 32643
+    plain = read_base_map(bad.name, crs="none")
+    assert plain.georef is None and "georeference ignored (CRS none)" in plain.notes
+    assert read_georeference(bad.name, crs="None") == (None, (600, 510))
+
+
+@pytest.mark.parametrize(
+    "crs, kind",
+    [
+        ("EPSG:5703", "Vertical CRS"),
+        ("EPSG:4978", "Geocentric CRS"),
+        ("EPSG:4979", "Geographic 3D CRS"),
+        ("EPSG:7405", "Compound CRS"),
+    ],
+)
+def test_only_horizontal_2d_crs_are_accepted_for_a_base_map(tmp_path, crs, kind):
+    img = np.full((3, 40, 50), 120, np.uint8)
+    path = write_tif(tmp_path / "m.tif", img, ROTATED).name
+    with pytest.raises(ValueError) as exc:
+        read_base_map(path, crs=crs)
+    msg = str(exc.value)
+    assert "\n" not in msg and crs in msg and f"is a {kind}" in msg
+    assert "horizontal projected or geographic" in msg

@@ -40,7 +40,9 @@ def _input_arguments(p: argparse.ArgumentParser) -> None:
         "--base-crs",
         metavar="CRS",
         help="CRS of the base map (e.g. EPSG:32643) when its files do not say it (a world file "
-        "without .prj), or to override the file's",
+        "without .prj), or to override the file's: a horizontal projected or geographic 2-D "
+        "CRS; 'none' uses the map without its georeference (a map in local units tagged with "
+        "a CRS it is not in)",
     )
     p.add_argument(
         "--base-nodata",
