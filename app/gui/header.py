@@ -10,6 +10,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from app.gui.context import Client
+from app.gui.security import escape_md
 from app.gui.state import MODES, STEPS
 from app.gui.views.widgets import ClientCallback, on_press
 
@@ -68,9 +69,10 @@ class HeaderPanel:
     def show_status(self, text: str) -> None:
         self.status.content = text
 
-    def show_steps(self, steps: dict[str, bool], mode: str) -> None:
-        """The view buttons, the checklist (the active view's steps highlighted) and what to do
-        next."""
+    def show_steps(self, steps: dict[str, bool], mode: str, stale: str = "") -> None:
+        """The view buttons, the checklist (the active view's steps highlighted), what to do
+        next, and ``stale``: what the registration result was made with that the settings no
+        longer are."""
         labels = view_labels(steps, mode)
         if list(self.mode_buttons.options) != list(labels.values()):
             self._mode_of_label = {label: m for m, label in labels.items()}
@@ -84,6 +86,11 @@ class HeaderPanel:
             items.append(f'<span class="{cls.strip()}">{mark} {s}</span>')
         todo = [s for s in STEPS if not steps[s]]
         nxt = f"**Next:** {NEXT[todo[0]]}." if todo else "All steps done."
+        if stale:
+            nxt += (
+                f"\n\n⚠ **The registration result is stale**: it was made with {escape_md(stale)}. "
+                "Register the sequence again to use the current settings."
+            )
         self.steps_md.content = f'<div class="aerialreg-steps">{" → ".join(items)}</div>\n\n{nxt}'
 
     def show_job(self, text: str | None) -> None:

@@ -235,7 +235,8 @@ class App:
         with self.state.lock:
             steps = self.state.steps()
             mode = self.state.mode
-        self.header.show_steps(steps, mode)
+            stale = self.state.result_staleness()
+        self.header.show_steps(steps, mode, stale)
 
     def state_changed(self) -> None:
         """Shared state changed: refresh the header and every view's texts."""

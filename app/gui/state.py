@@ -262,10 +262,23 @@ class AppState:
         ref = self.reference
         return ref if ref is not None and ref.key == self.reference_key() else None
 
-    def steps(self) -> dict[str, bool]:
-        """Which of :data:`STEPS` are done."""
-        ref = self.current_reference()
+    def result_staleness(self) -> str:
+        """What the registration result was made with that the current settings no longer are
+        ("" when it matches them, or when there is no result; call under the lock)."""
         r = self.result
+        if r is None:
+            return ""
+        why = []
+        if abs(float(r.gamma) - float(self.gamma)) > 1e-9:
+            why.append(f"γ {float(r.gamma):.4f}, now {float(self.gamma):.4f}")
+        if int(r.reference_frame) != int(self.reference_frame):
+            why.append(f"reference frame {r.reference_frame}, now {self.reference_frame}")
+        return "; ".join(why)
+
+    def steps(self) -> dict[str, bool]:
+        """Which of :data:`STEPS` are done (a result made with other settings counts for none)."""
+        ref = self.current_reference()
+        r = None if self.result_staleness() else self.result
         statuses = [rec.status for rec in r.records] if r is not None else []
         return {
             "calibrated": bool(self.gamma_set),
@@ -274,7 +287,9 @@ class AppState:
                 (ref is not None and ref.fine is not None and ref.fine)
                 or (r is not None and r.is_ok(r.reference_frame))
             ),
-            "sequence registered": bool(statuses) and "pending" not in statuses,
+            "sequence registered": bool(statuses)
+            and "pending" not in statuses
+            and any(st == "ok" for st in statuses),
             "evaluated": self.report is not None,
         }
 

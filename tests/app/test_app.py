@@ -792,11 +792,18 @@ def test_estimate_gamma_from_clicked_lines_and_automatically(tmp_path, small_seq
                 click(app, plane, xy)
             cal.finish_line()
     assert len(app.state.lines) >= 4
+    g0 = app.state.gamma
     cal.estimate(auto=False)
     app.jobs.join(120)
     app.worker.wait_idle()
-    assert app.state.gamma == pytest.approx(truth.gamma, abs=0.05), app.errors
+    # An estimate is shown beside the γ in use and replaces it only when the analyst accepts.
+    assert app.state.gamma == g0 and cal.panel.btn_use_estimate.visible, app.errors
     assert "from lines" in cal.panel.estimate_md.content
+    assert f"In use: γ = {g0:.4f}" in cal.panel.estimate_md.content
+    assert cal.use_estimate()
+    assert app.state.gamma == pytest.approx(truth.gamma, abs=0.05), app.errors
+    assert not cal.panel.btn_use_estimate.visible
+    assert "(estimated from lines)" in cal.panel.estimate_md.content
     # The residual-versus-γ chart marks the estimate (one point, at the curve's γ nearest it).
     grid, curve, marker = cal.panel.plot.data
     i = int(np.flatnonzero(np.isfinite(marker))[0])
@@ -808,6 +815,7 @@ def test_estimate_gamma_from_clicked_lines_and_automatically(tmp_path, small_seq
     cal.estimate(auto=True)
     app.jobs.join(180)
     app.worker.wait_idle()
+    assert app.state.gamma == 0.0 and cal.use_estimate()
     assert app.state.gamma == pytest.approx(truth.gamma, abs=0.1), (
         app.errors,
         cal.panel.estimate_md.content,
@@ -831,6 +839,7 @@ def test_estimate_gamma_from_the_frames_motion(tmp_path, small_seq, make_app):
     cal.estimate_from_motion()
     app.jobs.join(180)
     app.worker.wait_idle()
+    assert app.state.gamma == 0.0 and cal.use_estimate()
     text = cal.panel.estimate_md.content
     m = re.search(r"from (\d) frame pairs (\d) apart.*matches in (\d) frame pairs", text)
     assert m and int(m[1]) >= 2 and int(m[3]) == int(m[1]), (app.errors, text)
@@ -840,6 +849,55 @@ def test_estimate_gamma_from_the_frames_motion(tmp_path, small_seq, make_app):
     grid, curve, marker = cal.panel.plot.data
     assert np.isfinite(marker).sum() == 1 and np.isfinite(curve).all()
     assert not cal.scene.planes["frame"].has("detected")
+
+
+def test_cancelled_gamma_estimate_changes_nothing(tmp_path, small_seq, make_app):
+    """Cancel stops the estimate from motion: γ and the last estimate stay as they were."""
+    app = make_app(tmp_path / "proj", small_seq)
+    cal = app.views["Calibrate"]
+    cal.set_gamma(0.3)
+    seen = threading.Event()
+    real = cal.ctx.run_job
+
+    def run_job(name, fn, client=None, **kw):
+        def wrapped(job):
+            original = job.__call__
+
+            class Spy:
+                cancel = job.cancel
+
+                def __call__(self, done, total=None, note=""):
+                    original(done, total, note)
+                    if done >= 1:  # the first frame pair matched: press Cancel
+                        seen.set()
+                        job.cancel.set()
+
+            fn(Spy())
+
+        return real(name, wrapped, client, **kw)
+
+    cal.ctx.run_job = run_job
+    cal.estimate_from_motion()
+    app.jobs.join(180)
+    app.worker.wait_idle()
+    assert seen.is_set()
+    assert app.state.gamma == 0.3 and cal.last_estimate is None
+    assert not cal.panel.btn_use_estimate.visible
+
+
+def test_a_result_made_with_another_gamma_is_stale(registered):
+    app, truth, _ = registered
+    assert app.state.steps()["sequence registered"]
+    app.views["Calibrate"].set_gamma(truth.gamma + 0.02)
+    app.update_header()
+    steps = app.state.steps()
+    assert not steps["sequence registered"] and not steps["reference registered"]
+    text = app.header.steps_md.content
+    assert "The registration result is stale" in text and "γ 0.7000, now 0.7200" in text
+    app.views["Calibrate"].set_gamma(truth.gamma)
+    app.update_header()
+    assert app.state.steps()["sequence registered"]
+    assert "stale" not in app.header.steps_md.content
 
 
 def test_sequence_cancel_resume_play_and_flicker(tmp_path, small_seq, make_app):

@@ -38,6 +38,7 @@ class CalibratePanel:
             self.btn_est_motion = gui.add_button("Estimate γ from the frames' motion")
             self.show_detected = gui.add_checkbox("Show the lines the estimate used", True)
             self.estimate_md = gui.add_markdown("")
+            self.btn_use_estimate = gui.add_button("Use the estimated γ", visible=False)
             self.plot = gui.add_uplot(
                 data=(np.array([0.0, 1.0]), np.array([np.nan, np.nan]), np.array([np.nan, np.nan])),
                 series=(
@@ -97,6 +98,9 @@ class CalibratePanel:
 
     def on_estimate_from_motion(self, callback: ClientCallback) -> None:
         on_press(self.btn_est_motion, callback)
+
+    def on_use_estimate(self, callback: ClientCallback) -> None:
+        on_press(self.btn_use_estimate, callback)
 
     # ---------------------------------------------------------------- values
     @property
@@ -173,10 +177,14 @@ class CalibratePanel:
         """What the running estimate does (until :meth:`show_estimate` replaces it)."""
         self.estimate_md.content = text
 
-    def show_estimate(self, est, how: str) -> None:
-        """A γ estimate (``registration.lens`` line or motion estimate) and its chart."""
+    def show_estimate(self, est, how: str, current: str = "", pending: bool = False) -> None:
+        """A γ estimate (``registration.lens`` line or motion estimate) and its chart;
+        ``current``: the γ in use (with its own uncertainty when it came from an estimate);
+        ``pending``: the estimate is not in use yet (the *Use* button shows)."""
+        self.btn_use_estimate.visible = pending
         head = (
-            f"γ = **{est.gamma:.4f}** ± {est.uncertainty:.4f} ({how}, {est.uncertainty_method}); "
+            f"Estimate: γ = **{est.gamma:.4f}** ± {est.uncertainty:.4f} ({how}, "
+            f"{est.uncertainty_method}); "
         )
         if est.method == "motion":
             self.estimate_md.content = head + escape_md(
@@ -191,6 +199,10 @@ class CalibratePanel:
                 + (f", {est.n_rejected} rejected as curved" if est.n_rejected else "")
                 + f"; straightness {est.residual:.2f} px (uncorrected "
                 f"{est.residual_uncorrected:.2f} px)"
+            )
+        if current:
+            self.estimate_md.content += f"\n\nIn use: γ = {escape_md(current)}" + (
+                ". *Use the estimated γ* to apply the estimate." if pending else "."
             )
         self._show_curve(est)
 

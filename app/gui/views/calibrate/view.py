@@ -48,6 +48,10 @@ SETTLE_S = 0.35
 """After this long without a new γ/frame request, the full-resolution image replaces the preview."""
 
 
+class _Cancelled(Exception):
+    """Raised from an estimate's progress callback when the analyst pressed Cancel."""
+
+
 class CalibrateView(View):
     MODE = "Calibrate"
     CLICKABLE = ("frame",)
@@ -73,10 +77,13 @@ class CalibrateView(View):
         p.on_estimate_from_lines(lambda client: self.estimate(auto=False, client=client))
         p.on_estimate_automatically(lambda client: self.estimate(auto=True, client=client))
         p.on_estimate_from_motion(lambda client: self.estimate_from_motion(client=client))
+        p.on_use_estimate(self.use_estimate)
         self._settle_timer: threading.Timer | None = None
         self._timer_lock = threading.Lock()
         self._stopped = False
         self.last_estimate = None
+        self.last_how = ""
+        self.gamma_source: tuple[float, str] | None = None  # (γ, its estimate's text) in use
 
     # ---------------------------------------------------------------- inputs and state
     def on_inputs(self) -> None:
@@ -136,6 +143,8 @@ class CalibrateView(View):
         if changed:
             self.ctx.save()
             self.ctx.state_changed()
+        if self.last_estimate is not None:
+            self._show_estimate(pending=self._pending(gamma))
         self.request_render()
         return True
 
@@ -249,6 +258,9 @@ class CalibrateView(View):
                 est = estimate_gamma_auto(inp.frame(k))
             else:
                 est = estimate_gamma_from_lines(lines, *inp.frame_size)
+            if progress.cancel.is_set():
+                self._cancelled(client)
+                return
             self._estimated(est, "automatically" if auto else "from lines", client)
 
         self.ctx.run_job("estimate γ", job, client)
@@ -265,23 +277,72 @@ class CalibrateView(View):
         def job(progress) -> None:
             self.panel.show_estimating("Estimating γ from the frames' motion ...")
             progress(0, None, "choosing how many frames apart")
-            est = estimate_gamma_from_flight(
-                inp.frame,
-                inp.n_frames,
-                progress=lambda done, total: progress(done, total, "frame pairs matched"),
-            )
+
+            def pairs_done(done: int, total: int) -> None:
+                if progress.cancel.is_set():
+                    raise _Cancelled
+                progress(done, total, "frame pairs matched")
+
+            try:
+                est = estimate_gamma_from_flight(inp.frame, inp.n_frames, progress=pairs_done)
+            except _Cancelled:
+                est = None
+            if est is None or progress.cancel.is_set():
+                self._cancelled(client)
+                return
             self._estimated(
                 est, f"from {len(est.frame_pairs)} frame pairs {est.step} apart", client
             )
 
         self.ctx.run_job("estimate γ from motion", job, client)
 
+    def _cancelled(self, client: Client) -> None:
+        """A cancelled estimate changes nothing: the previous estimate's text comes back."""
+        with self.state.lock:
+            g = self.state.gamma
+        if self.last_estimate is not None:
+            self._show_estimate(pending=self._pending(g))
+        else:
+            self.panel.show_estimating("")
+        self.notify(client, "Estimate cancelled", f"γ stays {g:.4f}", "blue")
+
     def _estimated(self, est, how: str, client: Client) -> None:
-        """Show an estimate, set γ to it and draw the lines it used (on the job's thread)."""
-        self.last_estimate = est
-        self.panel.show_estimate(est, how)
-        self.set_gamma(float(est.gamma), client)
+        """Show an estimate beside the γ in use; it replaces γ only when the analyst presses
+        *Use the estimated γ* (on the job's thread)."""
+        self.last_estimate, self.last_how = est, how
+        with self.state.lock:
+            g = self.state.gamma
+        self._show_estimate(pending=self._pending(g))
         self.request_overlays()
+
+    def _pending(self, gamma: float) -> bool:
+        est = self.last_estimate
+        return est is not None and abs(float(est.gamma) - float(gamma)) > 1e-12
+
+    def _show_estimate(self, *, pending: bool) -> None:
+        with self.state.lock:
+            g, is_set = self.state.gamma, self.state.gamma_set
+        source = self.gamma_source
+        if source is not None and abs(source[0] - g) <= 1e-12:
+            current = f"{g:.4f} {source[1]}"
+        else:
+            current = f"{g:.4f}" + ("" if is_set else " (not calibrated yet)")
+        self.panel.show_estimate(self.last_estimate, self.last_how, current, pending)
+
+    def use_estimate(self, client: Client = None) -> bool:
+        """Apply the last estimate's γ (the analyst accepted it)."""
+        est = self.last_estimate
+        if est is None:
+            self.notify(client, "No estimate", "Estimate γ first", "yellow")
+            return False
+        if not self.set_gamma(float(est.gamma), client):
+            return False
+        self.gamma_source = (
+            float(est.gamma),
+            f"± {est.uncertainty:.4f} (estimated {self.last_how})",
+        )
+        self._show_estimate(pending=False)
+        return True
 
     def shutdown(self) -> None:
         with self._timer_lock:
