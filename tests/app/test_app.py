@@ -851,38 +851,68 @@ def test_estimate_gamma_from_the_frames_motion(tmp_path, small_seq, make_app):
     assert not cal.scene.planes["frame"].has("detected")
 
 
-def test_cancelled_gamma_estimate_changes_nothing(tmp_path, small_seq, make_app):
-    """Cancel stops the estimate from motion: γ and the last estimate stay as they were."""
-    app = make_app(tmp_path / "proj", small_seq)
-    cal = app.views["Calibrate"]
-    cal.set_gamma(0.3)
-    seen = threading.Event()
-    real = cal.ctx.run_job
+def cancel_after(view, n_reports: int) -> threading.Event:
+    """Make ``view``'s next jobs press Cancel once they have reported progress ``n_reports``
+    times (0: as they start), as the analyst would mid-job; the returned event is set when it
+    was pressed."""
+    pressed = threading.Event()
+    real = view.ctx.run_job
 
     def run_job(name, fn, client=None, **kw):
         def wrapped(job):
-            original = job.__call__
+            calls = []
+            if n_reports == 0:  # pressed as the job starts
+                pressed.set()
+                job.cancel.set()
 
             class Spy:
                 cancel = job.cancel
 
                 def __call__(self, done, total=None, note=""):
-                    original(done, total, note)
-                    if done >= 1:  # the first frame pair matched: press Cancel
-                        seen.set()
+                    job(done, total, note)
+                    calls.append(done)
+                    if len(calls) >= n_reports:
+                        pressed.set()
                         job.cancel.set()
 
             fn(Spy())
 
         return real(name, wrapped, client, **kw)
 
-    cal.ctx.run_job = run_job
+    view.ctx.run_job = run_job
+    return pressed
+
+
+def test_cancelled_gamma_estimate_changes_nothing(tmp_path, small_seq, make_app):
+    """Cancel stops the estimate from motion: γ and the last estimate stay as they were."""
+    app = make_app(tmp_path / "proj", small_seq)
+    cal = app.views["Calibrate"]
+    cal.set_gamma(0.3)
+    seen = cancel_after(cal, 2)  # after "choosing how many frames apart" and one frame pair
     cal.estimate_from_motion()
     app.jobs.join(180)
     app.worker.wait_idle()
     assert seen.is_set()
     assert app.state.gamma == 0.3 and cal.last_estimate is None
     assert not cal.panel.btn_use_estimate.visible
+
+
+def test_cancelled_reference_fit_and_table2_change_nothing(registered):
+    app, truth, _ = registered
+    seed = app.views["Seed"]
+    before = app.state.reference
+    pressed = cancel_after(seed, 1)  # pressed while the coarse step runs
+    assert seed.run_fit(fine=True)
+    app.jobs.join(120)
+    app.worker.wait_idle()
+    assert pressed.is_set() and app.state.reference is before
+    ev = app.views["Evaluate"]
+    with app.state.lock:
+        app.state.points["NW"] = {0: (100.0, 100.0), 1: (101.0, 100.0)}
+    pressed = cancel_after(ev, 0)
+    assert ev.compute_table()
+    app.jobs.join(60)
+    assert app.state.report is None
 
 
 def test_a_result_made_with_another_gamma_is_stale(registered):

@@ -484,6 +484,8 @@ class EvaluateView(View):
                 )
                 self.notify(client, "Table 2 not possible", msg, "yellow")
                 return
+            if progress.cancel.is_set():  # a cancelled job changes nothing
+                return
             with self.state.lock:
                 self.state.report = report
             text = report.table.to_markdown()

@@ -446,6 +446,9 @@ class SeedView(View):
                 )
             except ValueError as exc:  # e.g. the two pairs on one point: say it like a failure
                 coarse = calls.failed_coarse(f"coarse step: {exc}")
+            if progress.cancel.is_set():  # a cancelled fit changes nothing
+                self.notify(client, "Fit cancelled", "The previous fit is kept", "blue")
+                return
             with self.state.lock:
                 self.state.reference = ReferenceFit(key, coarse)
                 self.state.cp_edits = Edits()
@@ -467,7 +470,7 @@ class SeedView(View):
                 return
             if fine:
                 progress(1, 2, "fine step")
-                self._fine(inp, k, gamma, coarse, key, cfg, client)
+                self._fine(inp, k, gamma, coarse, key, cfg, client, progress.cancel)
 
         return self.ctx.run_job("reference fit", job, client, queue=True)
 
@@ -489,15 +492,20 @@ class SeedView(View):
         cfg = self._config()
         return self.ctx.run_job(
             "fine step",
-            lambda progress: self._fine(inp, k, gamma, ref.coarse, ref.key, cfg, client),
+            lambda progress: self._fine(
+                inp, k, gamma, ref.coarse, ref.key, cfg, client, progress.cancel
+            ),
             client,
         )
 
-    def _fine(self, inp, k, gamma, coarse, key, cfg, client: Client) -> None:
+    def _fine(self, inp, k, gamma, coarse, key, cfg, client: Client, cancel) -> None:
         fine = global_registration.fine_register_reference(
             inp.frame(k), inp.base, gamma, coarse, cfg.fine, match_in=cfg.match_in,
             base_valid=inp.base_valid,
         )  # fmt: skip
+        if cancel.is_set():  # the coarse step (finished before) stays; the fine one is dropped
+            self.notify(client, "Fine step cancelled", "The fine fit is unchanged", "blue")
+            return
         with self.state.lock:
             ref = self.state.reference
             if ref is None or ref.key != key:
