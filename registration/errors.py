@@ -91,9 +91,10 @@ class ResumeMismatch(ResultFolderError):
 
     remedy = "restart"
 
-    def __init__(self, out_dir: str | Path, difference: str) -> None:
+    def __init__(self, out_dir: str | Path, difference: str, key: str | None = None) -> None:
         super().__init__(f"cannot resume {out_dir}: {difference}", out_dir)
         self.difference = difference
+        self.key = key  # the result.json key that differs (None: the inputs' files)
 
 
 class ResultBusy(ResultFolderError):

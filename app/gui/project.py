@@ -158,7 +158,39 @@ class Project:
             n += 1
         target = self.folder / f"result.prev-{n}"
         os.replace(self.result_dir, target)
+        (self.folder / RESULT_FIT).unlink(missing_ok=True)  # the next run records its own
         return target
+
+    def read_result_fit(self) -> str | None:
+        """The reference-fit edits the project's result was made with (None: not recorded)."""
+        path = self.folder / RESULT_FIT
+        try:
+            return json.loads(path.read_text())["edits"]
+        except (OSError, ValueError, KeyError, TypeError):
+            return None
+
+    def write_result_fit(self, edits: str) -> None:
+        """Record which reference-fit edits the project's result is made with."""
+        write_atomic(self.folder / RESULT_FIT, json.dumps({"edits": edits}) + "\n")
+
+    def earlier_results(self) -> list[Path]:
+        """The results moved aside by :meth:`archive_result`, oldest first."""
+        found = []
+        for p in self.folder.glob("result.prev-*"):
+            suffix = p.name.rsplit("-", 1)[1]
+            if p.is_dir() and suffix.isdigit():
+                found.append((int(suffix), p))
+        return [p for _, p in sorted(found)]
+
+    def restore_result(self, earlier: Path) -> Path | None:
+        """Make ``earlier`` (one of :meth:`earlier_results`) the project's result again; the
+        current result, if any, is moved aside first. Returns where it went (or None)."""
+        if earlier not in self.earlier_results():
+            raise ValueError(f"{earlier.name} is not an earlier result of this project")
+        kept = self.archive_result() if self.result_dir.exists() else None
+        os.replace(earlier, self.result_dir)
+        (self.folder / RESULT_FIT).unlink(missing_ok=True)  # unknown: continued as it is
+        return kept
 
     def write_file(self, name: str, data: bytes | str) -> Path:
         path = self.folder / name
@@ -167,6 +199,8 @@ class Project:
 
 
 REFERENCE_FILE = "reference.npz"
+RESULT_FIT = "result_fit.json"
+"""Which reference-fit edits the project's result was made with."""
 
 
 def reference_to_bytes(key: dict, coarse, fine) -> bytes:

@@ -318,7 +318,7 @@ class App:
         try:
             self.open_inputs(frames, base, client=client)
         except (OSError, ValueError, IndexError) as exc:
-            self.notify(client, "Could not open inputs", str(exc), color="red")
+            self.notify(client, "Could not open inputs", browser_message(exc), color="red")
             return
         self.set_mode(self.state.mode)
         self.notify(client, "Inputs opened", f"{frames}\n{base}", color="green")

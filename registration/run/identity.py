@@ -150,16 +150,21 @@ def _base_difference(old: dict | None, new: dict | None) -> str:
     return ""
 
 
-def _resume_problem(out_dir: Path, old: dict, meta: dict, frames) -> str:
+def _resume_problem(out_dir: Path, old: dict, meta: dict, frames) -> tuple[str, str | None]:
+    """``(what differs, the result.json key that does or None)``; ``("", None)`` when a resume
+    may continue the result."""
     for key in RESUME_KEYS:
         if old.get(key) != json.loads(json.dumps(meta.get(key))):
             if key == "config":
-                return "it was made with a different configuration"
-            return f"its {key} differs from this run's ({old.get(key)!r} vs {meta.get(key)!r})"
+                return "it was made with a different configuration", key
+            return f"its {key} differs from this run's ({old.get(key)!r} vs {meta.get(key)!r})", key
     if "inputs" not in old:
-        return "it has no record of its inputs (written by an older aerialreg)"
+        return "it has no record of its inputs (written by an older aerialreg)", None
     records = [read_record(out_dir, k) for k in range(int(old["n_frames"]))]
     new = meta.get("inputs") or {}
-    return _frames_difference(
+    frames_text = _frames_difference(
         old["inputs"].get("frames"), new.get("frames"), records, frames
-    ) or _base_difference(old["inputs"].get("base"), new.get("base"))
+    )
+    if frames_text:
+        return frames_text, None
+    return _base_difference(old["inputs"].get("base"), new.get("base")), None

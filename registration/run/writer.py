@@ -92,9 +92,9 @@ class ResultWriter:
                 remove_result(out_dir)
                 state = "empty"
             if state == "result":
-                problem = _resume_problem(out_dir, _read_meta(out_dir), meta, frames)
+                problem, key = _resume_problem(out_dir, _read_meta(out_dir), meta, frames)
                 if problem:
-                    raise ResumeMismatch(out_dir, problem)
+                    raise ResumeMismatch(out_dir, problem, key)
             else:
                 (out_dir / "frames").mkdir(exist_ok=True)
                 write_json_atomic(out_dir / RESULT_JSON, meta)

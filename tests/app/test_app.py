@@ -915,6 +915,63 @@ def test_cancelled_reference_fit_and_table2_change_nothing(registered):
     assert app.state.report is None
 
 
+def test_a_changed_gamma_starts_afresh_and_the_earlier_result_can_be_restored(registered):
+    """Registering with another γ keeps the old result as result.prev-1, says so in the app's
+    words (no command-line options, no raw arrays); restoring it brings back the result and the
+    γ it was made with, and keeps the newer one beside."""
+    app, truth, _ = registered
+    seq = app.views["Sequence"]
+    folder = app.project.folder
+    app.views["Calibrate"].set_gamma(truth.gamma + 0.01)
+    app.set_mode("Sequence")
+    assert seq.run()
+    app.jobs.join(300)
+    app.worker.wait_idle()
+    title, body, _ = next(n for n in app.notices if n[0] == "Starting a new result")
+    assert "γ changed since the last result was made" in body and "result.prev-1" in body
+    assert "--" not in body and "[" not in body and "Mismatch" not in body
+    assert (folder / "result.prev-1").is_dir()
+    assert app.state.result.gamma == pytest.approx(truth.gamma + 0.01)
+    labels = seq.panel.earlier.options
+    assert len(labels) == 1 and labels[0].startswith("result.prev-1: 4/4 frames ok, γ 0.7000")
+    assert seq.earlier.restore(labels[0])
+    app.jobs.join(60)
+    app.worker.wait_idle()
+    assert app.state.result.gamma == pytest.approx(truth.gamma)
+    assert app.state.gamma == pytest.approx(truth.gamma) and not app.state.result_staleness()
+    assert app.state.steps()["sequence registered"]
+    assert (folder / "result.prev-2").is_dir() and not (folder / "result.prev-1").exists()
+    assert seq.panel.earlier.options[0].startswith("result.prev-2: 4/4 frames ok, γ 0.7100")
+
+
+def test_register_all_uses_the_control_points_the_analyst_edited(registered):
+    """After a result exists, the analyst disables control points of the reference frame; the
+    next *Register all frames* uses the edited fit (the old result is kept aside)."""
+    app, truth, _ = registered
+    seed, seq = app.views["Seed"], app.views["Sequence"]
+    ref = app.state.reference_frame
+    w, h = app.inputs.frame_size
+    grid = np.stack(np.meshgrid(np.linspace(40, w - 40, 6), np.linspace(40, h - 40, 5)), -1)
+    grid = grid.reshape(-1, 2)
+    before = app.state.result.frame_to_base(ref, grid, "global")
+    app.set_mode("Seed")
+    for _ in range(8):
+        seed.disable_worst()
+        app.worker.wait_idle()
+    edited = app.state.reference.fine.base_from_corrected
+    camera = app.state.camera()
+    want = edited.apply(camera.corrected_from_raw(grid))
+    assert np.abs(want - before).max() > 0.02  # the edits move the fit
+    app.set_mode("Sequence")
+    assert seq.run()
+    app.jobs.join(300)
+    app.worker.wait_idle()
+    assert any("control points were edited" in n[1] for n in app.notices), app.notices
+    assert (app.project.folder / "result.prev-1").is_dir()
+    got = app.state.result.frame_to_base(ref, grid, "global")
+    assert np.abs(got - want).max() < 0.01 < np.abs(got - before).max()
+
+
 def test_a_result_made_with_another_gamma_is_stale(registered):
     app, truth, _ = registered
     assert app.state.steps()["sequence registered"]

@@ -109,10 +109,30 @@ class SequencePanel:
             )
         with gui.add_folder("Control points of this frame", expand_by_default=False):
             self.cps = ControlPointPanel(gui, editable=False, scope="seq")
+        with gui.add_folder("Earlier results", expand_by_default=False):
+            self.earlier_md = gui.add_markdown("No earlier results in this project.")
+            self.earlier = gui.add_dropdown("Earlier result", ("–",), initial_value="–")
+            self.btn_restore = gui.add_button("Restore this result")
         with gui.add_folder("Export", expand_by_default=False):
             self.export = ExportPanel(gui)
 
     # ---------------------------------------------------------------- callbacks
+    def on_restore(self, callback: Callable[[str, Client], None]) -> None:
+        """*Restore this result*, with the label of the earlier result chosen."""
+        on_press(self.btn_restore, lambda client: callback(str(self.earlier.value), client))
+
+    def show_earlier(self, labels: tuple[str, ...]) -> None:
+        """The earlier results (newest first) in the dropdown; none: a note and no button."""
+        self.earlier.options = labels or ("–",)
+        self.earlier.value = (labels or ("–",))[0]
+        self.earlier.visible = self.btn_restore.visible = bool(labels)
+        self.earlier_md.content = (
+            f"{len(labels)} earlier result(s), kept when a run had to start afresh; restoring one "
+            "also restores the γ, seed, reference frame and preset it was made with."
+            if labels
+            else "No earlier results in this project."
+        )
+
     def on_register_all(self, callback: ClientCallback) -> None:
         on_press(self.btn_run, callback)
 

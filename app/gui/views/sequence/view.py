@@ -26,9 +26,11 @@ import numpy as np
 
 from app.gui import calls, controlpoints, scene2d
 from app.gui.context import Client
+from app.gui.messages import result_started_afresh
 from app.gui.security import escape_md
 from app.gui.views.base import View
 from app.gui.views.cptable.table import ControlPointTableView
+from app.gui.views.sequence.earlier import EarlierResults
 from app.gui.views.sequence.export import Exporter
 from app.gui.views.sequence.frames import RegisteredFrames, excursion_flags, frame_preview_side
 from app.gui.views.sequence.panel import DisplayOptions, SequencePanel
@@ -37,6 +39,16 @@ from registration.errors import ResultDamaged, ResumeMismatch
 from registration.run import pipeline
 
 log = logging.getLogger(__name__)
+
+
+def fit_fingerprint(edits) -> str:
+    """The analyst's control-point edits of the reference fit, as a short hash."""
+    import hashlib
+    import json
+
+    text = json.dumps(edits.to_json(), sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
 
 FLICKER_S = 0.5
 PLAY_S = 0.4
@@ -76,6 +88,7 @@ class SequenceView(View):
         p.on_register_frame_again(self.rerun_frame)
         p.on_display_changed(lambda client: self._view_changed())
         self.frames = RegisteredFrames(self.ctx, self.result)
+        self.earlier = EarlierResults(self.ctx, p, self._restored)
         self.cp = ControlPointTableView(
             self.ctx,
             p.cps,
@@ -148,7 +161,13 @@ class SequenceView(View):
         self.panel.frame = k
         if result_dir:
             self.load_result(result_dir)
+        self.earlier.refresh()
         self.refresh_text()
+
+    def _restored(self, out_dir) -> None:
+        self.load_result(out_dir)
+        self.refresh_text()
+        self.request_render()
 
     def on_show(self) -> None:
         self.refresh_text()
@@ -289,6 +308,9 @@ class SequenceView(View):
             reference = (
                 (fit.coarse, fit.fine) if fit is not None and fit.coarse and fit.fine else None
             )
+            # Which control-point edits the reference fit carries: a result made before the
+            # analyst edited them is moved aside, so that the run uses the edited fit.
+            edits = fit_fingerprint(st.cp_edits) if reference is not None else None
             cfg = calls.pipeline_config(preset, st.degree, st.run_local, st.adjust)
             out_dir = str(self.ctx.project.result_dir)
             st.result_dir = out_dir
@@ -324,6 +346,7 @@ class SequenceView(View):
             )
             if reference is not None:
                 kwargs["reference"] = reference
+            self._start_afresh_if_the_fit_was_edited(edits, client)
             try:
                 self._register_or_start_afresh(inp, gamma, out_dir, kwargs, client)
             finally:
@@ -343,6 +366,30 @@ class SequenceView(View):
 
         return self.ctx.run_job("register", job, client)
 
+    def _start_afresh_if_the_fit_was_edited(self, edits: str | None, client) -> None:
+        """Move the result aside when the reference fit's control points were edited since it
+        was made (recorded in the project's ``result_fit.json``); record the edits of this run.
+        A result without the record (an older project) is continued as it is."""
+        project = self.ctx.project
+        if edits is None:
+            return
+        recorded = project.read_result_fit()
+        if project.result_dir.exists() and recorded is not None and recorded != edits:
+            old = project.archive_result()
+            with self.state.lock:
+                self.state.result = None
+            self.notify(
+                client,
+                "Starting a new result",
+                f"the reference frame's control points were edited since the last result was "
+                f"made; it is kept as {old.name} (Sequence view, *Earlier results*, restores it) "
+                "and a new result is started with the edited fit",
+                "yellow",
+            )
+            self.earlier.refresh()
+        if not project.result_dir.exists() or recorded is None:
+            project.write_result_fit(edits)
+
     def _register_or_start_afresh(self, inp, gamma: float, out_dir: str, kwargs, client) -> None:
         """``pipeline.register_sequence`` resuming ``out_dir``; when the folder was made for
         other settings, it is kept beside (``result.prev-N``) and a fresh result started."""
@@ -353,8 +400,9 @@ class SequenceView(View):
             # keep the old result beside it and start a fresh one.
             old = self.ctx.project.archive_result()
             self.notify(
-                client, "Starting a new result", f"{exc}; the old one is kept in {old}", "yellow"
+                client, "Starting a new result", result_started_afresh(exc, old.name), "yellow"
             )
+            self.earlier.refresh()
             with self.state.lock:
                 self.state.result = None
             pipeline.register_sequence(inp.frames, inp.base, gamma, out_dir, **kwargs)
