@@ -495,14 +495,40 @@ def test_control_points_disable_worst_manual_and_export(fitted):
 
 
 def test_review_inliers_only_by_default_and_screen_sized(fitted):
+    """Match lines: a sample of at most the chosen count, spread over the frame, only between
+    points on the images shown, with the counts said; a toggle hides them."""
+    from app.gui.views.seed.view import inside
+
     app, truth, bxy = fitted
     seed = app.views["Seed"]
     coarse = app.state.reference.coarse
+    fp, bp = seed.scene.planes["frame"].geom, seed.scene.planes["base"].geom
+    shown = coarse.inliers & inside(coarse.frame_xy, fp) & inside(coarse.base_xy, bp)
     lines = seed.scene.match_lines
-    assert lines is not None and len(lines.points) == coarse.n_inliers
+    n = len(lines.points)
+    assert lines is not None and n == min(150, int(shown.sum())) and coarse.n_inliers > 150
+    md = seed.panel.review_md.content
+    assert f"**{coarse.n_inliers}** inlier matches of {coarse.n_matches}" in md
+    assert f"lines drawn for {n} of them" in md
+    # Every line starts and ends on the images (the segments' ends in world units).
+    ends = np.asarray(lines.points, float)
+    assert inside(fp.pixel_from_world(ends[:, 0])[:, :2], fp).all()
+    assert inside(bp.pixel_from_world(ends[:, 1])[:, :2], bp).all()
+    # Spread over the frame: each quarter of it has lines.
+    quarter = fp.pixel_from_world(ends[:, 0])[:, :2] // (np.array([fp.width, fp.height]) / 2)
+    assert len({tuple(q) for q in quarter.astype(int)}) == 4
+    seed.panel.max_lines.value = 40
+    app.worker.wait_idle()
+    assert len(seed.scene.match_lines.points) <= 40
+    seed.panel.show_match_lines.value = False
+    app.worker.wait_idle()
+    assert seed.scene.match_lines is None and "match lines hidden" in seed.panel.review_md.content
+    seed.panel.show_match_lines.value = True
+    seed.panel.max_lines.value = 1000
     seed.panel.show_outliers.value = True
     app.worker.wait_idle()
-    assert len(seed.scene.match_lines.points) == int(coarse.gated.sum())
+    gated = coarse.gated & inside(coarse.frame_xy, fp) & inside(coarse.base_xy, bp)
+    assert len(seed.scene.match_lines.points) == min(1000, int(gated.sum()))
     # Dots keep their screen size: zooming in by 4 shrinks them 4x in world units.
     dots = seed.scene.planes["base"].overlay("cps")
     size0 = dots.point_size
@@ -523,6 +549,28 @@ def test_review_inliers_only_by_default_and_screen_sized(fitted):
     assert gate is not None
     pix = seed.scene.planes["base"].geom.pixel_from_world(np.asarray(gate.points, float))
     assert pix.min() >= -0.6 and (pix[..., 0] <= bw).all()
+
+
+def test_the_magnifier_shows_corner_points():
+    """A control point in the frame's corner lies, corrected (γ 0.7), outside a corrected image
+    of the frame's size: the magnifier resamples the raw frame there instead of showing grey."""
+    from app.gui.views.seed.scene import magnifier_crop, magnifier_crop_corrected, magnifier_side
+    from registration.lens import Camera
+
+    yy, xx = np.mgrid[0:480, 0:640]
+    raw = np.dstack([xx * 0.3, yy * 0.4, np.full_like(xx, 100)]).astype(np.uint8)
+    camera = Camera(0.7, 640, 480)
+    corner = np.array([[3.0, 4.0]])
+    fxy = camera.corrected_from_raw(corner)[0]
+    assert fxy.min() < 0  # outside the corrected image of the frame's size
+    old = magnifier_crop(camera.undistort(raw), fxy, (255, 0, 0))
+    new = magnifier_crop_corrected(raw, camera, fxy, (255, 0, 0))
+    c = magnifier_side() // 2
+    assert (old[c + 10, c + 10] == 225).all()  # the old magnifier: grey
+    # The new one: the raw frame's value where that magnifier pixel lies in the raw frame.
+    offset = 10 / 3.0  # 10 magnifier px at its zoom of 3
+    q = camera.raw_from_corrected(fxy[None] + 0.5 + offset)[0]
+    assert np.allclose(new[c + 10, c + 10, :2], (q[0] * 0.3, q[1] * 0.4), atol=1.0)
 
 
 def test_sequence_plot_jump_failed_list_and_rerun(registered):

@@ -32,6 +32,7 @@ pytestmark = [
 viser = pytest.importorskip("viser")
 playwright_api = pytest.importorskip("playwright.sync_api")
 
+from app.gui import scene2d  # noqa: E402
 from app.gui.project import Project  # noqa: E402
 from app.gui.security import make_server  # noqa: E402
 from app.gui.server import App  # noqa: E402
@@ -440,6 +441,28 @@ def test_seed_click_drag_and_disable_worst(browser, live_app, small_seq):  # noq
     wait_until(lambda: rms() < r0, what="a lower RMS after disabling the worst point")
     assert "✗" in page.page.inner_text(".aerialreg-table")
     page.shot("seed_control_points")
+    # A row click selects the point and centres the camera on it, frame point and map point:
+    # the row whose points lie farthest from where the camera looks now.
+    client = next(iter(app.server.get_clients().values()))
+    table = seed.table
+    look0 = np.asarray(client.camera.look_at)[:2]
+    rows = page.page.locator(".aerialreg-table tr[data-row]:visible")
+    ids = [int(rows.nth(i).get_attribute("data-row")) for i in range(min(rows.count(), 10))]
+
+    def centre(rid):
+        return np.asarray(seed.points._region(table, table.row(rid))[0].position[:2])
+
+    far = max(range(len(ids)), key=lambda i: np.hypot(*(centre(ids[i]) - look0)))
+    rid = ids[far]
+    region = seed.points._region(table, table.row(rid))[0]
+    tolerance = 0.05 * region.width * scene2d.WORLD_PER_PX
+    assert np.hypot(*(centre(rid) - look0)) > 4 * tolerance  # the click has to move it
+    rows.nth(far).click()
+    wait_until(lambda: seed.points.cp.selected == rid, what="the row click to select the point")
+    wait_until(
+        lambda: np.hypot(*(np.asarray(client.camera.look_at)[:2] - centre(rid))) < tolerance,
+        what="the camera centred on the row's points",
+    )
 
 
 @pytest.fixture(scope="module")

@@ -30,6 +30,8 @@ class ReviewOptions:
     """What the match review draws.
 
     Attributes:
+        match_lines: draw the coarse step's matches as lines between frame and map.
+        max_lines: at most this many match lines (a sample spread over the frame).
         outliers: matches and control points REQCON or RANSAC rejected, too.
         ungated: matches outside the seed's location gate, too.
         gate: the gate's outline on the map.
@@ -42,6 +44,8 @@ class ReviewOptions:
     gate: bool
     template_lines: bool
     vector_scale: float
+    match_lines: bool = True
+    max_lines: int = 150
 
 
 class SeedPanel:
@@ -89,6 +93,9 @@ class SeedPanel:
         self.btn_fine = gui.add_button("Run fine step")
         self.fine_md = gui.add_markdown("")
         with gui.add_folder("Review", expand_by_default=False):
+            self.review_md = gui.add_markdown("")
+            self.show_match_lines = gui.add_checkbox("Match lines", True)
+            self.max_lines = gui.add_slider("Match lines drawn (at most)", 10, 1000, 10, 150)
             self.show_outliers = gui.add_checkbox("Show outliers", False)
             self.show_ungated = gui.add_checkbox("Show matches outside the gate", False)
             self.show_gate = gui.add_checkbox("Show the gate", True)
@@ -159,6 +166,8 @@ class SeedPanel:
     def on_review_changed(self, callback: ClientCallback) -> None:
         on_any_change(
             (
+                self.show_match_lines,
+                self.max_lines,
                 self.show_outliers,
                 self.show_ungated,
                 self.show_gate,
@@ -205,7 +214,13 @@ class SeedPanel:
             gate=bool(self.show_gate.value),
             template_lines=bool(self.show_template_matches.value),
             vector_scale=float(self.vec_scale.value),
+            match_lines=bool(self.show_match_lines.value),
+            max_lines=int(self.max_lines.value),
         )
+
+    def show_review_counts(self, text: str) -> None:
+        """What the match review draws, with counts (markdown)."""
+        self.review_md.content = text
 
     @property
     def mid_opacity_value(self) -> float:

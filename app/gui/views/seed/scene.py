@@ -200,6 +200,23 @@ def magnifier_side() -> int:
     return 2 * MAGNIFIER_PX * MAGNIFIER_ZOOM
 
 
+def magnifier_crop_corrected(raw: np.ndarray, camera, xy, colour) -> np.ndarray:
+    """:func:`magnifier_crop` of the corrected frame, resampled straight from the ``raw`` frame
+    through ``camera`` (``registration.lens.Camera`` of ``raw``'s size): exact wherever the raw
+    frame has the point, also in the corners, where corrected positions fall outside a
+    corrected image of the frame's size."""
+    from registration.geometry import remap
+
+    side = magnifier_side()
+    if xy is None or not np.isfinite(xy).all():
+        return np.full((side, side, 3), 225, np.uint8)
+    u = (np.arange(side) - side / 2) / MAGNIFIER_ZOOM
+    gx, gy = np.meshgrid(float(xy[0]) + 0.5 + u, float(xy[1]) + 0.5 + u)
+    src = camera.raw_from_corrected(np.c_[gx.ravel(), gy.ravel()]).reshape(side, side, 2)
+    out = remap(raw, src.astype(np.float32), interpolation="nearest", border_value=225)
+    return _cross(np.ascontiguousarray(out), colour)
+
+
 def magnifier_crop(image: np.ndarray, xy, colour) -> np.ndarray:
     """A ``2*MAGNIFIER_PX`` square around ``xy`` (grey when None), enlarged, with a cross."""
     side = magnifier_side()
@@ -216,6 +233,12 @@ def magnifier_crop(image: np.ndarray, xy, colour) -> np.ndarray:
     out = cv2.warpAffine(
         image, m, (side, side), flags=cv2.INTER_NEAREST, borderValue=(225, 225, 225)
     )
+    return _cross(out, colour)
+
+
+def _cross(out: np.ndarray, colour) -> np.ndarray:
+    """The magnifier's centre cross, drawn on ``out`` in ``colour``."""
+    side = out.shape[0]
     c = side // 2
     col = tuple(int(v) for v in colour)
     cv2.line(out, (c - 12, c), (c - 4, c), col, 1)

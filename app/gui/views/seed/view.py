@@ -47,6 +47,7 @@ from app.gui.views.seed.scene import (
     SeedScene,
     gate_outlines,
     magnifier_crop,
+    magnifier_crop_corrected,
     magnifier_side,
 )
 from registration import global_registration
@@ -54,6 +55,55 @@ from registration.lens import Camera
 
 MID_OPACITY_AFTER_FIT = 0.5
 """The mid base image's opacity once a fine fit succeeded (when the analyst had it off)."""
+
+
+def inside(xy: np.ndarray, geom) -> np.ndarray:
+    """Which of ``xy`` (N, 2) px lie on an image of ``geom``'s size."""
+    xy = np.asarray(xy, float)
+    return (
+        np.isfinite(xy).all(axis=1)
+        & (xy[:, 0] >= -0.5)
+        & (xy[:, 0] <= geom.width - 0.5)
+        & (xy[:, 1] >= -0.5)
+        & (xy[:, 1] <= geom.height - 0.5)
+    )
+
+
+def match_sample(frame_xy: np.ndarray, eligible: np.ndarray, n_max: int) -> np.ndarray:
+    """Indices of at most ``n_max`` of the ``eligible`` matches, spread over the frame: on a
+    grid of about ``n_max`` cells, every cell's first match (in index order), then every
+    cell's second, and so on; the same matches give the same sample."""
+    idx = np.flatnonzero(eligible)
+    if len(idx) <= n_max:
+        return idx
+    xy = frame_xy[idx]
+    side = max(int(np.ceil(np.sqrt(n_max))), 1)
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    cell = np.floor((xy - lo) / np.maximum(hi - lo, 1e-9) * (side - 1e-9)).astype(int)
+    key = cell[:, 1] * side + cell[:, 0]
+    by_cell = np.lexsort((np.arange(len(key)), key))  # by cell, then index
+    first = np.r_[0, np.flatnonzero(np.diff(key[by_cell])) + 1]
+    rank = np.empty(len(key), int)
+    starts = np.repeat(first, np.diff(np.r_[first, len(key)]))
+    rank[by_cell] = np.arange(len(key)) - starts
+    take = np.lexsort((np.arange(len(key)), rank))[:n_max]
+    return idx[np.sort(take)]
+
+
+def review_counts(coarse, show, on_images, n_drawn: int, lines: bool) -> str:
+    """The review's counts: inliers, what is shown, what the lines draw and leave out."""
+    n_in = int(coarse.inliers.sum())
+    n_show = int(show.sum())
+    off = int((show & ~on_images).sum())
+    text = f"Coarse step: **{n_in}** inlier matches of {coarse.n_matches}"
+    if n_show != n_in:
+        text += f", {n_show} shown with the outliers asked for"
+    if not lines:
+        return text + "; match lines hidden."
+    text += f"; lines drawn for {n_drawn} of them, spread over the frame"
+    if off:
+        text += f" ({off} with an end outside the images shown are left out)"
+    return text + "."
 
 
 class SeedView(View):
@@ -101,7 +151,6 @@ class SeedView(View):
         self._mid_cache: tuple | None = None
         self._grab: dict[tuple[str, int], np.ndarray] = {}  # drag: marker - pointer, px
         # ((k, γ), full-size corrected frame) for the magnifier
-        self._corrected_full: tuple | None = None
 
     # ---------------------------------------------------------------- the control points
     @property
@@ -567,9 +616,11 @@ class SeedView(View):
         manual = self.points.manual_frame
         with self.ctx.atomic():
             self.scene.draw_seeds(pairs)
-            # Matches: inliers; outliers and matches outside the gate on request.
+            # Matches: inliers; outliers and matches outside the gate on request; as lines, a
+            # sample spread over the frame, of those whose both ends lie on the images shown.
             if coarse is None or coarse.n_matches == 0:
                 self.scene.draw_matches(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 3)))
+                self.panel.show_review_counts("")
             else:
                 show = coarse.inliers.copy()
                 if review.outliers:
@@ -581,7 +632,15 @@ class SeedView(View):
                     INLIER,
                     np.where(coarse.gated[:, None], OUTLIER, UNGATED),
                 ).astype(np.uint8)
-                self.scene.draw_matches(coarse.frame_xy[show], coarse.base_xy[show], cols[show])
+                fp, bp = self.scene.planes["frame"].geom, self.scene.planes["base"].geom
+                on_images = inside(coarse.frame_xy, fp) & inside(coarse.base_xy, bp)
+                drawn = match_sample(coarse.frame_xy, show & on_images, review.max_lines)
+                if not review.match_lines:
+                    drawn = np.zeros(0, int)
+                self.scene.draw_matches(coarse.frame_xy[drawn], coarse.base_xy[drawn], cols[drawn])
+                self.panel.show_review_counts(
+                    review_counts(coarse, show, on_images, len(drawn), review.match_lines)
+                )
             outlines = []
             if review.gate and coarse is not None:
                 outlines = gate_outlines(coarse)
@@ -637,15 +696,15 @@ class SeedView(View):
         i = self.points.cp.selected_row()
         if i is not None:
             fxy, bxy = t.corrected_xy[i], t.base_xy[i]
-        if self._corrected_full is None or self._corrected_full[0] != (k, g):
-            self._corrected_full = ((k, g), self.corrected_preview(k, g, max(inp.frame_size)))
-        frame = self._corrected_full[1]
+        with self.state.lock:
+            camera = self.state.camera(g)
+        raw = scene2d.to_rgb(inp.frame(k))
         base = inp.base_preview(max(inp.base_size))
         colour = PAIR_COLOURS[active] if i is None else SELECTED
         self.panel.show_magnifier(
             np.concatenate(
                 [
-                    magnifier_crop(frame, fxy, colour),
+                    magnifier_crop_corrected(raw, camera, fxy, colour),
                     np.full((magnifier_side(), 8, 3), 255, np.uint8),
                     magnifier_crop(base, bxy, colour),
                 ],
