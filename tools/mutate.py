@@ -384,6 +384,79 @@ MUTATIONS: list[Mutation] = [
         [("        out[~self._inside_frame(xy)] = np.nan\n", "", 1)],
         ["tests/run/test_result.py", *E2E],
     ),
+    # -- the survivors of an independent audit (issue "Nothing mixed, nothing lost") --------
+    _m(
+        "resume_sample_hash_self",
+        "the resume identity check compares a frame's sample hash with itself",
+        "registration/run/identity.py",
+        [
+            (
+                'if o.get("sample_sha256") != n.get("sample_sha256"):\n            return _differs(label, "content of its',
+                'if n.get("sample_sha256") != n.get("sample_sha256"):\n            return _differs(label, "content of its',
+                1,
+            )
+        ],  # fmt: skip
+        ["tests/run/test_identity.py", "tests/cli/test_bad_input.py"],
+    ),
+    _m(
+        "host_any_ip_literal",
+        "the app accepts any IP-literal Host while bound to loopback",
+        "app/gui/security.py",
+        [
+            (
+                "if host not in self.names and not (self.any_interface and _is_ip(host)):",
+                "if host not in self.names and not _is_ip(host):",
+                1,
+            )
+        ],  # fmt: skip
+        ["tests/app/test_security.py"],
+    ),
+    _m(
+        "reqcon_scale_over_dropped",
+        "REQCON's noise scale taken over the points it already dropped",
+        "registration/geometry/reqcon_fit.py",
+        [
+            (
+                "sigma = float(np.median(rs[kept])) / _RAYLEIGH_MEDIAN",
+                "sigma = float(np.median(rs)) / _RAYLEIGH_MEDIAN",
+                1,
+            )
+        ],
+        ["tests/geometry/test_robust.py"],
+    ),
+    _m(
+        "fast_path_one_condition",
+        "the fast intra-sensor path confirmed when only one of its two conditions holds",
+        "registration/global_registration/predicted_coarse.py",
+        [
+            (
+                "if n_in < min_inliers or n_in < MIN_INLIER_SHARE * n:",
+                "if n_in < min_inliers and n_in < MIN_INLIER_SHARE * n:",
+                1,
+            )
+        ],
+        ["tests/global_registration/test_fast_coarse.py"],
+    ),
+    _m(
+        "click_refit_kept_when_missing",
+        "the click refit kept even when it still misses the click",
+        "registration/global_registration/fine.py",
+        [("if now <= limit_px and now < was:", "if now < was:", 1)],
+        ["tests/global_registration/test_global_registration.py"],
+    ),
+    _m(
+        "table2_points_from_frame_0",
+        "Table 2's ground points taken from frame 0 instead of the reference frame",
+        "registration/evaluation/truth.py",
+        [
+            (
+                "b_pts = truth.frame_to_base(ref, table_points(",
+                "b_pts = truth.frame_to_base(0, table_points(",
+                1,
+            )
+        ],
+        ["tests/evaluation/test_evaluation.py"],
+    ),
 ]
 
 

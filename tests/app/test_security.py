@@ -109,6 +109,11 @@ def test_escape_md_defuses_html_and_pipes():
         ("127.0.0.1", {"Host": "127.0.0.1:8080", "Origin": "null"}, False),
         ("127.0.0.1", {"Host": "evil.example:8080", "Origin": "http://evil.example:8080"}, False),
         ("127.0.0.1", {}, False),
+        # Bound to loopback, an IP-literal Host of another machine is not this server (a
+        # rebinding page served from 10.0.0.9 must get 403 too).
+        ("127.0.0.1", {"Host": "10.0.0.9:8080"}, False),
+        ("127.0.0.1", {"Host": "10.0.0.9:8080", "Origin": "http://10.0.0.9:8080"}, False),
+        ("127.0.0.1", {"Host": "[::2]:8080"}, False),
         ("0.0.0.0", {"Host": "192.168.1.5:8080", "Origin": "http://192.168.1.5:8080"}, True),
         ("0.0.0.0", {"Host": "192.168.1.5:8080", "Origin": "http://10.0.0.9:8080"}, False),
         ("0.0.0.0", {"Host": "rebind.example:8080", "Origin": "http://rebind.example:8080"}, False),

@@ -459,3 +459,70 @@ def test_points_mode_equals_truth_mode_for_exact_marks():
     for s in evaluation.STAGES:
         assert t_points["rows"][s]["mu"] == pytest.approx(t_truth["rows"][s]["mu"])
         assert t_points["rows"][s]["sigma"] == pytest.approx(t_truth["rows"][s]["sigma"], abs=1e-12)
+
+
+class TurningTruth:
+    """Frame k turned by 7k degrees, scaled by 1 + 0.03 k and shifted (40k, 25k) over the base
+    (gamma 0): frames see different ground, so a table's points depend on the frame chosen."""
+
+    gamma = 0.0
+    frame_size = (200, 160)
+    base_size = (800, 800)
+
+    def __init__(self, n_frames=6):
+        self.n_frames = n_frames
+
+    def _affine(self, k):
+        a = np.deg2rad(7.0 * k)
+        s = 1.0 + 0.03 * k
+        m = s * np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+        return m, np.array([200.0 + 40.0 * k, 150.0 + 25.0 * k])
+
+    def frame_to_base(self, k, xy, stage="local"):
+        m, t = self._affine(k)
+        return as_points(xy) @ m.T + t
+
+    def base_to_frame(self, k, xy, stage="local"):
+        m, t = self._affine(k)
+        return (as_points(xy) - t) @ np.linalg.inv(m).T
+
+
+class FieldErrorResult(OffsetResult):
+    """The truth with an error that varies over the base: frame k's positions moved by
+    ``t_k + A_k (b - 400)``; reference frame 2."""
+
+    reference_frame = 2
+
+    def __init__(self, truth):
+        super().__init__(truth, failed=())
+        rng = np.random.default_rng(11)
+        self.t = rng.uniform(-1, 1, (truth.n_frames, 2))
+        self.a = rng.uniform(-0.01, 0.01, (truth.n_frames, 2, 2))
+
+    def error(self, k, b):
+        return self.t[k] + (b - 400.0) @ self.a[k].T
+
+    def frame_to_base(self, k, xy, stage="local"):
+        b = self.truth.frame_to_base(k, xy)
+        return b + self.error(k, b)
+
+
+def test_truth_table2_takes_its_points_from_the_reference_frame():
+    """Table 2's five ground points are the reference frame's (frame 2 here), not frame 0's:
+    computed independently from the known error field, each location's motion matches."""
+    truth = TurningTruth()
+    result = FieldErrorResult(truth)
+    config = EvaluationConfig(table_frames=6)
+    report = evaluation.evaluate_truth(result, truth, config)
+    ref = result.reference_frame
+    b = truth.frame_to_base(ref, evaluation.table_points(truth.frame_size, config.table_inset))
+    b0 = truth.frame_to_base(0, evaluation.table_points(truth.frame_size, config.table_inset))
+    assert np.abs(b - b0).max() > 50  # frame 0's points are elsewhere
+    for i in range(len(evaluation.LOCATIONS)):
+        motion = [
+            float(np.hypot(*(result.error(k, b[i]) - result.error(ref, b[i]))))
+            for k in range(truth.n_frames)
+            if k != ref
+        ]
+        assert report.table.mu["local"][i] == pytest.approx(np.mean(motion), abs=1e-9)
+        assert report.table.sigma["local"][i] == pytest.approx(np.std(motion), abs=1e-9)

@@ -303,3 +303,23 @@ def test_reqcon_noise_scale_keeps_the_less_precise_points(rng):
     assert 0.1 < scaled.sigma_px < 0.25, scaled.sigma_px
     with pytest.raises(ValueError, match="noise_scale"):
         reqcon(src, dst, start, cfg, noise_scale=np.zeros(n))
+
+
+def test_reqcon_noise_scale_is_that_of_the_points_it_keeps(rng):
+    """100 named outliers only 3.5 px off, among 500 points with 0.5 px noise per axis: the
+    "outliers" rule removes every one and reports the kept points' noise (0.5 px). Taken over
+    the dropped points too, the scale would grow by a fifth and let outliers stay."""
+    n = 600
+    src = rng.uniform([0, 0], [W - 1, H - 1], (n, 2))
+    dst = true_poly().apply(src) + rng.normal(0, 0.5, (n, 2))
+    outliers = np.arange(3, n, 6)
+    angle = rng.uniform(0, 2 * np.pi, len(outliers))
+    dst[outliers] += 3.5 * np.c_[np.cos(angle), np.sin(angle)]
+    good = np.setdiff1d(np.arange(n), outliers)
+    start = PolyProjective.from_projective(true_projective(), 2)
+    res = reqcon(
+        src, dst, start, ReqconConfig(optimizer="lm", target_mean_error_px=0.05, stop="outliers")
+    )
+    assert res and not res.inliers[outliers].any(), np.flatnonzero(res.inliers[outliers])
+    assert res.inliers[good].mean() >= 0.97
+    assert abs(res.sigma_px - 0.5) < 0.05, res.sigma_px

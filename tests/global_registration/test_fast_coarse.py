@@ -105,3 +105,37 @@ def test_a_sudden_jump_falls_back_to_sift_and_registers(jump_sim, tmp_path):
     # Measured: 0.70, 0.78, 0.78 px (global); the reference frame itself 0.71.
     errors = _errors(result, truth, picked, "global")
     assert errors.max() < 1.2, errors
+
+
+def test_the_fast_path_needs_both_enough_and_most_matches_to_agree():
+    """Confirming the fast path needs ``min_inliers`` agreeing matches AND half of them: 22 of
+    25 agreeing (88 %) is refused with 24 required, and 30 of 70 (43 %) with 24 required."""
+    from registration.geometry import Projective
+    from registration.global_registration.coarse_records import CoarseResult, FrameView
+    from registration.global_registration.predicted_coarse import _fit_and_check
+
+    rng = np.random.default_rng(8)
+    w, h = 320, 240
+    small = np.zeros((h, w), np.uint8)
+    view = FrameView(small, None)
+    truth = Projective.from_matrix(np.array([[1.02, 0.03, 5.0], [-0.02, 0.99, -3.0], [0, 0, 1]]))
+    config = get_preset("default").coarse
+
+    def attempt(n_good: int, n_bad: int):
+        src = rng.uniform([10, 10], [w - 10, h - 10], (n_good + n_bad, 2))
+        dst = truth.apply(src)
+        dst[n_good:] += rng.uniform(30, 60, (n_bad, 2))
+        n = len(src)
+        result = CoarseResult(
+            success=False, reason="", base_from_corrected=None, frame_xy=src, base_xy=dst,
+            gated=np.ones(n, bool), inliers=np.zeros(n, bool), n_keypoints_frame=n,
+            n_keypoints_base=0, gate="fast",
+        )  # fmt: skip
+        _, why = _fit_and_check(
+            result, src, np.arange(n), small, view, 1.0, config, 24, np.random.default_rng(0)
+        )
+        return why
+
+    assert "22 of 25 matches agree (need 24 and 50%)" in attempt(22, 3)
+    assert "30 of 70 matches agree (need 24 and 50%)" in attempt(30, 40)
+    assert "matches agree" not in attempt(60, 10)

@@ -251,3 +251,33 @@ def test_intra_prediction_gate_drops_look_alikes_away_from_the_prediction(scene,
     assert planted.sum() >= 6, planted.sum()
     assert not coarse.gated[planted].any()
     assert coarse.gated[right].all() and right.sum() > 150
+
+
+def test_a_refit_through_the_click_is_kept_only_when_it_reaches_the_click():
+    """The first fit passes 12 px from the click (limit 6): a refit that settles 7 px from it
+    is closer but still misses, and is not kept; one that settles 2 px from it is."""
+    from types import SimpleNamespace
+
+    from registration.geometry import Translation
+    from registration.global_registration.fine import FineResult, _refit_through_clicks
+
+    camera = Camera(0.0, 200, 160)
+    seeds = ((100.0, 80.0, 100.0, 80.0),)  # the frame point clicked on the same map pixel
+
+    def fine_at(dx: float) -> FineResult:
+        return dataclasses.replace(
+            FineResult.failed(""),
+            success=True,
+            base_from_corrected=Translation(np.array([dx, 0.0])),
+            kept=np.ones(40, bool),
+            model_kind="polyprojective",
+        )
+
+    coarse = SimpleNamespace(seeds=seeds, base_from_corrected=Translation(np.array([12.0, 0.0])))
+    first = fine_at(12.0)
+    for settles, kept in ((7.0, False), (2.0, True)):
+        out = _refit_through_clicks(first, coarse, lambda start, s=settles: fine_at(s), camera, 6.0)
+        miss = abs(float(out.base_from_corrected.apply(np.array([[100.0, 80.0]]))[0, 0] - 100.0))
+        assert miss == pytest.approx(settles if kept else 12.0), (settles, out.model_reason)
+        if not kept:
+            assert "settled 7.0 px from it" in out.model_reason
