@@ -56,7 +56,7 @@ from registration.gis.vector import (
 )
 from registration.io import (
     atomic_path,
-    check_frames_match,
+    check_result_frames,
     write_bytes_atomic,
     write_image_atomic,
     write_json_atomic,
@@ -337,21 +337,47 @@ def resolve_formats(formats) -> list[str]:
 def planned_files(result, out_dir: Path, formats: list[str], marks=None) -> list[Path]:
     """Every file :func:`export_result` will write (world-file sidecars included)."""
     ok = [k for k in range(result.n_frames) if result.is_ok(k)]
+    return _frame_files(result, out_dir, formats, ok) + _sequence_files(
+        result, out_dir, formats, marks
+    )
+
+
+def _frame_files(result, out_dir: Path, formats: list[str], ks: list[int], *, every=False):
+    """The per-frame files of ``formats`` for frames ``ks``; ``every``: with every sidecar a
+    georeference could add and a ``.points`` file whether or not the frame has points (the
+    names an earlier export may have left)."""
+    georef = result.georef
+    crs = every or (georef is not None and georef.crs_wkt is not None)
+    files: list[Path] = []
+    for f in formats:
+        if f in ("geotiff", "cog"):
+            files += [out_dir / f / f"{k:06d}.tif" for k in ks]
+        elif f == "png":
+            for k in ks:
+                png = out_dir / "png" / f"{k:06d}.png"
+                files.append(png)
+                if every or georef is not None:
+                    files.append(png.with_suffix(".pgw"))
+                if crs:
+                    files += [png.with_suffix(".prj"), Path(str(png) + ".aux.xml")]
+        elif f == "points":
+            files += [
+                out_dir / "points" / f"{k:06d}.points"
+                for k in ks
+                if every or result.control_points(k) is not None
+            ]
+    return files
+
+
+def _sequence_files(result, out_dir: Path, formats: list[str], marks) -> list[Path]:
+    """The files of ``formats`` that cover the whole sequence."""
     georef = result.georef
     crs = georef is not None and georef.crs_wkt is not None
     files: list[Path] = []
     for f in formats:
-        if f in ("geotiff", "cog"):
-            files += [out_dir / f / f"{k:06d}.tif" for k in ok]
-        elif f == "png":
-            for k in ok:
-                png = out_dir / "png" / f"{k:06d}.png"
-                files.append(png)
-                if georef is not None:
-                    files.append(png.with_suffix(".pgw"))
-                if crs:
-                    files += [png.with_suffix(".prj"), Path(str(png) + ".aux.xml")]
-        elif f == "mosaic":
+        if f in ("geotiff", "cog", "png", "points"):
+            continue  # per frame: _frame_files
+        if f == "mosaic":
             files.append(out_dir / "mosaic.tif")
         elif f == "mp4":
             files.append(out_dir / "registered.mp4")
@@ -359,12 +385,6 @@ def planned_files(result, out_dir: Path, formats: list[str], marks=None) -> list
                 files.append(out_dir / "registered.wld")
             if crs:
                 files.append(out_dir / "registered.prj")
-        elif f == "points":
-            files += [
-                out_dir / "points" / f"{k:06d}.points"
-                for k in ok
-                if result.control_points(k) is not None
-            ]
         elif f == "transforms":
             files.append(out_dir / "transforms.json")
         elif f == "geojson":
@@ -409,7 +429,9 @@ def export_result(
 
     Returns:
         ``{"out", "formats", "files": {format: [paths]}, "n_frames", "n_failed", "box",
-        "time_s": {...}, "cancelled"}``.
+        "time_s": {...}, "cancelled", "failed_frames", "removed_stale"}``: failed frames are
+        holes (left out of every format, never read); with ``force``, what an earlier export
+        wrote for frames that are failed now is removed (``removed_stale``).
 
     Raises:
         ValueError: unknown format or option, a format that needs a georeferenced base
@@ -438,11 +460,25 @@ def export_result(
     if progress:
         progress(0, total)
     summary = _new_summary(out, formats, result.n_frames, len(ok))
+    summary["failed_frames"] = [k for k in range(result.n_frames) if not result.is_ok(k)]
+    if options.force:
+        summary["removed_stale"] = _remove_stale(result, out, formats, summary["failed_frames"])
     if raster:
         _export_rasters(result, frames, out, raster, render_ks, options, summary, tick, cancel)
     if not summary["cancelled"]:
         _export_vectors(result, out, vector, marks, options, summary, tick)
     return summary
+
+
+def _remove_stale(result, out: Path, formats: list[str], failed: list[int]) -> list[str]:
+    """Delete what an earlier export into ``out`` wrote for frames that are failed now (a
+    result registered again): exactly the names this export would give them, nothing else."""
+    removed = []
+    for path in _frame_files(result, out, formats, failed, every=True):
+        if path.is_file() and not path.is_symlink():
+            path.unlink()
+            removed.append(str(path))
+    return removed
 
 
 def _with_georef(result, georef: GeoReference):
@@ -465,6 +501,8 @@ def _new_summary(out: Path, formats: list[str], n_frames: int, n_ok: int) -> dic
         "box": None,
         "time_s": {},
         "cancelled": False,
+        "failed_frames": [],
+        "removed_stale": [],
     }
 
 
@@ -502,7 +540,7 @@ def _check_frames(result, frames):
         from registration.io import open_frames
 
         frames = open_frames(result.meta["frames_source"])
-    check_frames_match(frames, result.n_frames, result.frame_size)
+    check_result_frames(frames, result)
     return frames
 
 
@@ -626,13 +664,19 @@ def _export_rasters(result, frames, out, raster, render_ks, options, summary, ti
 
 
 def _frames_in_order(frames, n: int, todo: set[int]) -> Iterator[tuple[int, NDArray | None]]:
-    """``(k, frame)`` for k = 0..n-1, the frame None when not in ``todo``. A video is decoded
-    sequentially (seeking per frame is slow) unless only a few frames are needed."""
-    if hasattr(frames, "iter") and 4 * len(todo) >= n:
-        for k, frame in frames.iter(0):
-            yield k, (frame if k in todo else None)
-        return
-    for k in range(n):
+    """``(k, frame)`` for k = 0..n-1, the frame None when not in ``todo``; frames not in
+    ``todo`` (failed ones among them, which may be unreadable) are never read. A video is
+    decoded sequentially (seeking per frame is slow) unless only a few frames are needed; from
+    a stretch it cannot decode on, frame by frame."""
+    start = 0
+    if getattr(frames, "video_path", None) is not None and 4 * len(todo) >= n:
+        try:
+            for k, frame in frames.iter(0):
+                start = k + 1
+                yield k, (frame if k in todo else None)
+        except (ValueError, OSError):
+            pass  # a damaged stretch of the video: the frames after it one by one
+    for k in range(start, n):
         yield k, (frames.get(k) if k in todo else None)
 
 

@@ -16,6 +16,10 @@ from registration.io.frames import (
     FrameReadError,
     FrameSource,
     check_frames_match,
+    check_recorded_frames,
+    check_result_frames,
+    frames_difference,
+    input_differs,
     open_frames,
 )
 from registration.io.images import (
@@ -41,6 +45,10 @@ __all__ = [
     "image_header_size",
     "incomplete_image",
     "check_frames_match",
+    "check_recorded_frames",
+    "check_result_frames",
+    "frames_difference",
+    "input_differs",
     "open_frames",
     "read_image",
     "read_text_file",

@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from registration.io.files import SAMPLE_BYTES, file_fingerprint
+from registration.io.files import SAMPLE_BYTES, file_fingerprint, file_sha256
 from registration.io.images import (
     IMAGE_SUFFIXES,
     MAX_FRAME_PIXELS,
@@ -291,6 +291,54 @@ def _one_line(exc: BaseException) -> str:
     return text.splitlines()[0] if text else type(exc).__name__
 
 
+def input_differs(label: str, what: str) -> str:
+    """The message for an input that is not the one a run recorded."""
+    return f"{label} differs from the run's input ({what})"
+
+
+def frames_difference(
+    old: dict | None, new: dict | None, whole_sha256: list[str | None], frames
+) -> str:
+    """What differs between the recorded and the current frames ("" when nothing does).
+
+    Sizes and the SHA-256 of each file's first and last 64 KB must agree. When only a file's
+    mtime differs (copied, touched) and it is larger than the sampled bytes, a frame already
+    registered is hashed whole and compared with ``whole_sha256[k]`` (the hash its record
+    holds; None where none is).
+
+    Args:
+        old, new: :meth:`FrameSource.identity` as recorded and as it is now.
+        frames: the :class:`FrameSource` of ``new``.
+    """
+    if old is None or new is None:
+        return "" if old == new else "the frames' identity is not recorded for both runs"
+    if old.get("kind") != new.get("kind"):
+        return f"the frames were {old.get('kind')}, now {new.get('kind')}"
+    if old.get("n_frames") != new.get("n_frames"):
+        return f"the frames were {old.get('n_frames')}, now {new.get('n_frames')}"
+    if new["kind"] == "video":
+        label = f"the video {new.get('name')}"
+        if old.get("size") != new.get("size"):
+            return input_differs(label, f"size {new.get('size')} vs {old.get('size')} bytes")
+        if old.get("sample_sha256") != new.get("sample_sha256"):
+            return input_differs(label, "content of its first or last 64 KB")
+        return ""
+    for k, (o, n) in enumerate(zip(old.get("files", []), new.get("files", []), strict=False)):
+        path = frames.path(k) if hasattr(frames, "path") else n.get("name")
+        label = f"frame {k} ({path})"
+        if "error" in n:
+            return f"{label} cannot be read now ({n['error']})"
+        if o.get("size") != n.get("size"):
+            return input_differs(label, f"size {n.get('size')} vs {o.get('size')} bytes")
+        if o.get("sample_sha256") != n.get("sample_sha256"):
+            return input_differs(label, "content of its first or last 64 KB")
+        if o.get("mtime_ns") != n.get("mtime_ns") and n["size"] > 2 * SAMPLE_BYTES:
+            want = whole_sha256[k] if k < len(whole_sha256) else None
+            if want and path is not None and file_sha256(path) != want:
+                return input_differs(label, "content changed since it was registered")
+    return ""
+
+
 def check_frames_match(frames, n_frames: int, frame_size: tuple[int, int]) -> None:
     """Raise a one-line ValueError unless ``frames`` holds ``n_frames`` frames of
     ``frame_size`` ``(W, H)`` (the frames a result was registered from)."""
@@ -299,6 +347,31 @@ def check_frames_match(frames, n_frames: int, frame_size: tuple[int, int]) -> No
             f"the frames ({len(frames)} of {frames.size[0]}x{frames.size[1]}) are not the "
             f"result's ({n_frames} of {frame_size[0]}x{frame_size[1]})"
         )
+
+
+def check_recorded_frames(frames, recorded: dict | None, whole_sha256: list[str | None]) -> None:
+    """Raise a one-line ValueError unless ``frames`` are the frames a result recorded
+    (``recorded``: its ``inputs.frames`` identity; ``whole_sha256``: its records' whole-file
+    hashes): reading another sequence at the same path would render another flight's pixels."""
+    if recorded is None:
+        return  # an older result: count and size are all it recorded
+    difference = frames_difference(recorded, frames.identity(), whole_sha256, frames)
+    if difference:
+        raise ValueError(
+            f"the frames {frames.description} are not the ones this result was registered "
+            f"from: {difference}"
+        )
+
+
+def check_result_frames(frames, result) -> None:
+    """:func:`check_frames_match` and :func:`check_recorded_frames` of ``frames`` against a
+    registration result (``n_frames``, ``frame_size``, ``meta``, ``records``)."""
+    check_frames_match(frames, result.n_frames, result.frame_size)
+    check_recorded_frames(
+        frames,
+        (result.meta.get("inputs") or {}).get("frames"),
+        [getattr(r, "input_sha256", None) for r in result.records],
+    )
 
 
 def open_frames(spec: str | os.PathLike) -> FrameSource:

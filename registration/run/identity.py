@@ -14,10 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from registration.coords import image_size
-from registration.io import (
-    SAMPLE_BYTES,
-    file_sha256,
-)
+from registration.io import frames_difference, input_differs
 
 try:
     import fcntl
@@ -26,7 +23,7 @@ except ImportError:  # not POSIX: no lock (documented in README "Reliability")
 from registration.run.records import FORMAT, VERSION, read_record
 
 # Keys of result.json that must agree for a resume to continue a result rather than mix two runs
-# (the inputs' identity is compared separately, see _frames_difference).
+# (the inputs' identity is compared separately, see registration.io.frames_difference).
 RESUME_KEYS = (
     "n_frames",
     "gamma",
@@ -85,7 +82,8 @@ def make_metadata(
         "frame_size": list(frames.size),
         "base_size": list(image_size(base)),
         "base_path": str(base_path) if base_path else None,
-        "frames_source": getattr(frames, "description", None),
+        # Absolute: a command run from another folder reopens these frames, not others.
+        "frames_source": _absolute(getattr(frames, "description", None)),
         "reference_frame": int(reference_frame),
         "seed": _seed_json(seed),
         "preset": preset,
@@ -99,44 +97,9 @@ def make_metadata(
     return meta
 
 
-def _differs(label: str, what: str) -> str:
-    return f"{label} differs from the run's input ({what})"
-
-
-def _frames_difference(old: dict | None, new: dict | None, records: list[dict], frames) -> str:
-    """What differs between the recorded and the current frames ("" when nothing does).
-
-    Sizes and the SHA-256 of each file's first and last 64 KB must agree. When only a file's
-    mtime differs (copied, touched) and it is larger than the sampled bytes, a frame already
-    registered is hashed whole and compared with the hash its record holds.
-    """
-    if old is None or new is None:
-        return "" if old == new else "the frames' identity is not recorded for both runs"
-    if old.get("kind") != new.get("kind"):
-        return f"the frames were {old.get('kind')}, now {new.get('kind')}"
-    if old.get("n_frames") != new.get("n_frames"):
-        return f"the frames were {old.get('n_frames')}, now {new.get('n_frames')}"
-    if new["kind"] == "video":
-        label = f"the video {new.get('name')}"
-        if old.get("size") != new.get("size"):
-            return _differs(label, f"size {new.get('size')} vs {old.get('size')} bytes")
-        if old.get("sample_sha256") != new.get("sample_sha256"):
-            return _differs(label, "content of its first or last 64 KB")
-        return ""
-    for k, (o, n) in enumerate(zip(old.get("files", []), new.get("files", []), strict=False)):
-        path = frames.path(k) if hasattr(frames, "path") else n.get("name")
-        label = f"frame {k} ({path})"
-        if "error" in n:
-            return f"{label} cannot be read now ({n['error']})"
-        if o.get("size") != n.get("size"):
-            return _differs(label, f"size {n.get('size')} vs {o.get('size')} bytes")
-        if o.get("sample_sha256") != n.get("sample_sha256"):
-            return _differs(label, "content of its first or last 64 KB")
-        if o.get("mtime_ns") != n.get("mtime_ns") and n["size"] > 2 * SAMPLE_BYTES:
-            want = records[k].input_sha256 if k < len(records) else None
-            if want and path is not None and file_sha256(path) != want:
-                return _differs(label, "content changed since it was registered")
-    return ""
+def _absolute(spec: str | None) -> str | None:
+    """A frames path or glob pattern as an absolute path (None stays None)."""
+    return None if spec is None else os.path.abspath(spec)
 
 
 def _base_difference(old: dict | None, new: dict | None) -> str:
@@ -144,9 +107,9 @@ def _base_difference(old: dict | None, new: dict | None) -> str:
         return ""
     label = f"the base map ({new.get('file')})"
     if old.get("shape") != new.get("shape"):
-        return _differs(label, f"shape {new.get('shape')} vs {old.get('shape')}")
+        return input_differs(label, f"shape {new.get('shape')} vs {old.get('shape')}")
     if old.get("pixels_sha256") != new.get("pixels_sha256"):
-        return _differs(label, "other pixels of the same size")
+        return input_differs(label, "other pixels of the same size")
     return ""
 
 
@@ -162,8 +125,11 @@ def _resume_problem(out_dir: Path, old: dict, meta: dict, frames) -> tuple[str, 
         return "it has no record of its inputs (written by an older aerialreg)", None
     records = [read_record(out_dir, k) for k in range(int(old["n_frames"]))]
     new = meta.get("inputs") or {}
-    frames_text = _frames_difference(
-        old["inputs"].get("frames"), new.get("frames"), records, frames
+    frames_text = frames_difference(
+        old["inputs"].get("frames"),
+        new.get("frames"),
+        [getattr(r, "input_sha256", None) for r in records],
+        frames,
     )
     if frames_text:
         return frames_text, None

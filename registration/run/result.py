@@ -29,9 +29,10 @@ from numpy.typing import ArrayLike, NDArray
 from registration.coords import as_points
 from registration.errors import NotGeoreferenced
 from registration.gis import GeoReference
+from registration.io import frames_difference
 from registration.lens import Camera
 from registration.mapping import _check_stage
-from registration.run.identity import _base_difference, _frames_difference, base_identity
+from registration.run.identity import _base_difference, base_identity
 from registration.run.records import (
     MID_BASE,
     RESULT_JSON,
@@ -214,8 +215,9 @@ class RegistrationResult:
         if not old:
             return "the result has no record of its inputs (written by an older aerialreg)"
         identity = getattr(frames, "identity", None)
-        return _frames_difference(
-            old.get("frames"), identity() if identity else None, self.records, frames
+        hashes = [getattr(r, "input_sha256", None) for r in self.records]
+        return frames_difference(
+            old.get("frames"), identity() if identity else None, hashes, frames
         ) or _base_difference(old.get("base"), base_identity(base))
 
     def _usable(self, k: int, stage: str) -> bool:

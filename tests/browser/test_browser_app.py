@@ -534,8 +534,17 @@ def test_one_click_on_a_turned_map_shows_heading_and_second_pair_fixes_it(
         # A second pair fixes heading and scale exactly: the panel shows the pairs' heading,
         # and the coarse step's (which the library took from the two pairs).
         app.jobs.join(120)
-        page.button("Pair 2").click()
-        wait_until(lambda: app.state.seed_pair == 2, what="pair 2 active")
+        app.worker.wait_idle()
+        # Under load a click during the panel's redraw after the fit can be lost (seen once in
+        # two full-suite runs): pressed again when it did not take.
+        for attempt in range(3):
+            page.button("Pair 2").click()
+            try:
+                wait_until(lambda: app.state.seed_pair == 2, timeout=10, what="pair 2 active")
+                break
+            except AssertionError:
+                if attempt == 2:
+                    raise
         click_pair((460.0, 330.0))
         wait_until(lambda: app.state.seed2 is not None, what="pair 2")
         exact = calls.heading_from_pairs(

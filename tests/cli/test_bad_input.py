@@ -569,6 +569,77 @@ def test_register_gamma_outside_the_harris_range(sims, tmp_path, capsys):
     assert not (tmp_path / "out").exists()
 
 
+def test_export_reads_the_frames_it_registered_or_refuses(sims, tmp_path, capsys, monkeypatch):
+    """A result registered from a relative path, exported from another folder holding another
+    sequence at that relative path, renders its own frames (the path is stored absolute); when
+    its own frames were replaced by another sequence's, export refuses in one line and writes
+    nothing (it used to render the other flight, exit 0)."""
+    here, there = tmp_path / "here", tmp_path / "there"
+    for folder, sim in ((here, sims[0]), (there, sims[1])):
+        shutil.copytree(sim / "frames", folder / "frames")
+    shutil.copy(sims[0] / "base.png", here / "base.png")
+    monkeypatch.chdir(here)
+    argv = [
+        "register",
+        "--base",
+        "base.png",
+        "--frames",
+        "frames",
+        "--out",
+        "reg",
+        "--gamma",
+        "0.7",
+    ]
+    assert cli(capsys, *argv)[0] == 0
+    result = here / "reg"
+    monkeypatch.chdir(there)
+    code, _, err = cli(capsys, "export", result, "--format", "png", "--to", there / "png")
+    assert code == 0, err
+    own = read_image(there / "png" / "png" / "000002.png")
+    # The result's own frames replaced by the other sequence's (same names, sizes and count).
+    shutil.rmtree(here / "frames")
+    shutil.copytree(sims[1] / "frames", here / "frames")
+    before = snapshot(here, there)
+    code, _, err = cli(capsys, "export", result, "--format", "png", "--to", there / "png2")
+    assert_refused(
+        code, err, "export", "are not the ones this result was registered from", "frame 0"
+    )
+    assert_unchanged(before)
+    assert not (there / "png2").exists() or not any((there / "png2").iterdir())
+    assert own.std() > 0
+
+
+def test_a_failed_frame_is_a_hole_in_every_export_and_stale_files_go(sims, tmp_path, capsys):
+    """Frame 2 truncated after a first export, the sequence registered again (--force): the
+    export skips frame 2 (never reading it), writes everything else, says so, and with --force
+    removes the 000002 files the first export wrote; the user's own files stay."""
+    frames = tmp_path / "frames"
+    shutil.copytree(sims[0] / "frames", frames)
+    reg, ex = tmp_path / "reg", tmp_path / "ex"
+    assert cli(capsys, *register_args(sims[0], reg, frames))[0] == 0
+    formats = "png,transforms,mp4"  # a plain base map: no map formats
+    code, _, err = cli(capsys, "export", reg, "--format", formats, "--to", ex)
+    assert code == 0, err
+    assert (ex / "png" / "000002.png").is_file()
+    data = (frames / "000002.png").read_bytes()
+    (frames / "000002.png").write_bytes(data[: len(data) // 2])
+    code, out, err = cli(capsys, *register_args(sims[0], reg, frames), "--force")
+    assert code == 0 and "frame 2 failed" in out, (out, err)
+    mine = [ex / "png" / "notes.txt", ex / "png" / "000002.png.bak", ex / "000002.png"]
+    for p in mine:
+        p.write_text("the user's")
+    before = snapshot(*mine)
+    code, out, err = cli(capsys, "export", reg, "--format", formats, "--to", ex, "--force")
+    assert code == 0, err
+    assert "1 frame(s) failed in the registration and are left out: 2" in out
+    assert "removed 1 file(s) an earlier export wrote" in out
+    assert not (ex / "png" / "000002.png").exists()
+    for k in (0, 1, 3, 4, 5):
+        assert (ex / "png" / f"{k:06d}.png").is_file()
+    assert (ex / "registered.mp4").stat().st_size > 0 and (ex / "transforms.json").is_file()
+    assert_unchanged(before)
+
+
 def test_a_wrong_click_leaves_no_result_behind(sims, tmp_path, capsys):
     """A run refused at the reference frame (a click 60 px off) computed nothing: it leaves no
     folder, and the run with the corrected click needs no --force."""

@@ -8,8 +8,7 @@ import os
 import cv2
 import numpy as np
 
-from registration.io import open_frames
-from registration.run.identity import _frames_difference
+from registration.io import frames_difference, open_frames
 
 
 def _write(path, image) -> None:
@@ -33,6 +32,6 @@ def test_a_small_frame_replaced_at_the_same_size_and_mtime_is_found(tmp_path):
     assert target.stat().st_size == stat.st_size < 128 * 1024
     frames = open_frames(folder)
     after = frames.identity()
-    difference = _frames_difference(before, after, [], frames)
+    difference = frames_difference(before, after, [], frames)
     assert "frame 1" in difference and "content of its first or last 64 KB" in difference
-    assert _frames_difference(before, before, [], frames) == ""
+    assert frames_difference(before, before, [], frames) == ""

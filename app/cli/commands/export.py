@@ -150,4 +150,15 @@ def run(args: argparse.Namespace) -> int:
     sys.stdout.write(f"exported into {out_dir} in {summary['total_s']:.1f} s\n")
     for fmt, paths in summary["files"].items():
         sys.stdout.write(f"  {fmt}: {len(paths)} file(s)\n")
+    failed = summary.get("failed_frames") or []
+    if failed:
+        shown = ", ".join(map(str, failed[:10])) + (", ..." if len(failed) > 10 else "")
+        sys.stdout.write(
+            f"  {len(failed)} frame(s) failed in the registration and are left out: {shown}\n"
+        )
+    if summary.get("removed_stale"):
+        sys.stdout.write(
+            f"  removed {len(summary['removed_stale'])} file(s) an earlier export wrote for "
+            "frames that are failed now\n"
+        )
     return 0

@@ -76,12 +76,12 @@ def read_regions(path: str, result):
 
 def run(args: argparse.Namespace) -> int:
     import registration
-    from registration.io import check_frames_match, open_frames
+    from registration.io import check_result_frames, open_frames
     from registration.traffic import run_traffic
 
     result = registration.load(args.result)
     frames = open_frames(args.frames or result.meta["frames_source"])
-    check_frames_match(frames, result.n_frames, result.frame_size)
+    check_result_frames(frames, result)
     exclude = read_regions(args.exclude, result) if args.exclude else None
     progress = LazyProgressBar("traffic")
     t0 = time.perf_counter()
