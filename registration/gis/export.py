@@ -56,7 +56,9 @@ from registration.gis.vector import (
 )
 from registration.io import (
     atomic_path,
+    check_not_an_input,
     check_result_frames,
+    input_locations,
     write_bytes_atomic,
     write_image_atomic,
     write_json_atomic,
@@ -518,6 +520,11 @@ def _export_vectors(result, out: Path, vector: list[str], marks, options, summar
 
 def _check_request(result, out: Path, formats: list[str], marks, options) -> None:
     """ValueError for a request that cannot be served, before anything is written."""
+    folders, files = input_locations(result.meta.get("frames_source"), result.meta.get("base_path"))
+    own = Path(result.out_dir)
+    check_not_an_input(
+        out, [*folders, own / "frames", own / "registered"], files, "the export folder"
+    )
     needs_map = [f for f in formats if f in MAP_FORMATS]
     if needs_map and result.georef is None:
         raise NotGeoreferenced(

@@ -10,7 +10,14 @@ from registration.io.atomic import (
     write_json_atomic,
     write_npz_atomic,
 )
-from registration.io.files import SAMPLE_BYTES, file_fingerprint, file_sha256, read_text_file
+from registration.io.files import (
+    SAMPLE_BYTES,
+    check_not_an_input,
+    file_fingerprint,
+    file_sha256,
+    input_locations,
+    read_text_file,
+)
 from registration.io.frames import (
     VIDEO_BACKWARD_BLOCK,
     FrameReadError,
@@ -37,6 +44,8 @@ __all__ = [
     "MAX_FRAME_PIXELS",
     "MIN_IMAGE_SIDE",
     "SAMPLE_BYTES",
+    "check_not_an_input",
+    "input_locations",
     "VIDEO_BACKWARD_BLOCK",
     "decode_image_file",
     "encode_npz",

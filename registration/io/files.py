@@ -69,3 +69,41 @@ def file_sha256(path: str | os.PathLike) -> str:
         while block := f.read(1 << 20):
             h.update(block)
     return h.hexdigest()
+
+
+def input_locations(
+    frames_source: str | None, base_path: str | None
+) -> tuple[list[Path], list[Path]]:
+    """``(folders, files)`` holding a run's inputs: the frames' folder (a folder of images, or
+    the folder of a glob pattern's images), the video file and the base map file."""
+    folders: list[Path] = []
+    files: list[Path] = []
+    if frames_source:
+        p = Path(frames_source)
+        if p.is_dir():
+            folders.append(p)
+        elif p.is_file():
+            files.append(p)
+        elif any(ch in str(frames_source) for ch in "*?["):
+            folders.append(p.parent)
+    if base_path:
+        files.append(Path(base_path))
+    return folders, files
+
+
+def check_not_an_input(
+    path: str | os.PathLike, folders: list[Path], files: list[Path], what: str
+) -> None:
+    """ValueError (one line) when ``path`` is one of ``files`` or lies in one of ``folders``
+    (nothing is ever written into an input folder or onto an input file)."""
+    p = Path(path).resolve()
+    for f in files:
+        if p == Path(f).resolve():
+            raise ValueError(f"{what} {path} is an input of the run; give another one")
+    for d in folders:
+        d = Path(d).resolve()
+        if p == d or d in p.parents:
+            raise ValueError(
+                f"{what} {path} is inside {d}, which holds the run's inputs or records; give "
+                "another one"
+            )

@@ -40,14 +40,21 @@ RESUME_KEYS = (
 # Metadata and the identity of a run's inputs
 
 
-def base_identity(base: NDArray, base_path: str | os.PathLike | None = None) -> dict:
-    """The base map's identity: its shape and the SHA-256 of its pixels (it is in memory anyway;
-    the pixels are what the registration used, whatever the file's encoding)."""
+def base_identity(
+    base: NDArray, base_path: str | os.PathLike | None = None, base_valid: NDArray | None = None
+) -> dict:
+    """The base map's identity: its shape, the SHA-256 of its pixels (it is in memory anyway;
+    the pixels are what the registration used, whatever the file's encoding) and of its
+    no-data mask (``base_valid``, which ``--base-nodata`` decides; None when all is valid)."""
     pixels = np.ascontiguousarray(base)
+    valid = None
+    if base_valid is not None and not np.asarray(base_valid).all():
+        valid = hashlib.sha256(np.packbits(np.asarray(base_valid, bool)).data).hexdigest()
     return {
         "file": Path(base_path).name if base_path else None,
         "shape": list(pixels.shape),
         "pixels_sha256": hashlib.sha256(pixels.data).hexdigest(),
+        "valid_sha256": valid,
     }
 
 
@@ -69,8 +76,10 @@ def make_metadata(
     config,
     preset: str | None,
     extra: dict[str, Any] | None = None,
+    base_valid: NDArray | None = None,
 ) -> dict:
-    """``result.json`` of a new run. ``extra``: further keys (e.g. the base's georeference)."""
+    """``result.json`` of a new run. ``extra``: further keys (e.g. the base's georeference);
+    ``base_valid``: the base map's no-data mask (part of its identity)."""
     from registration.run.config import config_to_dict
 
     identity = getattr(frames, "identity", None)
@@ -90,7 +99,7 @@ def make_metadata(
         "config": config_to_dict(config),
         "inputs": {
             "frames": identity() if identity else None,
-            "base": base_identity(base, base_path),
+            "base": base_identity(base, base_path, base_valid),
         },
     }
     meta.update(extra or {})
@@ -110,6 +119,8 @@ def _base_difference(old: dict | None, new: dict | None) -> str:
         return input_differs(label, f"shape {new.get('shape')} vs {old.get('shape')}")
     if old.get("pixels_sha256") != new.get("pixels_sha256"):
         return input_differs(label, "other pixels of the same size")
+    if "valid_sha256" in old and old.get("valid_sha256") != new.get("valid_sha256"):
+        return input_differs(label, "another no-data mask (--base-nodata)")
     return ""
 
 

@@ -240,7 +240,7 @@ def _checked_metadata(
         base_georef = base_georef.to_dict()
     return make_metadata(
         frames, base, base_path, gamma, seed, reference_frame, config, preset,
-        extra={"base_georef": base_georef},
+        extra={"base_georef": base_georef}, base_valid=base_valid,
     )  # fmt: skip
 
 

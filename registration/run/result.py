@@ -207,7 +207,7 @@ class RegistrationResult:
             self._arrays[k] = arrays
         return self._arrays[k]
 
-    def inputs_difference(self, frames, base: NDArray) -> str:
+    def inputs_difference(self, frames, base: NDArray, base_valid: NDArray | None = None) -> str:
         """ "" when this result was made from ``frames`` (:class:`registration.io.frames.FrameSource`)
         and ``base``; otherwise one line saying what differs (as ``register --resume`` would).
         For a viewer that must not show another input's result as this one's."""
@@ -218,7 +218,7 @@ class RegistrationResult:
         hashes = [getattr(r, "input_sha256", None) for r in self.records]
         return frames_difference(
             old.get("frames"), identity() if identity else None, hashes, frames
-        ) or _base_difference(old.get("base"), base_identity(base))
+        ) or _base_difference(old.get("base"), base_identity(base, None, base_valid))
 
     def _usable(self, k: int, stage: str) -> bool:
         """Whether frame ``k`` maps at ``stage``; reading its model and arrays may find them

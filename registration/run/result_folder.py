@@ -25,8 +25,10 @@ from registration.run.records import MID_BASE, MID_BASE_VALID, RESULT_JSON, _rea
 
 LOCK_NAME = ".lock"
 # What a result folder may hold; only these are ever deleted (``--force``).
-# io.atomic_path's temporary files: .NAME.XXXXXXXX.tmp, plus NAME's suffix where it has one.
-_TEMP = re.compile(r"^\..+\.tmp(\.[A-Za-z0-9]+)?$")
+# io.atomic_path's temporary files: .NAME.XXXXXXXX.tmp (tempfile.mkstemp's 8 characters), plus
+# NAME's suffix where it has one; only those of the folder's own NAMEs are the folder's (a
+# user's ".notes.tmp" is not).
+_TEMP = re.compile(r"^\.(?P<name>.+)\.[a-z0-9_]{8}\.tmp(\.[A-Za-z0-9]+)?$")
 _OWN = {
     ".": re.compile(
         "^(" + "|".join(map(re.escape, (RESULT_JSON, MID_BASE, MID_BASE_VALID))) + ")$"
@@ -83,7 +85,17 @@ class ResultLock:
 
 def _own_entry(rel: str, name: str) -> bool:
     pattern = _OWN.get(rel)
-    return bool(_TEMP.match(name) or name == LOCK_NAME or (pattern and pattern.match(name)))
+    if pattern is None:
+        return name == LOCK_NAME
+    temp = _TEMP.match(name)
+    return bool(name == LOCK_NAME or pattern.match(name) or (temp and pattern.match(temp["name"])))
+
+
+def _own_temp(rel: str, name: str) -> bool:
+    """Whether ``name`` in ``rel`` is a temporary file of one of the folder's own files."""
+    temp = _TEMP.match(name)
+    pattern = _OWN.get(rel)
+    return bool(temp and pattern and pattern.match(temp["name"]))
 
 
 def folder_state(out_dir: Path) -> str:
@@ -97,7 +109,7 @@ def folder_state(out_dir: Path) -> str:
         return "missing"
     if not out_dir.is_dir():
         raise NotAFolder(out_dir)
-    names = [n for n in os.listdir(out_dir) if n != LOCK_NAME and not _TEMP.match(n)]
+    names = [n for n in os.listdir(out_dir) if n != LOCK_NAME and not _own_temp(".", n)]
     if not names:
         return "empty"
     try:

@@ -391,13 +391,20 @@ def test_force_starts_over_and_keeps_other_files(sims, registered, tmp_path, cap
     out = copy_result(registered, tmp_path)
     (out / "my-notes.txt").write_text("mine\n")
     (out / "frames" / "000000.png").write_bytes(b"not ours")  # not a record: kept
-    keep = snapshot(out / "my-notes.txt", out / "frames" / "000000.png")
+    # Dot-files ending in .tmp that are not temporary files of the result's own names: kept.
+    users = [out / ".notes.tmp", out / ".draft.abcd1234.tmp", out / "frames" / ".x.y.tmp"]
+    for p in users:
+        p.write_text("mine\n")
+    own_temp = out / "frames" / ".000001.json.k2x9_a7q.tmp"  # a killed write of a record
+    own_temp.write_text("{")
+    keep = snapshot(out / "my-notes.txt", out / "frames" / "000000.png", *users)
     frames = copy_frames(sims[0], tmp_path)
     (frames / "000005.png").unlink()  # a different input: 5 frames
     old_records = snapshot(out / "frames")
     code, _, err = cli(capsys, *register_args(sims[0], out, frames), "--force")
     assert code == 0, err
     assert_unchanged(keep)
+    assert not own_temp.exists()
     res = registration.load(out)
     assert res.n_frames == 5 and all(res.status(k) == "ok" for k in range(5))
     assert (
@@ -638,6 +645,42 @@ def test_a_failed_frame_is_a_hole_in_every_export_and_stale_files_go(sims, tmp_p
         assert (ex / "png" / f"{k:06d}.png").is_file()
     assert (ex / "registered.mp4").stat().st_size > 0 and (ex / "transforms.json").is_file()
     assert_unchanged(before)
+
+
+def test_no_output_goes_into_the_inputs_or_the_records(sims, registered, tmp_path, capsys):
+    """export --to the frames folder (it added mosaic.tif to the inputs) and evaluate --csv onto
+    a record or an input frame (with --force it overwrote them) are refused in one line, and
+    nothing changes."""
+    out = copy_result(registered, tmp_path)
+    frames = sims[0] / "frames"
+    before = snapshot(out, frames)
+    code, _, err = cli(capsys, "export", out, "--format", "png", "--to", frames)
+    assert_refused(code, err, "export", "the export folder", "holds the run's inputs")
+    code, _, err = cli(capsys, "export", out, "--format", "png", "--to", out / "frames" / "x")
+    assert_refused(code, err, "export", "the export folder", "holds the run's inputs or records")
+    for target in (out / "frames" / "000001.json", frames / "000002.png", out / "result.json"):
+        code, _, err = cli(capsys, "evaluate", out, "--truth", sims[0], "--csv", target, "--force")
+        assert_refused(code, err, "evaluate", "--csv")
+    assert_unchanged(before)
+    # Beside the records, in the result folder, is where exports go by default.
+    code, _, err = cli(capsys, "export", out, "--format", "png")
+    assert code == 0, err
+
+
+def test_resume_with_another_base_nodata_is_refused(sims, tmp_path, capsys):
+    """--base-nodata decides which map pixels control points may use: a resume with another
+    one would mix two registrations (it was accepted, up to 11.9 px off either run)."""
+    base = read_image(sims[0] / "base.png")
+    base[40:120, 40:200] = 77  # a grey block: no-data only when --base-nodata 77 says so
+    cv2.imwrite(str(tmp_path / "base.png"), base)
+    out = tmp_path / "out"
+    args = [*register_args(sims[0], out), "--base", tmp_path / "base.png"]
+    assert cli(capsys, *args)[0] == 0
+    before = snapshot(out)
+    code, _, err = cli(capsys, *args, "--base-nodata", "77", "--resume")
+    assert_refused(code, err, "register", "another no-data mask (--base-nodata)")
+    assert_unchanged(before)
+    assert cli(capsys, *args, "--resume")[0] == 0  # the same mask resumes
 
 
 def test_a_wrong_click_leaves_no_result_behind(sims, tmp_path, capsys):
@@ -1222,4 +1265,16 @@ def test_resume_with_another_video_is_refused_and_a_copied_one_accepted(sims, tm
     shutil.copyfile(videos["A"], copy)  # same bytes, new mtime
     code, _, err = cli(capsys, *register_args(sims[0], out, copy), "--resume")
     assert code == 0, err
+    assert_unchanged(before)
+    # 64 bytes changed in the middle, size and mtime kept: the first and last 64 KB agree, the
+    # decoded frames do not; the whole-file hash refuses it.
+    data = bytearray(copy.read_bytes())
+    stat = copy.stat()
+    middle = len(data) // 2
+    data[middle : middle + 64] = bytes(255 - b for b in data[middle : middle + 64])
+    copy.write_bytes(bytes(data))
+    os.utime(copy, ns=(stat.st_atime_ns, stat.st_mtime_ns))
+    assert 64 * 1024 < middle < len(data) - 64 * 1024 - 64  # outside the sampled bytes
+    code, _, err = cli(capsys, *register_args(sims[0], out, copy), "--resume")
+    assert_refused(code, err, "register", "A.mp4 differs from the run's input", "content changed")
     assert_unchanged(before)

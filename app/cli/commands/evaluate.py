@@ -56,10 +56,26 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _protected(out: Path) -> tuple[list[Path], list[Path]]:
+    """Folders and files no output may be written into or onto: the result's records and
+    the run's inputs (from its result.json, when readable)."""
+    import json
+
+    from registration.io import input_locations
+
+    try:
+        meta = json.loads((out / "result.json").read_text())
+    except (OSError, ValueError):
+        meta = {}
+    folders, files = input_locations(meta.get("frames_source"), meta.get("base_path"))
+    own = [out / name for name in ("result.json", "mid_base.png", "mid_base_valid.png")]
+    return [*folders, out / "frames", out / "registered"], [*files, *own]
+
+
 def run(args: argparse.Namespace) -> int:
     import registration
     from registration import evaluation
-    from registration.io import write_bytes_atomic
+    from registration.io import check_not_an_input, write_bytes_atomic
 
     if (args.truth is None) == (args.points is None):
         raise UsageError("give exactly one of --truth DIR or --points POINTS.csv")
@@ -74,9 +90,11 @@ def run(args: argparse.Namespace) -> int:
         Path(args.out) / "result.json",
     )
     outputs = {"--markdown": args.markdown, "--csv": args.csv, "--frames-csv": args.frames_csv}
+    protected = _protected(Path(args.out))
     for flag, path in outputs.items():
         if path is not None:
             check_output_file(path, flag, force=args.force, inputs=inputs)
+            check_not_an_input(path, *protected, flag)
     named = [Path(p).resolve() for p in outputs.values() if p is not None]
     if len(set(named)) < len(named):
         raise UsageError("--markdown, --csv and --frames-csv must name different files")
