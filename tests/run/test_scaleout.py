@@ -407,6 +407,10 @@ def _refused(capsys, argv, needle: str) -> None:
     ("extra", "needle"),
     [
         (["--workers", "0"], "--workers must be 1..256, got 0"),
+        (
+            ["--workers", str((os.cpu_count() or 1) + 1)],
+            f"is more than this machine's {os.cpu_count() or 1} CPU cores",
+        ),
         (["--chunk-frames", "-3"], "--chunk-frames must be 0 (one chunk) or more, got -3"),
         (["--workers", "2", "--chunk-frames", "0"], "--workers and --scheduler need chunks"),
         (["--workers", "2", "--scheduler", "tcp://h:1"], "not allowed with argument --workers"),

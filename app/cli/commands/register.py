@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -381,6 +382,14 @@ def chunk_frames(args: argparse.Namespace, state: str) -> int:
     distributed = args.workers is not None or args.scheduler is not None
     if args.workers is not None and not 1 <= args.workers <= MAX_LOCAL_WORKERS:
         raise UsageError(f"--workers must be 1..{MAX_LOCAL_WORKERS}, got {args.workers}")
+    cores = os.cpu_count() or 1
+    if args.workers is not None and args.workers > cores:
+        # Each local worker is a process with one thread: more than the cores only contend
+        # (24 on 2 cores printed dask tracebacks; 100 did not finish in 130 s).
+        raise UsageError(
+            f"--workers {args.workers} is more than this machine's {cores} CPU cores; use at "
+            f"most {cores}, or --scheduler for a cluster of several machines"
+        )
     if args.scheduler is not None and not args.scheduler.strip():
         raise UsageError("--scheduler needs an address, e.g. tcp://10.0.0.5:8786")
     recorded = None
