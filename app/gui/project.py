@@ -18,6 +18,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import shutil
 from pathlib import Path
 from typing import Any
 
@@ -65,10 +66,19 @@ def default_project_dir(frames: str | None, base: str | None, data_dir: Path | N
     return Path(data_dir) / "projects" / f"{stem}-{hashlib.sha1(key).hexdigest()[:10]}"
 
 
+# Of the sanitised name an upload keeps: file systems allow 255 bytes a name, and the kind and
+# hash come first.
+UPLOAD_NAME_CHARS = 120
+
+
 def upload_name(kind: str, filename: str, content: bytes) -> str:
-    """The stored name of an upload: kind, a hash of its content, the sanitised file name."""
+    """The stored name of an upload: kind, a hash of its content, the sanitised file name
+    (its stem shortened to fit ``UPLOAD_NAME_CHARS`` with its suffix)."""
     safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in Path(filename).name)
     safe = safe.lstrip(".") or "upload"
+    if len(safe) > UPLOAD_NAME_CHARS:
+        suffix = Path(safe).suffix[:16]
+        safe = safe[: UPLOAD_NAME_CHARS - len(suffix)] + suffix
     return f"{kind}-{hashlib.sha1(content).hexdigest()[:10]}-{safe}"
 
 
@@ -100,14 +110,20 @@ class Project:
         return self.folder / UPLOADS
 
     def adopt_upload(self, path: str) -> str:
-        """Move a file uploaded into another project's uploads into this one's; returns the
-        (possibly new) path. Other paths are returned unchanged."""
+        """A file uploaded into another project's uploads, given to this one too: a hard link
+        (a copy across file systems) in this project's uploads, so that each project keeps
+        its inputs whatever the other prunes; the other project's file stays where it is.
+        Returns the (possibly new) path; other paths are returned unchanged."""
         p = Path(path)
         if not input_identity(path).startswith("upload:") or p.parent == self.uploads_dir:
             return path
         target = self.uploads_dir / p.name
         self.uploads_dir.mkdir(parents=True, exist_ok=True)
-        os.replace(p, target)
+        if not target.exists():
+            try:
+                os.link(p, target)
+            except OSError:
+                shutil.copy2(p, target)
         return str(target)
 
     def prune_uploads(self, keep: list[str]) -> list[Path]:

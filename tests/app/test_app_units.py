@@ -4,6 +4,7 @@ screen-space helpers, the static assets and the event channel."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -209,3 +210,29 @@ def test_job_runner_reports_start_before_a_job_that_ends_at_once():
         assert runner.start(name, lambda job: None)
         assert runner.join(10)
     assert events == [(kind, n) for n in ("a", "b", "c") for kind in ("start", "finish")]
+
+
+def test_an_upload_with_a_long_name_is_stored_under_a_short_safe_one(tmp_path):
+    from app.gui.project import upload_name
+
+    name = upload_name("frames", "flight " + "x" * 240 + ".mp4", b"content")
+    assert len(name.encode()) <= 255 and name.endswith(".mp4") and name.startswith("frames-")
+    (tmp_path / name).write_bytes(b"content")  # the file system takes it
+
+
+def test_another_projects_upload_is_shared_not_taken(tmp_path):
+    """Opening a file from another project's uploads gives this project its own link to it;
+    the other project keeps its file, and pruning either leaves the other's."""
+    from app.gui.project import PROJECT_FILE, Project, upload_name
+
+    first, second = Project(tmp_path / "a"), Project(tmp_path / "b")
+    for p in (first, second):
+        (p.folder / PROJECT_FILE).write_text("{}")
+    first.uploads_dir.mkdir()
+    source = first.uploads_dir / upload_name("frames", "v.mp4", b"video bytes")
+    source.write_bytes(b"video bytes")
+    adopted = Path(second.adopt_upload(str(source)))
+    assert adopted.parent == second.uploads_dir and adopted.read_bytes() == b"video bytes"
+    assert source.read_bytes() == b"video bytes"  # still in the first project
+    first.prune_uploads([])
+    assert not source.exists() and adopted.read_bytes() == b"video bytes"
