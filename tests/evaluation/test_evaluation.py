@@ -526,3 +526,14 @@ def test_truth_table2_takes_its_points_from_the_reference_frame():
         ]
         assert report.table.mu["local"][i] == pytest.approx(np.mean(motion), abs=1e-9)
         assert report.table.sigma["local"][i] == pytest.approx(np.std(motion), abs=1e-9)
+
+
+def test_a_points_file_too_large_to_be_hand_marks_is_refused_before_reading(tmp_path):
+    from registration.evaluation.points import MAX_POINTS_FILE_BYTES
+
+    p = tmp_path / "POINTS.csv"
+    with open(p, "w") as f:
+        f.write("point,frame,x,y\n")
+        f.truncate(MAX_POINTS_FILE_BYTES + 1)  # sparse: nothing to parse, only its size
+    with pytest.raises(ValueError, match=r"points file .*POINTS\.csv has 8\.0 MiB, over the 8 MiB"):
+        evaluation.read_points_csv(p, 10, (640, 480))
