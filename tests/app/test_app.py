@@ -1316,3 +1316,31 @@ def test_reference_fit_and_edits_survive_a_restart(fitted, make_app, small_seq, 
     t = app2.views["Seed"].table
     assert t.n_enabled == n_enabled and t.rms == pytest.approx(rms, rel=1e-6)
     assert app2.state.steps()["reference registered"] and app2.state.steps()["seeded"]
+
+
+def test_import_points_and_lines_files(tmp_path, small_seq, make_app):
+    """POINTS.csv and LINES.json made elsewhere (the CLI's formats) are imported into the
+    Evaluate and Calibrate views; a file for other frames is refused in one line, nothing
+    changed."""
+    app = make_app(tmp_path / "proj", small_seq)
+    ev, cal = app.views["Evaluate"], app.views["Calibrate"]
+    text = "point,frame,x,y\nNW,0,100.5,80.25\nNW,2,103,82\nSE,1,500,400\n"
+    assert ev.import_points("mine.csv", text.encode())
+    assert app.state.points == {
+        "NW": {0: (100.5, 80.25), 2: (103.0, 82.0)},
+        "SE": {1: (500.0, 400.0)},
+    }
+    assert not app.state.pending
+    assert "NW,2,103.000,82.000" in app.project.points_path.read_text()
+    bad = "point,frame,x,y\nNW,9,1,1\n"
+    assert not ev.import_points("bad.csv", bad.encode())
+    assert "frame 9 is not in the result" in app.notices[-1][1]
+    assert set(app.state.points) == {"NW", "SE"}
+    lines = {"version": 1, "image_size": [640, 480], "lines": [[[10, 10], [200, 12], [400, 15]]]}
+    assert cal.import_lines("LINES.json", json.dumps(lines).encode())
+    assert app.state.lines == [[(10.0, 10.0), (200.0, 12.0), (400.0, 15.0)]]
+    assert json.loads(app.project.lines_path.read_text())["lines"] == lines["lines"]
+    other = dict(lines, image_size=[1280, 960])
+    assert not cal.import_lines("big.json", json.dumps(other).encode())
+    assert "drawn on 1280x960 frames; these are 640x480" in app.notices[-1][1]
+    assert len(app.state.lines) == 1

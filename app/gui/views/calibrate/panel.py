@@ -32,6 +32,7 @@ class CalibratePanel:
             self.btn_finish = gui.add_button("Finish line")
             self.btn_undo = gui.add_button("Undo last point")
             self.btn_clear = gui.add_button("Clear lines", color="red")
+            self.upload_lines = gui.add_upload_button("Import LINES.json", icon=None)
         with gui.add_folder("Estimate γ"):
             self.btn_est_lines = gui.add_button("Estimate γ from lines")
             self.btn_est_auto = gui.add_button("Estimate γ automatically")
@@ -98,6 +99,16 @@ class CalibratePanel:
 
     def on_estimate_from_motion(self, callback: ClientCallback) -> None:
         on_press(self.btn_est_motion, callback)
+
+    def on_import_lines(self, callback: Callable[[str, bytes, Client], None]) -> None:
+        """``callback(file name, content, client)`` for an uploaded LINES.json."""
+        self.upload_lines.on_upload(
+            lambda event: callback(
+                str(getattr(event.target.value, "name", "") or "LINES.json"),
+                getattr(event.target.value, "content", b"") or b"",
+                event.client,
+            )
+        )
 
     def on_use_estimate(self, callback: ClientCallback) -> None:
         on_press(self.btn_use_estimate, callback)

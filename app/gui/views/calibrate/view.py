@@ -18,6 +18,7 @@ import numpy as np
 
 from app.gui import scene2d
 from app.gui.context import Client
+from app.gui.messages import browser_message
 from app.gui.views.base import View
 from app.gui.views.calibrate.panel import CalibratePanel
 from app.gui.views.calibrate.scene import CalibrateScene
@@ -78,6 +79,7 @@ class CalibrateView(View):
         p.on_estimate_automatically(lambda client: self.estimate(auto=True, client=client))
         p.on_estimate_from_motion(lambda client: self.estimate_from_motion(client=client))
         p.on_use_estimate(self.use_estimate)
+        p.on_import_lines(self.import_lines)
         self._settle_timer: threading.Timer | None = None
         self._timer_lock = threading.Lock()
         self._stopped = False
@@ -190,6 +192,42 @@ class CalibrateView(View):
             self.state.lines = []
             self.state.line_open = False
         self._lines_changed()
+
+    def import_lines(self, name: str, content: bytes, client: Client = None) -> bool:
+        """Replace the lines by those of an uploaded LINES.json (the format ``aerialreg
+        calibrate --lines`` reads) drawn on frames of this size."""
+        import json as _json
+
+        from registration.lens import parse_lines
+        from registration.lens.lines_file import MAX_LINES_FILE_BYTES
+
+        inp = self.ctx.inputs
+        if inp is None:
+            return False
+        try:
+            if len(content) > MAX_LINES_FILE_BYTES:
+                raise ValueError(f"{name} is {len(content) / 1e6:.1f} MB, over the limit")
+            parsed = parse_lines(_json.loads(content.decode("utf-8-sig")), name)
+        except (ValueError, UnicodeDecodeError) as exc:
+            self.notify(client, "Lines not imported", browser_message(exc), "red")
+            return False
+        if tuple(parsed.image_size) != tuple(inp.frame_size):
+            w, h = parsed.image_size
+            self.notify(
+                client,
+                "Lines not imported",
+                f"{name} was drawn on {w}x{h} frames; these are "
+                f"{inp.frame_size[0]}x{inp.frame_size[1]}",
+                "red",
+            )
+            return False
+        with self.state.lock:
+            self.state.lines = [[(float(x), float(y)) for x, y in ln] for ln in parsed.lines]
+            self.state.line_open = False
+            self.state.revision += 1
+        self._lines_changed()
+        self.notify(client, "Lines imported", f"{len(parsed.lines)} lines from {name}", "green")
+        return True
 
     def _lines_changed(self) -> None:
         self.ctx.save()

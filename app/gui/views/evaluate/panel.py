@@ -40,6 +40,7 @@ class EvaluatePanel:
         self.btn_table = gui.add_button("Compute Table 2")
         self.table_md = gui.add_markdown("")
         self.btn_export = gui.add_button("Export POINTS.csv")
+        self.upload_points = gui.add_upload_button("Import POINTS.csv", icon=None)
         # Table 2 gets its own wide window (the sidebar is too narrow for 13 columns).
         self.table_panel = gui.add_panel(visible=False)
         with self.table_panel.add_tab("Table 2"):
@@ -82,6 +83,16 @@ class EvaluatePanel:
 
     def on_export_points(self, callback: ClientCallback) -> None:
         on_press(self.btn_export, callback)
+
+    def on_import_points(self, callback: Callable[[str, bytes, Client], None]) -> None:
+        """``callback(file name, content, client)`` for an uploaded POINTS.csv."""
+        self.upload_points.on_upload(
+            lambda event: callback(
+                str(getattr(event.target.value, "name", "") or "POINTS.csv"),
+                getattr(event.target.value, "content", b"") or b"",
+                event.client,
+            )
+        )
 
     def on_download_table(self, callback: Callable[[TableFormat, Client], None]) -> None:
         on_choice(

@@ -61,6 +61,7 @@ class EvaluateView(View):
         p.on_anchor_changed(lambda anchor, client: self.set_anchor(anchor))
         p.on_compute_table(self.compute_table)
         p.on_export_points(self.export_csv)
+        p.on_import_points(self.import_points)
         p.on_download_table(self.download_table)
         self.ctx.events.on("eval-mark", self._mark_event)
 
@@ -320,6 +321,43 @@ class EvaluateView(View):
         text = self.points_csv()
         self.ctx.project.write_file("POINTS.csv", text)
         return text
+
+    def import_points(self, name: str, content: bytes, client: Client = None) -> bool:
+        """Replace the marks by those of an uploaded POINTS.csv (the format ``aerialreg
+        evaluate --points`` reads, raw px of these frames); they count as confirmed."""
+        import tempfile
+        from pathlib import Path
+
+        from registration.evaluation.points import MAX_POINTS_FILE_BYTES
+
+        inp = self.ctx.inputs
+        if inp is None:
+            return False
+        if len(content) > MAX_POINTS_FILE_BYTES:
+            self.notify(client, "Points not imported", f"{name} is over the size limit", "red")
+            return False
+        with tempfile.TemporaryDirectory() as tmp:
+            path = Path(tmp) / (Path(name).name or "POINTS.csv")
+            path.write_bytes(content)
+            try:
+                marks = evaluation.read_points_csv(path, inp.n_frames, inp.frame_size, min_frames=1)
+            except ValueError as exc:
+                self.notify(client, "Points not imported", str(exc), "red")
+                return False
+        with self.state.lock:
+            self.state.points = {p: dict(m) for p, m in marks.marks.items()}
+            self.state.pending = {}
+            self.state.point_name = marks.order[0]
+            self.state.revision += 1
+        self._points_changed()
+        n = sum(len(m) for m in marks.marks.values())
+        self.notify(
+            client,
+            "Points imported",
+            f"{n} marks of {len(marks.order)} points from {name}",
+            "green",
+        )
+        return True
 
     def export_csv(self, client: Client = None) -> bool:
         """Save POINTS.csv, check it with the evaluation module's reader, and send it."""
