@@ -236,3 +236,33 @@ def test_another_projects_upload_is_shared_not_taken(tmp_path):
     assert source.read_bytes() == b"video bytes"  # still in the first project
     first.prune_uploads([])
     assert not source.exists() and adopted.read_bytes() == b"video bytes"
+
+
+def test_residuals_in_map_units_where_the_base_has_a_projected_crs():
+    """With a UTM base of 0.5 m pixels the table adds each residual in metres; degrees and
+    plain images keep pixels only."""
+    from types import SimpleNamespace
+
+    from app.gui.views.cptable.panel import table_html
+    from app.gui.views.cptable.table import map_unit
+    from registration.gis import GeoReference
+
+    utm = SimpleNamespace(base_georef=GeoReference((0.5, 0, 5e5, 0, -0.5, 4.1e6), "EPSG:32633"))
+    wgs = SimpleNamespace(base_georef=GeoReference((1e-5, 0, 73.0, 0, -1e-5, 33.6), "EPSG:4326"))
+    assert map_unit(utm) == ("m", 0.5)
+    assert map_unit(wgs) is None and map_unit(SimpleNamespace(base_georef=None)) is None
+    table = controlpoints.ControlPointTable(
+        ids=np.array([0, 1]),
+        frame_xy=np.zeros((2, 2)),
+        corrected_xy=np.zeros((2, 2)),
+        base_xy=np.zeros((2, 2)),
+        source=["sift", "manual"],
+        enabled=np.array([True, True]),
+        kept_by_reqcon=np.array([True, True]),
+        model=None,
+        residual_xy=np.array([[3.0, 4.0], [0.6, 0.8]]),
+    )
+    html = table_html(table, [0, 1], None, "seed", map_unit(utm))
+    assert "<th>res. (m)</th>" in html and "<td>5.00</td><td>2.500</td>" in html
+    assert "<td>1.00</td><td>0.500</td>" in html
+    assert "res. (m)" not in table_html(table, [0, 1], None, "seed", None)

@@ -24,12 +24,19 @@ def _fmt(v: float, digits: int = 1) -> str:
     return "–" if not np.isfinite(v) else f"{v:.{digits}f}"
 
 
-def table_html(table: ControlPointTable, positions, selected: int | None, scope: str) -> str:
-    """An HTML table of the rows at ``positions`` (clickable; the selected row highlighted)."""
-    head = "".join(
-        f"<th>{h}</th>"
-        for h in ("id", "frame x", "frame y", "map x", "map y", "dx", "dy", "res.", "source", "on")
-    )
+def table_html(
+    table: ControlPointTable,
+    positions,
+    selected: int | None,
+    scope: str,
+    unit: tuple[str, float] | None = None,
+) -> str:
+    """An HTML table of the rows at ``positions`` (clickable; the selected row highlighted);
+    ``unit``: ``(name, map units per base px)`` adds the residual in map units."""
+    names = ["id", "frame x", "frame y", "map x", "map y", "dx", "dy", "res. (px)"]
+    if unit is not None:
+        names.append(f"res. ({escape_md(unit[0])})")
+    head = "".join(f"<th>{h}</th>" for h in (*names, "source", "on"))
     rows = []
     res = table.residual
     for i in positions:
@@ -45,7 +52,9 @@ def table_html(table: ControlPointTable, positions, selected: int | None, scope:
         cells = (
             f"<td>{rid}</td><td>{_fmt(fx)}</td><td>{_fmt(fy)}</td><td>{_fmt(bx)}</td>"
             f"<td>{_fmt(by)}</td><td>{_fmt(dx, 2)}</td><td>{_fmt(dy, 2)}</td>"
-            f"<td>{_fmt(res[i], 2)}</td><td style='text-align:left'>{escape_md(table.source[i])}</td>"
+            f"<td>{_fmt(res[i], 2)}</td>"
+            + (f"<td>{_fmt(res[i] * unit[1], 3)}</td>" if unit is not None else "")
+            + f"<td style='text-align:left'>{escape_md(table.source[i])}</td>"
             f"<td>{'✓' if table.enabled[i] else '✗'}</td>"
         )
         rows.append(
@@ -146,8 +155,15 @@ class ControlPointPanel:
         """What to click next while a manual point is being added ("" otherwise)."""
         self.manual_md.content = text
 
-    def show(self, table: ControlPointTable | None, selected: int | None, note: str = "") -> None:
-        """Show ``table`` (None: nothing to show) with ``selected`` highlighted."""
+    def show(
+        self,
+        table: ControlPointTable | None,
+        selected: int | None,
+        note: str = "",
+        unit: tuple[str, float] | None = None,
+    ) -> None:
+        """Show ``table`` (None: nothing to show) with ``selected`` highlighted; ``unit``:
+        ``(name, map units per base px)`` of a georeferenced base, for residuals in map units."""
         if table is None or not len(table.ids):
             self.summary.content = note or "No control points yet."
             self.table.content = ""
@@ -160,7 +176,9 @@ class ControlPointPanel:
         kind = {1: "projective"}.get(model, f"polyprojective {model}") if model else "no model"
         text = (
             f"**{n}** points, **{table.n_enabled}** enabled; RMS of the enabled "
-            f"**{_fmt(table.rms, 3)} px** ({kind}); rows {self.offset + 1}-"
+            f"**{_fmt(table.rms, 3)} px**"
+            + (f" = {_fmt(table.rms * unit[1], 3)} {escape_md(unit[0])}" if unit else "")
+            + f" ({kind}); rows {self.offset + 1}-"
             f"{self.offset + len(page)} of {n}, sorted by {escape_md(self.sort_key)}"
         )
         if table.reason:
@@ -168,7 +186,7 @@ class ControlPointPanel:
         if note:
             text += f"  \n{note}"
         self.summary.content = text
-        self.table.content = table_html(table, page, selected, self.scope)
+        self.table.content = table_html(table, page, selected, self.scope, unit)
 
     def offset_for(self, table: ControlPointTable, row_id: int) -> int | None:
         """The page offset that shows ``row_id`` (the table jumps to a selected point)."""

@@ -12,6 +12,8 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
+
 from app.gui import controlpoints, scene2d
 from app.gui.context import Client, ViewContext
 from app.gui.controlpoints import ControlPointTable
@@ -19,6 +21,17 @@ from app.gui.views.cptable.panel import ControlPointPanel
 
 RegionOf = Callable[[ControlPointTable, int], list[scene2d.PlaneGeometry]]
 """``(table, row position) -> planes`` the camera shows around a selected point."""
+
+
+def map_unit(inputs) -> tuple[str, float] | None:
+    """``(unit, map units per base px)`` of the opened base map's georeference when it has a
+    projected CRS (residuals in metres or feet); None for a plain image or degrees."""
+    georef = getattr(inputs, "base_georef", None)
+    if georef is None or georef.crs is None or not georef.crs.is_projected:
+        return None
+    unit = georef.units or "map unit"
+    short = {"metre": "m", "meter": "m", "US survey foot": "ft", "foot": "ft"}.get(unit, unit)
+    return short, float(np.mean(georef.pixel_size))
 
 
 class ControlPointTableView:
@@ -70,7 +83,7 @@ class ControlPointTableView:
 
     def show(self) -> None:
         note = self.note if self.table is not None else self.empty_note
-        self.panel.show(self.table, self.selected, note)
+        self.panel.show(self.table, self.selected, note, map_unit(self.ctx.inputs))
 
     def turn_page(self, direction: int) -> None:
         if self.table is not None:
