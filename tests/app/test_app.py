@@ -481,6 +481,19 @@ def test_control_points_disable_worst_manual_and_export(fitted):
     seed.undo()
     app.worker.wait_idle()
     assert "manual" not in seed.table.source
+    # The map side typed instead of clicked (a plain base: base px); outside the map: refused.
+    bxy = truth.frame_to_base(0, fxy)[0]
+    assert not seed.points.typed_map_point(*bxy)  # no frame point yet
+    seed.points.toggle_manual()
+    click(app, seed.scene.planes["frame"], corrected)
+    assert not seed.points.typed_map_point(-50.0, 10.0)
+    assert "outside the" in app.notices[-1][1]
+    assert seed.points.typed_map_point(*bxy)
+    app.worker.wait_idle()
+    assert np.allclose(app.state.cp_edits.manual[-1][2:], bxy)
+    assert "manual" in seed.table.source
+    seed.undo()
+    app.worker.wait_idle()
     # Export as QGIS .points: the header, and raw (x, y) -> (x + 0.5, -(y + 0.5)).
     assert seed.export_points()
     path = next(app.project.folder.glob("reference_frame_*.points"))

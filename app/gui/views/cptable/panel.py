@@ -86,6 +86,11 @@ class ControlPointPanel:
                 "Points", ("Disable worst", "Add manual", "Reset edits")
             )
             self.manual_md = gui.add_markdown("")
+            # A manual point's map side typed instead of clicked (QGIS's "enter coordinates"):
+            # map coordinates of a georeferenced base, else base px.
+            self.typed_x = gui.add_number("Map x (typed)", 0.0, step=0.01)
+            self.typed_y = gui.add_number("Map y (typed)", 0.0, step=0.01)
+            self.btn_typed = gui.add_button("Place the map point at these coordinates")
         self.export = gui.add_button("Export control points (.points)")
         self.offset = 0  # position of the first row shown, in the sorted order
 
@@ -135,6 +140,13 @@ class ControlPointPanel:
 
     def on_export(self, callback: ClientCallback) -> None:
         on_press(self.export, callback)
+
+    def on_typed_map_point(self, callback: Callable[[float, float, Client], None]) -> None:
+        """``callback(x, y, client)`` with the typed map coordinates (editable table)."""
+        on_press(
+            self.btn_typed,
+            lambda client: callback(float(self.typed_x.value), float(self.typed_y.value), client),
+        )
 
     # ---------------------------------------------------------------- values
     @property

@@ -78,6 +78,7 @@ class ReferencePoints:
             reset=lambda client: self.reset_edits(),
         )
         panel.on_export(self.export)
+        panel.on_typed_map_point(self.typed_map_point)
 
     @property
     def table(self) -> controlpoints.ControlPointTable | None:
@@ -282,6 +283,35 @@ class ReferencePoints:
             self.submit("refit", self.refit)
         self.show()
         self.redraw_overlays()
+
+    def typed_map_point(self, x: float, y: float, client: Client = None) -> bool:
+        """The map side of the manual point being added, typed: map coordinates in the base
+        map's CRS when it is georeferenced, else base px."""
+        if not self.manual_mode or self.manual_frame is None:
+            self.ctx.notify(
+                client,
+                "Frame point first",
+                "Press Add manual and click the point on the frame, then type its map coordinates",
+                color="yellow",
+            )
+            return False
+        georef = getattr(self.ctx.inputs, "base_georef", None)
+        if not (np.isfinite(x) and np.isfinite(y)):
+            self.ctx.notify(client, "Not a position", f"({x}, {y})", color="red")
+            return False
+        b = georef.base_from_map([[x, y]])[0] if georef is not None else np.array([x, y])
+        w, h = self.ctx.inputs.base_size
+        if not (-0.5 <= b[0] <= w - 0.5 and -0.5 <= b[1] <= h - 0.5):
+            self.ctx.notify(
+                client,
+                "Outside the map",
+                f"({x:g}, {y:g}) is at base pixel ({b[0]:.1f}, {b[1]:.1f}), outside the "
+                f"{w}x{h} map",
+                color="red",
+            )
+            return False
+        self.manual_click("base", (float(b[0]), float(b[1])), client)
+        return True
 
     def export(self, client: Client = None) -> bool:
         """The table as QGIS ``.points`` in the project, sent to the browser."""
