@@ -855,7 +855,7 @@ def test_evaluate_bad_result_folder(sims, registered, tmp_path, capsys, kind):
     [
         ("points-not-utf8", "is not UTF-8 text"),
         ("points-directory", "is a directory"),
-        ("points-too-large", "over the 64 MiB limit"),
+        ("points-too-large", "over the 8 MiB limit"),
         ("truth-of-another-sequence", "the truth does not match the result"),
         ("grid-step-nan", "--grid-step must be a number >= 1"),
         ("grid-step-tiny", "--grid-step must be a number >= 1"),
@@ -869,7 +869,7 @@ def test_evaluate_bad_option(sims, registered, tmp_path, capsys, kind, needle):
     extra = {
         "points-not-utf8": ["--points", nonutf8],
         "points-directory": ["--points", tmp_path],
-        "points-too-large": ["--points", sparse_file(tmp_path / "big.csv", 65 << 20)],
+        "points-too-large": ["--points", sparse_file(tmp_path / "big.csv", 9 << 20)],
         "truth-of-another-sequence": ["--truth", sims[1]],
         "grid-step-nan": ["--truth", sims[0], "--grid-step", "nan"],
         "grid-step-tiny": ["--truth", sims[0], "--grid-step", "0.001"],
