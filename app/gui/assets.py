@@ -116,7 +116,13 @@ class EventChannel:
             handler = self._handlers.get(kind) if isinstance(kind, str) else None
         if handler is None:
             return False
-        handler(value, client)
+        try:
+            handler(value, client)
+        except (ValueError, TypeError, KeyError, IndexError) as exc:
+            # A page can send anything: a malformed value is refused in one log line, without
+            # a traceback (it is not the app's error).
+            log.warning("event %r refused: %s", kind, str(exc).splitlines()[0] if str(exc) else exc)
+            return False
         return True
 
     def _on_update(self, event) -> None:

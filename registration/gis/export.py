@@ -33,6 +33,7 @@ from __future__ import annotations
 import copy
 import math
 import os
+import re
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -472,14 +473,33 @@ def export_result(
     return summary
 
 
+# io.atomic_path's temporary names: .NAME.XXXXXXXX.tmp[.suffix].
+_TEMP_NAME = re.compile(r"^\.(?P<name>.+)\.[a-z0-9_]{8}\.tmp(\.[A-Za-z0-9]+)?$")
+
+
 def _remove_stale(result, out: Path, formats: list[str], failed: list[int]) -> list[str]:
     """Delete what an earlier export into ``out`` wrote for frames that are failed now (a
-    result registered again): exactly the names this export would give them, nothing else."""
+    result registered again), and the temporary files a killed export left of any name this
+    export writes: exactly those names, nothing else."""
     removed = []
     for path in _frame_files(result, out, formats, failed, every=True):
         if path.is_file() and not path.is_symlink():
             path.unlink()
             removed.append(str(path))
+    every = list(range(result.n_frames))
+    names: dict[Path, set[str]] = {}
+    for path in _frame_files(result, out, formats, every, every=True) + _sequence_files(
+        result, out, formats, marks=True
+    ):
+        names.setdefault(path.parent, set()).add(path.name)
+    for folder, own in names.items():
+        if not folder.is_dir():
+            continue
+        for entry in os.scandir(folder):
+            m = _TEMP_NAME.match(entry.name)
+            if m and m["name"] in own and entry.is_file(follow_symlinks=False):
+                os.unlink(entry.path)
+                removed.append(entry.path)
     return removed
 
 

@@ -177,6 +177,27 @@ def test_static_assets_and_event_channel():
     assert got == [12]
 
 
+def test_a_malformed_event_value_is_refused_without_a_traceback(caplog):
+    """A page may send any value: the handler's ValueError is one log line, not a traceback."""
+    import logging
+
+    class Gui:
+        def add_text(self, *a, **k):
+            class W:
+                def on_update(self, cb):
+                    pass
+
+            return W()
+
+    ch = assets.EventChannel(Gui())
+    ch.on("cp-select:seed", lambda v, c: int(v))
+    with caplog.at_level(logging.WARNING):
+        assert not ch.dispatch(json.dumps({"kind": "cp-select:seed", "value": "abc"}))
+        assert not ch.dispatch(json.dumps({"kind": "cp-select:seed", "value": None}))
+    assert len(caplog.records) == 2 and not any(r.exc_info for r in caplog.records)
+    assert "event 'cp-select:seed' refused: invalid literal" in caplog.records[0].getMessage()
+
+
 def test_second_seed_from_typed_heading_round_trips():
     from app.gui import calls
 

@@ -633,14 +633,17 @@ def test_a_failed_frame_is_a_hole_in_every_export_and_stale_files_go(sims, tmp_p
     code, out, err = cli(capsys, *register_args(sims[0], reg, frames), "--force")
     assert code == 0 and "frame 2 failed" in out, (out, err)
     mine = [ex / "png" / "notes.txt", ex / "png" / "000002.png.bak", ex / "000002.png"]
+    mine.append(ex / "png" / ".notes.abcd1234.tmp")  # a temporary name, but not of an export file
     for p in mine:
         p.write_text("the user's")
+    killed = ex / "png" / ".000004.png.k2x9_a7q.tmp"  # what a killed export leaves
+    killed.write_bytes(b"half")
     before = snapshot(*mine)
     code, out, err = cli(capsys, "export", reg, "--format", formats, "--to", ex, "--force")
     assert code == 0, err
     assert "1 frame(s) failed in the registration and are left out: 2" in out
-    assert "removed 1 file(s) an earlier export wrote" in out
-    assert not (ex / "png" / "000002.png").exists()
+    assert "removed 2 stale file(s) of an earlier export" in out
+    assert not (ex / "png" / "000002.png").exists() and not killed.exists()
     for k in (0, 1, 3, 4, 5):
         assert (ex / "png" / f"{k:06d}.png").is_file()
     assert (ex / "registered.mp4").stat().st_size > 0 and (ex / "transforms.json").is_file()

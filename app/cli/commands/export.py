@@ -158,7 +158,7 @@ def run(args: argparse.Namespace) -> int:
         )
     if summary.get("removed_stale"):
         sys.stdout.write(
-            f"  removed {len(summary['removed_stale'])} file(s) an earlier export wrote for "
-            "frames that are failed now\n"
+            f"  removed {len(summary['removed_stale'])} stale file(s) of an earlier export (for "
+            "frames that are failed now, or left by an interrupted export)\n"
         )
     return 0
