@@ -20,6 +20,7 @@ STEP_VIEWS = {
     "reference registered": "Seed",
     "sequence registered": "Sequence",
     "evaluated": "Evaluate",
+    "traffic found": "Traffic",
 }
 """The view where each step of :data:`app.gui.state.STEPS` is done."""
 NEXT = {
@@ -28,6 +29,7 @@ NEXT = {
     "reference registered": "in **Seed**, run the fine step (it runs by itself after a seed click)",
     "sequence registered": "in **Sequence**, press *Register all frames*",
     "evaluated": "in **Evaluate**, mark ground points in several frames, then *Compute Table 2*",
+    "traffic found": "in **Traffic**, press *Find vehicles* for tracks and speeds on the map",
 }
 """What to do for each step, shown once it is the first not done."""
 

@@ -49,12 +49,13 @@ from app.gui.views.calibrate.view import CalibrateView
 from app.gui.views.evaluate.view import EvaluateView
 from app.gui.views.seed.view import SeedView
 from app.gui.views.sequence.view import SequenceView
+from app.gui.views.traffic.view import TrafficView
 from app.gui.worker import Job, JobRunner, LatestWorker
 from app.progress import human_size
 
 log = logging.getLogger(__name__)
 
-VIEWS = (CalibrateView, SeedView, SequenceView, EvaluateView)
+VIEWS = (CalibrateView, SeedView, SequenceView, EvaluateView, TrafficView)
 """The views, in the order of the analyst's work (and of :data:`app.gui.state.MODES`)."""
 PANEL_WIDTH_PX = 480
 ZOOM_STEP = 0.1

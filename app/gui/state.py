@@ -15,7 +15,7 @@ from typing import Any
 from app.gui.controlpoints import Edits
 from registration.lens import Camera
 
-MODES = ("Calibrate", "Seed", "Sequence", "Evaluate")
+MODES = ("Calibrate", "Seed", "Sequence", "Evaluate", "Traffic")
 OVERLAYS = ("blend", "checkerboard", "flicker")
 TRANSFORMS = {"projective": 1, "polyprojective 2": 2, "polyprojective 3": 3}
 """Global transform choices: name -> polyprojective degree (degree 1 = projective)."""
@@ -26,6 +26,7 @@ STEPS = (
     "reference registered",
     "sequence registered",
     "evaluated",
+    "traffic found",
 )
 UNDO_DEPTH = 50
 
@@ -121,6 +122,10 @@ class AppState:
         point_name, eval_frame: the point being marked and the frame shown in Evaluate.
         anchor: what Table 2 measures a point's motion from (:data:`ANCHORS`).
         report: the last ``registration.evaluation.report.EvaluationReport`` of Table 2 (not saved).
+        traffic_fps, traffic_gsd: the Traffic view's frame rate (frames/s; 0 = the video's own
+            timestamps) and ground sampling distance (m per base px; 0 = from the map's CRS).
+        traffic_frame: the frame the Traffic view shows.
+        traffic: the last traffic run (``app.gui.views.traffic.view.TrafficRun``; not saved).
         zoom: world units per screen pixel of the last camera a browser reported.
         revision: bumped on every change (the worker uses it to drop stale renders).
     """
@@ -163,6 +168,10 @@ class AppState:
     eval_frame: int = 0
     anchor: str = ANCHORS[0]
     report: Any = None
+    traffic_fps: float = 0.0
+    traffic_gsd: float = 0.0
+    traffic_frame: int = 0
+    traffic: Any = None
     zoom: float | None = None
     revision: int = 0
     undo_stack: list[dict] = field(default_factory=list, repr=False)
@@ -198,6 +207,9 @@ class AppState:
         "point_name",
         "eval_frame",
         "anchor",
+        "traffic_fps",
+        "traffic_gsd",
+        "traffic_frame",
     )
     _UNDOABLE = (
         "seed_frame",
@@ -291,6 +303,7 @@ class AppState:
             and "pending" not in statuses
             and any(st == "ok" for st in statuses),
             "evaluated": self.report is not None,
+            "traffic found": self.traffic is not None and r is not None,
         }
 
     # ------------------------------------------------------------------ undo
@@ -365,9 +378,15 @@ class AppState:
                     "seed2_typed",
                 ):
                     value = None if value is None else (float(value[0]), float(value[1]))
-                elif name in ("gamma", "opacity", "vector_scale"):
+                elif name in ("gamma", "opacity", "vector_scale", "traffic_fps", "traffic_gsd"):
                     value = float(value)
-                elif name in ("calib_frame", "reference_frame", "seq_frame", "eval_frame"):
+                elif name in (
+                    "calib_frame",
+                    "reference_frame",
+                    "seq_frame",
+                    "eval_frame",
+                    "traffic_frame",
+                ):
                     value = int(value)
                 elif name in ("gamma_set", "run_local", "adjust"):
                     value = bool(value)

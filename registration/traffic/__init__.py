@@ -9,6 +9,7 @@ from the map, written as inD-style CSVs, GIS layers and a velocity field.
 
 from registration.traffic.config import TrafficConfig
 from registration.traffic.detect import Detection, detect_vehicles
+from registration.traffic.outputs import TrackRows, read_tracks_csv
 from registration.traffic.runner import run_traffic
 from registration.traffic.sequence import tracks_from_detections, usable_frames
 from registration.traffic.timing import MetricFrame, frame_times, video_frame_times
@@ -18,9 +19,11 @@ __all__ = [
     "Detection",
     "MetricFrame",
     "SmoothTrack",
+    "TrackRows",
     "TrafficConfig",
     "detect_vehicles",
     "frame_times",
+    "read_tracks_csv",
     "run_traffic",
     "smooth_track",
     "track_detections",

@@ -12,6 +12,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -267,3 +268,55 @@ def write_velocity_field(
             for i, name in enumerate(("vx_mps", "vy_mps", "speed_mps", "speed_std_mps", "count")):
                 dst.set_band_description(i + 1, name)
     return path
+
+
+@dataclass(frozen=True)
+class TrackRows:
+    """One track as ``tracks.csv`` holds it: ``frames`` ``(M,)``, ``xy_m`` ``(M, 2)`` metres in
+    the run's metric frame, ``velocity`` ``(M, 2)`` m/s, ``width_m`` and ``length_m``."""
+
+    track_id: int
+    frames: NDArray[np.int64]
+    xy_m: NDArray[np.float64]
+    velocity: NDArray[np.float64]
+    width_m: float
+    length_m: float
+
+    @property
+    def speed(self) -> NDArray[np.float64]:
+        return np.hypot(self.velocity[:, 0], self.velocity[:, 1])
+
+
+def read_tracks_csv(path: str | Path) -> list[TrackRows]:
+    """The tracks of a ``tracks.csv`` this stage wrote (:func:`write_ind_csvs`), by track id.
+
+    Raises:
+        ValueError: one line, for a file without inD's track columns or with a bad value.
+    """
+    from registration.io import read_text_file
+
+    rows = list(csv.DictReader(read_text_file(path, "tracks file").splitlines()))
+    need = ("trackId", "frame", "xCenter", "yCenter", "xVelocity", "yVelocity", "width", "length")
+    if rows and any(c not in rows[0] for c in need):
+        missing = next(c for c in need if c not in rows[0])
+        raise ValueError(f"{Path(path).name} has no column {missing!r}: not a tracks.csv")
+    by_id: dict[int, list[dict]] = {}
+    try:
+        for r in rows:
+            by_id.setdefault(int(r["trackId"]), []).append(r)
+        out = []
+        for tid in sorted(by_id):
+            rs = sorted(by_id[tid], key=lambda r: int(r["frame"]))
+            out.append(
+                TrackRows(
+                    track_id=tid,
+                    frames=np.array([int(r["frame"]) for r in rs], np.int64),
+                    xy_m=np.array([[float(r["xCenter"]), float(r["yCenter"])] for r in rs]),
+                    velocity=np.array([[float(r["xVelocity"]), float(r["yVelocity"])] for r in rs]),
+                    width_m=float(rs[0]["width"]),
+                    length_m=float(rs[0]["length"]),
+                )
+            )
+    except ValueError as exc:
+        raise ValueError(f"{Path(path).name}: {exc}") from None
+    return out

@@ -1357,3 +1357,69 @@ def test_import_points_and_lines_files(tmp_path, small_seq, make_app):
     assert not cal.import_lines("big.json", json.dumps(other).encode())
     assert "drawn on 1280x960 frames; these are 640x480" in app.notices[-1][1]
     assert len(app.state.lines) == 1
+
+
+@pytest.fixture(scope="module")
+def traffic_seq(tmp_path_factory) -> Path:
+    """12 frames 640x480 (2.4 s at 5 frames/s) with the simulator's traffic."""
+    from registration.synth import SimConfig, simulate
+
+    out = tmp_path_factory.mktemp("traffic_seq")
+    simulate(out, SimConfig(frame_size=(640, 480), n_frames=12, video=False, seed=2))
+    return out
+
+
+def test_traffic_view_finds_tracks_on_the_map(tmp_path, traffic_seq, make_app):
+    """Find vehicles on the registered sequence: tracks coloured by speed over the map, the
+    frame's vehicles where the simulator drove them, a click selects a track and charts its
+    speed, the files download; the checklist counts it."""
+    from registration.evaluation.traffic import truth_metric_frame
+    from registration.synth import load_truth
+
+    truth = load_truth(traffic_seq)
+    app = make_app(tmp_path / "proj", traffic_seq)
+    app.views["Calibrate"].set_gamma(truth.gamma)
+    app.set_mode("Seed")
+    seed_at_truth(app, truth)
+    app.set_mode("Sequence")
+    assert app.views["Sequence"].run()
+    app.jobs.join(600)
+    app.worker.wait_idle()
+    assert app.state.result is not None, app.errors
+    app.set_mode("Traffic")
+    tv = app.views["Traffic"]
+    # A plain base map and image frames: metres and times must be given, and the view says so.
+    assert not tv.find() and "ground sampling distance" in app.notices[-1][1]
+    tv.panel.gsd.value = truth_metric_frame(truth).gsd_m
+    assert not tv.find() and "give the frame rate" in app.notices[-1][1]
+    tv.panel.fps.value = truth.config["fps"]
+    assert app.state.traffic_fps == truth.config["fps"]
+    assert tv.find()
+    app.jobs.join(600)
+    app.worker.wait_idle()
+    run = app.state.traffic
+    assert run is not None and len(run.tracks) >= 3, app.notices[-3:]
+    assert app.state.steps()["traffic found"] and "tracks**" in tv.panel.summary_md.content
+    assert tv.scene.planes["base"].overlay("tracks") is not None
+    # The vehicles of a frame lie where the simulator drove vehicles (base px).
+    v = truth.vehicles()
+    k = 6
+    ids, xy, speed = tv.vehicles_at(k)
+    true_xy = np.c_[v["x_base"][v["frame"] == k], v["y_base"][v["frame"] == k]]
+    gaps = [np.min(np.hypot(*(true_xy - p).T)) for p in xy]
+    px_per_m = 1.0 / truth_metric_frame(truth).gsd_m
+    assert len(ids) >= 2 and np.median(gaps) < 2.0 * px_per_m, gaps
+    tv.set_frame(k)
+    app.worker.wait_idle()
+    assert tv.scene.planes["base"].overlay("vehicles") is not None
+    # A click on a track selects it and charts its speed.
+    tv.on_click("base", tuple(xy[0]), None)
+    app.worker.wait_idle()
+    assert tv.selected == ids[0] and tv.panel.plot.visible
+    frames, speeds = tv.panel.plot.data
+    assert k in frames.tolist() and np.all(np.isfinite(speeds))
+    assert f"Track **{ids[0]}**" in tv.panel.track_md.content
+    sent = []
+    app.send_download = lambda client, name, data: sent.append((name, data))
+    assert tv.download("tracks.csv")
+    assert sent and sent[0][0] == "tracks.csv" and sent[0][1].startswith(b"recordingId,trackId")

@@ -738,7 +738,7 @@ def test_each_view_at_1440x900_is_drawn_and_nothing_overflows(browser, registere
     assert ev.compute_table()
     app.jobs.join(60)
     page = Page(browser, app.server.get_port(), viewport=WIDE)
-    for mode in ("Calibrate", "Seed", "Sequence", "Evaluate"):
+    for mode in ("Calibrate", "Seed", "Sequence", "Evaluate", "Traffic"):
         page.view_button(mode).click()
         wait_until(lambda m=mode: app.state.mode == m, what=f"{mode} view")
         app.worker.wait_idle()
