@@ -138,7 +138,7 @@ def patch_structure(patch: NDArray) -> PatchStructure:
 
 def _grey(image: NDArray) -> NDArray[np.uint8] | NDArray:
     img = np.asarray(image)
-    return cv2.cvtColor(img, cv2.COLOR_RGB2GRAY) if img.ndim == 3 else img
+    return cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) if img.ndim == 3 else img  # frames are BGR
 
 
 def propose_mark(
