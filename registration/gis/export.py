@@ -33,7 +33,6 @@ from __future__ import annotations
 import copy
 import math
 import os
-import re
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -60,6 +59,7 @@ from registration.io import (
     check_not_an_input,
     check_result_frames,
     input_locations,
+    temp_target,
     write_bytes_atomic,
     write_image_atomic,
     write_json_atomic,
@@ -473,10 +473,6 @@ def export_result(
     return summary
 
 
-# io.atomic_path's temporary names: .NAME.XXXXXXXX.tmp[.suffix].
-_TEMP_NAME = re.compile(r"^\.(?P<name>.+)\.[a-z0-9_]{8}\.tmp(\.[A-Za-z0-9]+)?$")
-
-
 def _remove_stale(result, out: Path, formats: list[str], failed: list[int]) -> list[str]:
     """Delete what an earlier export into ``out`` wrote for frames that are failed now (a
     result registered again), and the temporary files a killed export left of any name this
@@ -496,8 +492,7 @@ def _remove_stale(result, out: Path, formats: list[str], failed: list[int]) -> l
         if not folder.is_dir():
             continue
         for entry in os.scandir(folder):
-            m = _TEMP_NAME.match(entry.name)
-            if m and m["name"] in own and entry.is_file(follow_symlinks=False):
+            if temp_target(entry.name) in own and entry.is_file(follow_symlinks=False):
                 os.unlink(entry.path)
                 removed.append(entry.path)
     return removed

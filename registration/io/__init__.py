@@ -5,6 +5,7 @@ globs), text inputs and file identities, and the one atomic writer every output 
 from registration.io.atomic import (
     atomic_path,
     encode_npz,
+    temp_target,
     write_bytes_atomic,
     write_image_atomic,
     write_json_atomic,
@@ -45,6 +46,7 @@ __all__ = [
     "MIN_IMAGE_SIDE",
     "SAMPLE_BYTES",
     "check_not_an_input",
+    "temp_target",
     "input_locations",
     "VIDEO_BACKWARD_BLOCK",
     "decode_image_file",

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import tempfile
 import threading
 from collections.abc import Iterator
@@ -32,6 +33,17 @@ def _file_mode() -> int:
 
 
 _UMASK_LOCK = threading.Lock()
+
+# The temporary names atomic_path makes: .NAME.XXXXXXXX.tmp (mkstemp's 8 characters), plus
+# NAME's suffix with keep_suffix.
+_TEMP_NAME = re.compile(r"^\.(?P<name>.+)\.[a-z0-9_]{8}\.tmp(\.[A-Za-z0-9]+)?$")
+
+
+def temp_target(name: str) -> str | None:
+    """The file name an :func:`atomic_path` temporary file ``name`` was writing (a writer killed
+    before the rename leaves it), or None when ``name`` is not such a temporary file."""
+    m = _TEMP_NAME.match(name)
+    return m["name"] if m else None
 
 
 @contextmanager

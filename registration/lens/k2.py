@@ -222,7 +222,8 @@ def estimate_k2(
             dk = np.einsum("nij,nj->ni", dxy, dc / corr_scale)
             j = np.concatenate([dk[:, :, None], j], axis=2)
         j = j.reshape(2 * n, -1)
-        j[~np.isfinite(residuals(p, k2))] = 0.0
+        # A point without a corrected position has NaN rows here, where residuals() gives it a
+        # constant 1000 px: its derivative is 0.
         j[~np.isfinite(j)] = 0.0
         return j
 

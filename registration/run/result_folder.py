@@ -21,14 +21,11 @@ from registration.errors import (
     ResultDamaged,
     ResultExists,
 )
+from registration.io import temp_target
 from registration.run.records import MID_BASE, MID_BASE_VALID, RESULT_JSON, _read_meta
 
 LOCK_NAME = ".lock"
 # What a result folder may hold; only these are ever deleted (``--force``).
-# io.atomic_path's temporary files: .NAME.XXXXXXXX.tmp (tempfile.mkstemp's 8 characters), plus
-# NAME's suffix where it has one; only those of the folder's own NAMEs are the folder's (a
-# user's ".notes.tmp" is not).
-_TEMP = re.compile(r"^\.(?P<name>.+)\.[a-z0-9_]{8}\.tmp(\.[A-Za-z0-9]+)?$")
 _OWN = {
     ".": re.compile(
         "^(" + "|".join(map(re.escape, (RESULT_JSON, MID_BASE, MID_BASE_VALID))) + ")$"
@@ -84,18 +81,17 @@ class ResultLock:
 
 
 def _own_entry(rel: str, name: str) -> bool:
+    """Whether ``name`` in ``rel`` is one of the folder's own files, its lock or a temporary
+    file of one of its own files (a user's ".notes.tmp" is not)."""
     pattern = _OWN.get(rel)
-    if pattern is None:
-        return name == LOCK_NAME
-    temp = _TEMP.match(name)
-    return bool(name == LOCK_NAME or pattern.match(name) or (temp and pattern.match(temp["name"])))
+    return bool(name == LOCK_NAME or (pattern and pattern.match(name)) or _own_temp(rel, name))
 
 
 def _own_temp(rel: str, name: str) -> bool:
     """Whether ``name`` in ``rel`` is a temporary file of one of the folder's own files."""
-    temp = _TEMP.match(name)
+    target = temp_target(name)
     pattern = _OWN.get(rel)
-    return bool(temp and pattern and pattern.match(temp["name"]))
+    return bool(target and pattern and pattern.match(target))
 
 
 def folder_state(out_dir: Path) -> str:

@@ -151,6 +151,17 @@ def test_auto_vector_scale_and_zoom_helpers():
     )
 
 
+class _HiddenTextGui:
+    """Enough of viser's GUI for an EventChannel: a text widget whose updates go nowhere."""
+
+    def add_text(self, *a, **k):
+        class Widget:
+            def on_update(self, cb):
+                pass
+
+        return Widget()
+
+
 def test_static_assets_and_event_channel():
     for name in ("camera.js", "events.js", "app.css"):
         assert assets.read_asset(name).strip()
@@ -160,15 +171,7 @@ def test_static_assets_and_event_channel():
     with pytest.raises(FileNotFoundError, match="missing"):
         assets.read_asset("nope.js")
 
-    class Gui:
-        def add_text(self, *a, **k):
-            class W:
-                def on_update(self, cb):
-                    pass
-
-            return W()
-
-    ch = assets.EventChannel(Gui())
+    ch = assets.EventChannel(_HiddenTextGui())
     got = []
     ch.on("cp-select:seed", lambda v, c: got.append(v))
     assert ch.dispatch(json.dumps({"kind": "cp-select:seed", "value": 12, "n": 1}))
@@ -181,15 +184,7 @@ def test_a_malformed_event_value_is_refused_without_a_traceback(caplog):
     """A page may send any value: the handler's ValueError is one log line, not a traceback."""
     import logging
 
-    class Gui:
-        def add_text(self, *a, **k):
-            class W:
-                def on_update(self, cb):
-                    pass
-
-            return W()
-
-    ch = assets.EventChannel(Gui())
+    ch = assets.EventChannel(_HiddenTextGui())
     ch.on("cp-select:seed", lambda v, c: int(v))
     with caplog.at_level(logging.WARNING):
         assert not ch.dispatch(json.dumps({"kind": "cp-select:seed", "value": "abc"}))

@@ -108,6 +108,7 @@ def test_table2_from_proposals_equals_table2_from_truth(sim_seq, default_result,
 def test_suggested_points_are_corners_at_the_five_locations(sim_seq, default_result, frames):
     ref = default_result.reference_frame
     suggested = evaluation.suggest_points(default_result, lambda j: frames[j], ref)
+    assert len(suggested) >= 4, [s.location for s in suggested]
     w, h = default_result.frame_size
     centres = evaluation.table_points((w, h), 0.2)
     config = ProposalConfig()

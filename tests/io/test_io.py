@@ -18,12 +18,12 @@ import pytest
 from registration.io import (
     atomic_path,
     read_image,
+    temp_target,
     write_bytes_atomic,
     write_image_atomic,
     write_json_atomic,
     write_npz_atomic,
 )
-from registration.run.result_folder import _TEMP
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -74,7 +74,7 @@ def test_atomic_write_survives_sigkill_at_any_moment(tmp_path):
             f"killed after {delay:.3f} s: the file mixes the two payloads"
         )
     for p in tmp_path.iterdir():
-        assert p == target or _TEMP.match(p.name), p.name
+        assert p == target or temp_target(p.name) == target.name, p.name
     # The next writer replaces the file as usual.
     write_bytes_atomic(target, b"done")
     assert target.read_bytes() == b"done"

@@ -49,3 +49,15 @@ def on_any_change(handles, callback: ClientCallback) -> None:
     """``callback(client)`` when any of ``handles`` changes (display options read together)."""
     for handle in handles:
         handle.on_update(lambda event: callback(event.client))
+
+
+def on_upload(button, default_name: str, callback: Callable[[str, bytes, Client], None]) -> None:
+    """``callback(file name, content, client)`` when a file is uploaded with the upload button
+    ``button`` (``default_name`` when the browser sends none)."""
+
+    def uploaded(event) -> None:
+        value = event.target.value
+        name = str(getattr(value, "name", "") or default_name)
+        callback(name, getattr(value, "content", b"") or b"", event.client)
+
+    button.on_upload(uploaded)

@@ -12,7 +12,7 @@ import viser.uplot as up
 from app.gui.assets import resend_value
 from app.gui.context import Client
 from app.gui.security import escape_md
-from app.gui.views.widgets import ClientCallback, on_any_change, on_change, on_press
+from app.gui.views.widgets import ClientCallback, on_any_change, on_change, on_press, on_upload
 
 GAMMA_STEP = 0.005
 """Step of the γ slider; the number box takes γ exactly."""
@@ -102,13 +102,7 @@ class CalibratePanel:
 
     def on_import_lines(self, callback: Callable[[str, bytes, Client], None]) -> None:
         """``callback(file name, content, client)`` for an uploaded LINES.json."""
-        self.upload_lines.on_upload(
-            lambda event: callback(
-                str(getattr(event.target.value, "name", "") or "LINES.json"),
-                getattr(event.target.value, "content", b"") or b"",
-                event.client,
-            )
-        )
+        on_upload(self.upload_lines, "LINES.json", callback)
 
     def on_use_estimate(self, callback: ClientCallback) -> None:
         on_press(self.btn_use_estimate, callback)

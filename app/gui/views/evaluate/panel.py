@@ -11,7 +11,7 @@ import numpy as np
 from app.gui.context import Client
 from app.gui.security import escape_md
 from app.gui.state import ANCHORS
-from app.gui.views.widgets import ClientCallback, on_change, on_choice, on_press
+from app.gui.views.widgets import ClientCallback, on_change, on_choice, on_press, on_upload
 
 # The paper's Table 2 locations first, so the table reads like the paper's.
 POINT_NAMES = ("NW", "NE", "Center", "SW", "SE")
@@ -86,13 +86,7 @@ class EvaluatePanel:
 
     def on_import_points(self, callback: Callable[[str, bytes, Client], None]) -> None:
         """``callback(file name, content, client)`` for an uploaded POINTS.csv."""
-        self.upload_points.on_upload(
-            lambda event: callback(
-                str(getattr(event.target.value, "name", "") or "POINTS.csv"),
-                getattr(event.target.value, "content", b"") or b"",
-                event.client,
-            )
-        )
+        on_upload(self.upload_points, "POINTS.csv", callback)
 
     def on_download_table(self, callback: Callable[[TableFormat, Client], None]) -> None:
         on_choice(
