@@ -659,8 +659,19 @@ def test_scrub_plot_click_and_table2(browser, registered_app):
     ev.set_frame(1)
     app.worker.wait_idle()
     time.sleep(0.5)
-    page.click_pixel("/evaluate/frame", fgeom, truth.base_to_frame(1, ground)[0])
-    wait_until(lambda: 1 in app.state.points.get("NW", {}), what="the mark in frame 1")
+    # A click while the new frame's texture replaces the old one can be lost under load (seen
+    # once, with benchmarks running beside the suite): clicked again when no mark came.
+    for attempt in range(3):
+        page.click_pixel("/evaluate/frame", fgeom, truth.base_to_frame(1, ground)[0])
+        try:
+            wait_until(
+                lambda: 1 in app.state.points.get("NW", {}), timeout=15, what="the mark in frame 1"
+            )
+            break
+        except AssertionError:
+            if attempt == 2:
+                raise
+            time.sleep(1.0)
     page.button("Propose next").click()
     wait_until(lambda: ("NW", 2) in app.state.pending, what="a proposal in frame 2")
     page.page.wait_for_selector("text=proposed, NCC", timeout=15000)
