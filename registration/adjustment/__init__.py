@@ -5,11 +5,10 @@ other as well as each agrees with the map.
 """
 
 from registration.adjustment.fields import (
-    FrameField,
-    consistent_field,
-    correction_at,
-    pool_corrections,
+    FieldFrame,
+    FieldSolveConfig,
     refined_grid,
+    solve_corrections,
 )
 from registration.adjustment.links import measure_links
 from registration.adjustment.sequence import (
@@ -36,7 +35,8 @@ __all__ = [
     "AdjustmentResult",
     "ControlPointSet",
     "FrameAdjustment",
-    "FrameField",
+    "FieldFrame",
+    "FieldSolveConfig",
     "FrameLinks",
     "SequenceAdjustConfig",
     "SequenceEvidence",
@@ -45,11 +45,9 @@ __all__ = [
     "adjust_sequence",
     "adjust_window",
     "as_polyprojective",
-    "consistent_field",
-    "correction_at",
     "measure_links",
-    "pool_corrections",
     "predicted_error",
     "refined_grid",
+    "solve_corrections",
     "window_plan",
 ]

@@ -1,103 +1,66 @@
-"""The local stage made consistent in time (beyond the paper, whose local stage measures each
-frame's displacement field alone, section 5).
+"""The local stage made consistent in time by the frame-to-frame links (beyond the paper).
 
-A frame's field corrects its global model where relief and the lens bend the view away from it.
-Measured per frame against the mid base image, it carries that frame's own matching noise, so
-consecutive frames disagree by it (on the real flyover the local stage made frame-to-frame
-consistency worse than the global stage). After the sequence adjustment, the correction a frame
-needs at a ground point is nearly what its neighbours need there: relief moves slowly across
-the frame as the camera moves. So each frame's field is re-expressed on its adjusted model and
-averaged, node by node, with its neighbours' fields re-expressed on theirs: the frames within
-``field_radius`` frames that saw the ground from nearly the same place (their views less than
-``field_baseline_px`` apart: relief looks the same from there), and kept only where the frames
-agree on it: the mean is shrunk by how little its spread supports it, ``m (1 - s²/(n |m|²))⁺``
-(``s`` the spread of the ``n`` frames' corrections at that node). What is stored is the
-difference between the pooled and the frame's own correction, ``δ``, a field on top of the
-frame's own local stage (``x' + δ(x') = own_local(q)``), extended from the pooled nodes to the
-rest; a frame without neighbours has none (its local stage is the paper's, exactly). (Storing the pooled
-field itself on the adjusted model instead needs the model change interpolated between nodes,
-which beyond the frame's edge is an extrapolation of two polynomials: the tests' flight lost
-0.1 px at the local stage to it.)
+Each frame's local stage (its own model and the displacement field measured on it against the
+mid base image or the map) is right for that frame alone: its field carries the frame's own
+matching noise, and where the frame was matched against the map rather than the mid base image
+(re-anchored frames, frames beyond the mid base image) it carries the other season's
+disagreements too. The links the sequence adjustment measured (the same ground seen in frames
+``k`` and ``k + s``) say where two frames' local stages must agree.
 
-Pooling assumes that what differs between the neighbours' corrections is noise. A warp of each
-frame's own that the global model does not follow (a strong rolling shutter with shake) differs
-between frames for real, and pooling averages it away: on the simulator's paper-hard flight
-(7-26 base px between frames) pooling frames 8 px apart made consecutive frames disagree more
-at the local stage (0.095 -> 0.14 px), which is why neighbours further apart than
-``field_baseline_px`` (5) are left out. Taking a smooth warp off each neighbour before pooling
-kept that flight's frames apart but undid the pooling on the real flyover (1.0x -> 2.5x the
-floor), whose frames' fields differ mostly in exactly such smooth, noisy warps.
+So each frame ``k`` gets a correction ``e_k``, a field on a grid in base px, that moves its local
+stage, ``x = own_local_k(q) + e_k(x)``, estimated together over a window by linear least squares:
+
+* links: ``own_local_k(p) + e_k(x) = own_local_l(p') + e_l(x)`` for each link ``(p, p')``,
+  with a soft-L1 loss (iteratively reweighted);
+* each node of each frame's correction: ``e_k = 0`` (a frame's own local stage is evidence
+  too: without links it stays as it is);
+* neighbouring nodes of one frame: ``e_k(n) = e_k(n')`` (the correction is a smooth warp:
+  where links are sparse it follows the nodes that have them).
+
+The noise of each kind is measured in the window, not assumed. A link pair's noise is what a
+homography between its points leaves (the floor, as the flyover's scorer measures it; at least
+``min_link_sigma_px``). The frames' own local stages' noise is how much more than their floor
+the pairs disagree through them (times ``prior_scale``; the smoothness a share of it). Frames
+whose local stages already agree to within their links' noise are so held where they are: on
+the simulator, whose local stage is within 0.1 px of the truth while its links are only within
+0.2-0.6 px of it, a fixed noise model (0.5 px per node, 0.15 per link) moved the local stage
+0.1 -> 0.14 px from the truth and made consecutive frames disagree more (0.14 -> 0.28 px),
+which the measured one does not (within 0.001 px of each frame's own).
+
+Frames held (those made final by an earlier window, the reference frame) enter with their
+corrections fixed. The links fix differences between frames; what is common to all of them
+(a shift of the whole window) only the priors hold, at their mean: the map agreement of the
+frames' own local stages is kept on average while their disagreements are removed.
+
+A correction is stored as the field ``δ = -e`` on top of the frame's own local stage
+(``x + δ(x) = own_local(q)``, :func:`registration.geometry.local_frame_to_base`), on a grid
+with twice the nodes per side of the frame's own field (:func:`refined_grid`).
+
+This replaced averaging each frame's field with its neighbours' node by node (those whose views
+were within 5 base px): that assumed the neighbours' fields differ by noise alone, so it left
+frames that move further between frames as they were, and it could not see where two frames
+disagree, only that their fields differ. On the real flyover, frames k -> k+1 and k -> k+5 after
+the local stage went from 1.26x and 1.67x the floor (pooled) to 0.87x and 1.10x (solved); the
+map agreement went 0.439 -> 0.423, that of the adjusted global stage (0.425): the own fields'
+part of the agreement with a map of another season is where they disagree with each other.
 """
 
 from __future__ import annotations
 
-import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
+import scipy.sparse as sp
 from numpy.typing import NDArray
+from scipy.sparse.linalg import splu
 
-from registration.geometry import DisplacementField, PolyProjective
-from registration.local import fill_invalid
+from registration.adjustment.solve import FrameLinks
+from registration.geometry import DisplacementField
 
-
-@dataclass(frozen=True)
-class FrameField:
-    """What one frame contributes to its neighbours' fields: its own field, the model it was
-    measured on, and its adjusted model."""
-
-    field: DisplacementField
-    own: PolyProjective
-    adjusted: PolyProjective
-
-
-def correction_at(
-    frame: FrameField, nodes: NDArray, clip: Callable[[NDArray], NDArray]
-) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-    """The correction ``frame`` makes at base px ``nodes`` (``(N, 2)``), re-expressed on its
-    adjusted model, and where its field was measured (the nearest node valid and the node in
-    the frame).
-
-    For the frame point ``q`` its own local stage puts at ``x`` (``x + d(x) = g(q)``):
-    ``d'(x) = d(x) + g'(q) - g(q)``, exactly where the frame's own local stage was. Beyond the
-    frame, the change of model is taken at the nearest point of the frame (``clip``: corrected
-    px -> the nearest corrected px inside the raw frame): there both models extrapolate, and
-    their difference can grow without bound where neither is held by evidence."""
-    f = frame.field
-    d = f.sample(nodes, outside="nan")
-    gy, gx = f.shape
-    ij = np.round((nodes - np.asarray(f.origin)) / f.spacing).astype(int)
-    on_grid = (ij[:, 0] >= 0) & (ij[:, 0] < gx) & (ij[:, 1] >= 0) & (ij[:, 1] < gy)
-    measured = np.zeros(len(nodes), bool)
-    measured[on_grid] = f.valid[ij[on_grid, 1], ij[on_grid, 0]]
-    q = frame.own.inverse(nodes + d)
-    known = np.isfinite(q).all(axis=1) & np.isfinite(d).all(axis=1)
-    out = np.full((len(nodes), 2), np.nan)
-    inside = np.zeros(len(nodes), bool)
-    if known.any():
-        qc = clip(q[known])
-        inside[known] = np.hypot(*(qc - q[known]).T) < 1e-6
-        out[known] = d[known] + frame.adjusted.apply(qc) - frame.own.apply(qc)
-    return out, measured & inside
-
-
-def consistent_field(
-    own: FrameField, neighbours: Sequence[FrameField], clip: Callable[[NDArray], NDArray]
-) -> DisplacementField | None:
-    """What makes frame ``own``'s local stage consistent with its ``neighbours``' (module
-    docstring): a field ``δ`` on its own field's grid, refined (:func:`refined_grid`), that its
-    own local stage is corrected by (``x' + δ(x') = own_local(q)``); None without neighbours
-    (its local stage stays its own)."""
-    if not neighbours:
-        return None
-    grid = refined_grid(own.field)
-    nodes = grid.node_xy.reshape(-1, 2)
-    return pool_corrections(grid, [correction_at(f, nodes, clip) for f in (own, *neighbours)])
-
-
-# The consistency field has twice the nodes per side of the frame's own field: the pooled
-# corrections vary between the own field's nodes.
+# The consistency field has twice the nodes per side of the frame's own field: the corrections
+# vary between the own field's nodes.
 REFINE = 2
 
 
@@ -112,29 +75,216 @@ def refined_grid(field_: DisplacementField, factor: int = REFINE) -> Displacemen
     )  # fmt: skip
 
 
-def pool_corrections(
-    grid: DisplacementField,
-    corrections: Sequence[tuple[NDArray, NDArray]],
-    support: float = 1.0,
+@dataclass(frozen=True)
+class FieldSolveConfig:
+    """How the consistency solve weighs its evidence. The noise of the links and of each
+    frame's own local stage are measured in each window (module docstring); these scale them.
+
+    Attributes:
+        prior_scale: a frame's measured field noise is multiplied by this to give how far its
+            own local stage may be moved at a node.
+        smooth_ratio: how much a correction may differ between neighbouring nodes, as a share
+            of that.
+        min_sigma_px: the smallest field noise (base px): frames whose local stages already
+            agree to within their links' noise are held at this.
+        min_link_sigma_px: the smallest link noise (base px): a homography's floor measures
+            the links' scatter, not errors they share with the frames' texture (on the real
+            flyover the floor says 0.06 px; more freedom for the fields there bought
+            consistency with map agreement).
+        iterations: reweighting rounds of the soft-L1 loss on the links.
+    """
+
+    prior_scale: float = 4.0
+    smooth_ratio: float = 0.8
+    min_sigma_px: float = 0.02
+    min_link_sigma_px: float = 0.15
+    iterations: int = 4
+
+    def __post_init__(self) -> None:
+        for name in ("prior_scale", "smooth_ratio", "min_sigma_px", "min_link_sigma_px"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)!r}")
+        if not self.iterations >= 1:
+            raise ValueError(f"iterations must be >= 1, got {self.iterations!r}")
+
+
+@dataclass(frozen=True)
+class FieldFrame:
+    """One frame in the consistency solve.
+
+    Attributes:
+        to_base: corrected px ``(N, 2)`` -> base px through the frame's own local stage.
+        grid: solved frames: the grid (origin, spacing, shape) its correction lives on;
+            held frames: their correction as stored (``δ = -e``), or None for none.
+        held: whether the frame's correction is fixed.
+    """
+
+    to_base: Callable[[NDArray], NDArray]
+    grid: DisplacementField | None
+    held: bool
+
+
+def _bilinear(grid: DisplacementField, xy: NDArray) -> tuple[NDArray, NDArray]:
+    """Node indices ``(N, 4)`` (flat, row-major) and weights ``(N, 4)`` of ``grid``'s bilinear
+    interpolation at ``xy``, constant beyond its outermost nodes (as ``sample(outside="clamp")``)."""
+    gy, gx = grid.shape
+    j0, j1, fx, _ = grid._weights(xy[:, 0], grid.origin[0], gx)
+    i0, i1, fy, _ = grid._weights(xy[:, 1], grid.origin[1], gy)
+    idx = np.stack([i0 * gx + j0, i0 * gx + j1, i1 * gx + j0, i1 * gx + j1], axis=1)
+    w = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], axis=1)
+    return idx, w
+
+
+@dataclass(frozen=True)
+class _Pair:
+    """One link pair in base px: where each side's own local stage puts the links, the
+    disagreement left to correct (held corrections applied), and the links' noise."""
+
+    k: int
+    l: int  # noqa: E741
+    at: NDArray[np.float64]
+    target: NDArray[np.float64]
+    floor_ms: float
+    excess_ms: float
+
+
+def _pairs(frames: Mapping[int, FieldFrame], links: Sequence[FrameLinks], solved) -> list[_Pair]:
+    out = []
+    for lk in links:
+        fk, fl = frames.get(lk.k), frames.get(lk.l)
+        if fk is None or fl is None or (lk.k not in solved and lk.l not in solved):
+            continue
+        xk, xl = fk.to_base(lk.src_k), fl.to_base(lk.src_l)
+        ok = np.isfinite(xk).all(axis=1) & np.isfinite(xl).all(axis=1)
+        if ok.sum() < 8:
+            continue
+        xk, xl, src_k, src_l = xk[ok], xl[ok], lk.src_k[ok], lk.src_l[ok]
+        at = 0.5 * (xk + xl)
+        t = xl - xk  # e_k(at) - e_l(at) = xl - xk
+        for f, sign, j in ((fk, 1.0, lk.k), (fl, -1.0, lk.l)):
+            if j not in solved and f.grid is not None:
+                # A held frame's correction moves its side of the link: e = -δ.
+                t = t + sign * f.grid.sample(at, outside="clamp")
+        floor = _floor_ms(src_k, src_l, xl)
+        out.append(_Pair(lk.k, lk.l, at, t, floor, max(_robust_ms(t) - floor, 0.0)))
+    return out
+
+
+def _robust_ms(r: NDArray) -> float:
+    """Mean square of the 2D vectors ``r`` from their median square (a 2D normal's squared
+    length has median ``2 ln 2 σ²`` and mean ``2 σ²``): cars and mismatches do not count."""
+    return float(np.median(np.sum(r**2, axis=1)) / np.log(2.0))
+
+
+def _floor_ms(src_k: NDArray, src_l: NDArray, base_l: NDArray) -> float:
+    """The links' own noise (mean square, base px): what a homography between the two frames'
+    link points leaves (corrected px of frame ``l``), scaled to base px by how far the links
+    spread in each."""
+    h, _ = cv2.findHomography(src_k, src_l, cv2.LMEDS)
+    if h is None:
+        return np.inf
+    pred = cv2.perspectiveTransform(src_k.reshape(-1, 1, 2), h).reshape(-1, 2)
+    spread_frame = np.mean(np.sum((src_l - src_l.mean(axis=0)) ** 2, axis=1))
+    spread_base = np.mean(np.sum((base_l - base_l.mean(axis=0)) ** 2, axis=1))
+    return _robust_ms(pred - src_l) * spread_base / max(spread_frame, 1e-12)
+
+
+def solve_corrections(
+    frames: Mapping[int, FieldFrame],
+    links: Sequence[FrameLinks],
+    config: FieldSolveConfig | None = None,
+) -> dict[int, DisplacementField]:
+    """Each solved frame's correction field ``δ = -e`` (module docstring) on its grid, with
+    ``valid`` where links reached a node; frames without any link keep a zero field.
+
+    The noise model is measured: a link pair's noise is what a homography between its points
+    leaves (the floor), and a frame's own local stage's noise is how much more than that its
+    pairs disagree, shared between the pair's two frames (per coordinate). Frames that agree
+    to within their links' noise are thus held where they are, and frames that disagree are
+    moved as far as their links show."""
+    cfg = config or FieldSolveConfig()
+    solved = sorted(k for k, f in frames.items() if not f.held and f.grid is not None)
+    offset, n_unknowns = {}, 0
+    for k in solved:
+        offset[k] = n_unknowns
+        n_unknowns += frames[k].grid.shape[0] * frames[k].grid.shape[1]
+    touched = np.zeros(n_unknowns, bool)
+    pairs = [p for p in _pairs(frames, links, offset) if np.isfinite(p.floor_ms)]
+    if n_unknowns == 0:
+        return {}
+    if not pairs:
+        return {k: _as_field(frames[k].grid, np.zeros((0, 2)), touched, 0) for k in solved}
+    rows, cols, vals, link_sigma = [], [], [], []
+    excess = {k: [] for k in solved}
+    n_rows = 0
+    for p in pairs:
+        r = np.arange(n_rows, n_rows + len(p.at))
+        for k, sign in ((p.k, 1.0), (p.l, -1.0)):
+            if k in offset:
+                idx, w = _bilinear(frames[k].grid, p.at)
+                rows.append(np.repeat(r, 4))
+                cols.append((idx + offset[k]).ravel())
+                vals.append(sign * w.ravel())
+                touched[(idx + offset[k]).ravel()] = True
+                excess[k].append(p.excess_ms)
+        link_sigma.append(np.full(len(r), max(np.sqrt(p.floor_ms / 2), cfg.min_link_sigma_px)))
+        n_rows += len(r)
+    a = sp.csr_matrix(
+        (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+        shape=(n_rows, n_unknowns),
+    )
+    t = np.concatenate([p.target for p in pairs])
+    sigma_l = np.concatenate(link_sigma)
+    # The frames' field noise per coordinate: half their pairs' excess mean square (two frames
+    # share it), over two coordinates; one value for the window (the median frame's), as
+    # frames' own noise measured from a handful of pairs varies more than it.
+    per_frame = [np.mean(excess[k]) for k in solved if excess[k]]
+    noise = cfg.prior_scale * np.sqrt(np.median(per_frame) / 4) if per_frame else 0.0
+    sigma_f = dict.fromkeys(solved, max(noise, cfg.min_sigma_px))
+    shapes = [frames[k].grid.shape for k in solved]
+    prior = np.concatenate(
+        [np.full(gy * gx, sigma_f[k] ** -2) for k, (gy, gx) in zip(solved, shapes, strict=True)]
+    )
+    smooth = _smoothness(shapes, [(cfg.smooth_ratio * sigma_f[k]) ** -2 for k in solved])
+    fixed = sp.diags(prior) + smooth
+    weights = sigma_l**-2
+    e = np.zeros((n_unknowns, 2))
+    for _ in range(cfg.iterations):
+        aw = a.T.multiply(weights).tocsr()
+        e = splu((aw @ a + fixed).tocsc()).solve(np.asarray(aw @ t))
+        z = np.sum((a @ e - t) ** 2, axis=1) / sigma_l**2
+        weights = 1.0 / (np.sqrt(1.0 + z) * sigma_l**2)  # soft-L1
+    return {k: _as_field(frames[k].grid, e, touched, offset[k]) for k in solved}
+
+
+def _smoothness(shapes: Sequence[tuple[int, int]], weights: Sequence[float]) -> sp.csr_matrix:
+    """``DᵀWD`` for the differences between 4-neighbouring nodes of each frame's grid, each
+    frame's with its weight."""
+    blocks = []
+    for (gy, gx), w in zip(shapes, weights, strict=True):
+        lap = sp.kron(sp.identity(gy), _path(gx)) + sp.kron(_path(gy), sp.identity(gx))
+        blocks.append(w * lap)
+    return sp.block_diag(blocks, format="csr")
+
+
+def _path(n: int) -> sp.csr_matrix:
+    """The graph Laplacian of a path of ``n`` nodes (``DᵀD`` of its first differences)."""
+    if n < 2:
+        return sp.csr_matrix((n, n))
+    d = sp.diags([-np.ones(n - 1), np.ones(n - 1)], [0, 1], shape=(n - 1, n))
+    return (d.T @ d).tocsr()
+
+
+def _as_field(
+    grid: DisplacementField, e: NDArray, touched: NDArray, start: int
 ) -> DisplacementField:
-    """:func:`consistent_field` from the corrections and their measured masks
-    (:func:`correction_at`) at the nodes of ``grid`` (:func:`refined_grid`), the frame's own
-    first: where two or more frames measured a node, the pooled correction (shrunk by
-    ``support`` times how little its spread supports it) less the frame's own; elsewhere that of
-    the nearest such nodes."""
-    own = corrections[0][0]
-    stack = np.stack([np.where(m[:, None], c, np.nan) for c, m in corrections])  # (F, N, 2)
-    n = np.isfinite(stack).all(axis=2).sum(axis=0)
-    with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # nodes no frame measured: NaN
-        mean = np.nanmean(stack, axis=0)
-        spread2 = np.nansum((stack - mean) ** 2, axis=(0, 2)) / np.maximum(n - 1, 1)
-        shrink = np.clip(1.0 - support * spread2 / (n * (mean**2).sum(axis=1)), 0.0, 1.0)
-    pooled = (n >= 2) & np.isfinite(own).all(axis=1)
-    delta = np.zeros_like(own)
-    delta[pooled] = mean[pooled] * np.nan_to_num(shrink[pooled])[:, None] - own[pooled]
-    shape = grid.vectors.shape
-    # Nodes no neighbour measured (the frame's edges) take the correction of the pooled nodes
-    # nearest them, so that it does not stop short at the edge.
-    filled = fill_invalid(delta.reshape(shape), pooled.reshape(shape[:2]))
-    return DisplacementField(grid.origin, grid.spacing, filled, pooled.reshape(shape[:2]))
+    gy, gx = grid.shape
+    n = gy * gx
+    if len(e):
+        vec = -e[start : start + n].reshape(gy, gx, 2)
+    else:
+        vec = np.zeros((gy, gx, 2))
+    return DisplacementField(
+        grid.origin, grid.spacing, vec.astype(np.float32),
+        touched[start : start + n].reshape(gy, gx).copy(),
+    )  # fmt: skip

@@ -22,6 +22,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import NDArray
 
+from registration.adjustment.fields import FieldSolveConfig
 from registration.adjustment.links import measure_links
 from registration.adjustment.solve import (
     AdjustmentConfig,
@@ -52,16 +53,8 @@ class SequenceAdjustConfig:
             over its whole outline, with this noise (base px): where control points and links
             are dense the evidence decides; towards the corners, which they rarely reach, a
             polynomial the evidence does not hold would otherwise swing far.
-        field_radius: the local stage made consistent in time
-            (:mod:`registration.adjustment.fields`): each frame's field averaged with this
-            many neighbours' on each side; 0 keeps every frame's own local stage (on its own
-            model).
-        field_baseline_px: only neighbours whose view is within this many base px of the
-            frame's (mean distance of where the two adjusted models put the frame's outline)
-            join its field: relief looks alike from there. A flight that moves further between
-            frames keeps its frames' own fields.
-        field_support: how strongly the pooled correction at a node is shrunk by its spread
-            (:func:`registration.adjustment.fields.pool_corrections`).
+        fields: the local stage made consistent in time by the links
+            (:mod:`registration.adjustment.fields`); None keeps every frame's own local stage.
         flag_px: a frame whose predicted error exceeds this (base px) is flagged; so is a
             frame with neighbours but no links to them (where its model puts its neighbours'
             ground, its image does not show it).
@@ -75,9 +68,7 @@ class SequenceAdjustConfig:
     solver: AdjustmentConfig = field(default_factory=AdjustmentConfig)
     default_control_sigma_px: float = 0.3
     prior_sigma_px: float = 1.0
-    field_radius: int = 5
-    field_baseline_px: float = 5.0
-    field_support: float = 1.0
+    fields: FieldSolveConfig | None = field(default_factory=FieldSolveConfig)
     flag_px: float = 2.0
 
     def __post_init__(self) -> None:
@@ -95,13 +86,6 @@ class SequenceAdjustConfig:
                 f"got {max(steps)}"
             )
         object.__setattr__(self, "link_steps", tuple(int(s) for s in steps))
-        # A frame's neighbours must be in the window that makes it final.
-        reach = min(max(steps), self.window_frames - self.final_frames)
-        if not 0 <= self.field_radius <= reach:
-            raise ValueError(
-                f"field_radius must be 0..{reach} (the longest link step and the window's "
-                f"frames beyond its final ones), got {self.field_radius}"
-            )
         if self.link_matcher not in ("flow", "ncc"):
             raise ValueError(f"link_matcher must be 'flow' or 'ncc', got {self.link_matcher!r}")
         for name in ("flag_px", "default_control_sigma_px", "prior_sigma_px"):

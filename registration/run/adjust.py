@@ -13,22 +13,22 @@ import threading
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import replace
+from functools import partial
 
 import numpy as np
 
 from registration.adjustment import (
     ControlPointSet,
+    FieldFrame,
     FrameAdjustment,
-    FrameField,
     SequenceAdjustConfig,
     SequenceEvidence,
     adjust_sequence,
     as_polyprojective,
-    correction_at,
-    pool_corrections,
     refined_grid,
+    solve_corrections,
 )
-from registration.geometry import DisplacementField, model_from_dict
+from registration.geometry import DisplacementField, local_frame_to_base, model_from_dict
 from registration.matching import to_grey
 from registration.run.result import RegistrationResult
 from registration.run.writer import ResultWriter
@@ -62,14 +62,10 @@ def adjust_result(
         progress(done, total)
     written = 0
     fields = _Fields(result, evidence, config)
-    for adjusted, solution in adjust_sequence(evidence, config, final):
+    for adjusted, _ in adjust_sequence(evidence, config, final):
         if cancel is not None and cancel.is_set():
             break
-        field_ = (
-            None if adjusted.k in evidence.fixed
-            else fields.consistent(adjusted.k, solution, adjusted.window)
-        )  # fmt: skip
-        _write_adjusted(writer, result, adjusted, field_)
+        _write_adjusted(writer, result, adjusted, fields.consistent(adjusted.k, adjusted.window))
         written += 1
         if progress:
             progress(done + written, total)
@@ -77,64 +73,77 @@ def adjust_result(
 
 
 class _Fields:
-    """Each frame's local field made consistent with its neighbours'
-    (:func:`registration.adjustment.consistent_field`), from the result's own fields."""
+    """Each frame's local stage made consistent with its neighbours' by the links
+    (:func:`registration.adjustment.solve_corrections`), window by window as the models are:
+    a window's frames are solved together with the frames before it held at their corrections
+    as written (read back from the folder on a resumed run: the same float32 bits)."""
 
     def __init__(
         self, result: RegistrationResult, evidence: SequenceEvidence, config: SequenceAdjustConfig
     ) -> None:
-        self.result, self.evidence = result, evidence
-        self.radius, self.baseline = config.field_radius, config.field_baseline_px
-        self.support = config.field_support
-        w, h = result.frame_size
-        lens = result.lens
+        self.result, self.evidence, self.config = result, evidence, config
+        self._window: tuple[int, int] | None = None
+        self._solved: dict[int, DisplacementField] = {}
+        self._written: dict[int, DisplacementField | None] = {}
+        self._to_base: dict[int, Callable] = {}
 
-        def clip(q):
-            # The nearest point of the raw frame, in corrected px: beyond the frame even a
-            # margin of 5 % let the two models' extrapolations part far enough to break the
-            # local stage's inversion (a long flight's anchors).
-            raw = lens.raw_from_corrected(q)
-            raw = np.c_[np.clip(raw[:, 0], -0.5, w - 0.5), np.clip(raw[:, 1], -0.5, h - 0.5)]
-            return np.where(np.isfinite(raw), lens.corrected_from_raw(raw), q)
-
-        self.clip = clip
-        # Corrections of frame j on a grid, under one window's solution (keyed by the window:
-        # the same for every frame of the window on that grid).
-        self._corrections: dict = {}
-
-    def _correction(self, j: int, solution, window, grid: DisplacementField):
-        key = (j, window, (grid.origin, grid.spacing, grid.shape))
-        if key not in self._corrections:
-            field_j = self.result.field(j)
-            self._corrections[key] = None if field_j is None else correction_at(
-                FrameField(field_j, self.evidence.models[j], solution[j]),
-                grid.node_xy.reshape(-1, 2), self.clip,
-            )  # fmt: skip
-        return self._corrections[key]
-
-    def consistent(self, k: int, solution, window) -> DisplacementField | None:
-        """Frame k's consistency field from its neighbours in ``solution``, the models of the
-        window ``(start, end)`` that made it final; None without one."""
-        own_field = self.result.field(k) if self.radius else None
-        if own_field is None:
+    def consistent(self, k: int, window: tuple[int, int]) -> DisplacementField | None:
+        """Frame k's correction field, from the window ``(start, end)`` that made it final;
+        None where it keeps its own local stage (the reference frame, a frame without a
+        field, ``config.fields`` None)."""
+        if self.config.fields is None or k in self.evidence.fixed:
             return None
-        for key in [key for key in self._corrections if key[0] < k - self.radius]:
-            del self._corrections[key]
-        grid = refined_grid(own_field)
-        outline = self.evidence.outline
-        at = solution[k].apply(outline)
-        corrections = [self._correction(k, solution, window, grid)]
-        for j in range(k - self.radius, k + self.radius + 1):
-            if j == k or j not in solution:
+        if window != self._window:
+            self._solve(*window)
+        field_ = self._solved.get(k)
+        self._written[k] = field_
+        return field_
+
+    def _solve(self, start: int, end: int) -> None:
+        steps = self.config.link_steps
+        first = max(start - max(steps), 0)
+        models = self.evidence.models
+        # Frames before ``first`` take no part in this window or any later one.
+        for j in [j for j in self._to_base if j < first]:
+            del self._to_base[j]
+            self.result.release(j)
+        for j in [j for j in self._written if j < first]:
+            del self._written[j]
+        frames = {}
+        for j in range(first, end):
+            if models[j] is None:
                 continue
-            apart = float(np.mean(np.hypot(*(solution[j].apply(outline) - at).T)))
-            c = self._correction(j, solution, window, grid) if apart <= self.baseline else None
-            if c is not None:
-                corrections.append(c)
-        self.result.release(k - self.radius - 1)
-        if len(corrections) == 1:
-            return None  # no neighbour close enough: its own local stage
-        return pool_corrections(grid, corrections, self.support)
+            held = j < start or j in self.evidence.fixed
+            own = self.result.field(j)
+            grid = self._held_correction(j) if held else None
+            if not held and own is None:
+                held = True  # nothing to correct: its global stage
+            elif not held:
+                grid = refined_grid(own)
+            frames[j] = FieldFrame(self._own_local(j), grid, held)
+        links = [
+            self.evidence.links(j, j + s, self.config.probes, self.config.link_matcher)
+            for s in steps
+            for j in range(first, end - s)
+            if j + s >= start and models[j] is not None and models[j + s] is not None
+        ]
+        self._solved = solve_corrections(frames, links, self.config.fields)
+        self._window = (start, end)
+
+    def _held_correction(self, j: int) -> DisplacementField | None:
+        if j in self._written:
+            return self._written[j]
+        return self.result.local_stage(j)[2] if self.result.is_adjusted(j) else None
+
+    def _own_local(self, j: int) -> Callable:
+        """Corrected px -> base px through frame j's own local stage (its own model and field)."""
+        if j not in self._to_base:
+            model, field_ = self.evidence.models[j], self.result.field(j)
+            if field_ is None:
+                self._to_base[j] = model.apply
+            else:
+                self._to_base[j] = partial(local_frame_to_base, model.apply, field_)
+        return self._to_base[j]
 
 
 def _evidence(result: RegistrationResult, frames, config: SequenceAdjustConfig) -> SequenceEvidence:

@@ -23,7 +23,7 @@ from registration.geometry import Normalisation, PolyProjective, Projective
 W, H = 640, 480
 N = 14
 BAD = 6  # this frame's own registration is 5 px off
-CONFIG = SequenceAdjustConfig(window_frames=6, final_frames=3, link_steps=(1, 2), field_radius=2)
+CONFIG = SequenceAdjustConfig(window_frames=6, final_frames=3, link_steps=(1, 2))
 
 
 def _truth(k: int) -> PolyProjective:

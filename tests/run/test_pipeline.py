@@ -81,7 +81,9 @@ def test_interrupted_run_resumes_without_redoing_frames(sim, result, tmp_path):
         adjustment later adds to both, and leaves these as they are)."""
         rec = json.loads((out / "frames" / f"{k:06d}.json").read_text())
         with np.load(out / "frames" / f"{k:06d}.npz") as z:
-            arrays = {n: z[n] for n in z.files if not n.startswith("adjusted_")}
+            arrays = {
+                n: z[n] for n in z.files if not n.startswith(("adjusted_", "consistency_field_"))
+            }
         return rec["model"], rec["stats"].get("time_s"), arrays
 
     before = {k: own_registration(k) for k in range(3)}
