@@ -251,7 +251,7 @@ def solve_corrections(
     e = np.zeros((n_unknowns, 2))
     for _ in range(cfg.iterations):
         aw = a.T.multiply(weights).tocsr()
-        e = splu((aw @ a + fixed).tocsc()).solve(np.asarray(aw @ t))
+        e = _solve_spd((aw @ a + fixed).tocsc(), np.asarray(aw @ t))
         z = np.sum((a @ e - t) ** 2, axis=1) / sigma_l**2
         weights = 1.0 / (np.sqrt(1.0 + z) * sigma_l**2)  # soft-L1
     return {k: _as_field(frames[k].grid, e, touched, offset[k]) for k in solved}
@@ -288,3 +288,12 @@ def _as_field(
         grid.origin, grid.spacing, vec.astype(np.float32),
         touched[start : start + n].reshape(gy, gx).copy(),
     )  # fmt: skip
+
+
+def _solve_spd(normal: sp.csc_matrix, rhs: NDArray) -> NDArray:
+    """``normal⁻¹ rhs`` for a symmetric positive definite ``normal``: SuperLU with a symmetric
+    ordering and no pivoting (the default column ordering filled the factor in: 4x slower)."""
+    lu = splu(
+        normal, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True}
+    )
+    return lu.solve(rhs)
