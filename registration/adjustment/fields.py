@@ -17,15 +17,26 @@ stage, ``x = own_local_k(q) + e_k(x)``, estimated together over a window by line
 * neighbouring nodes of one frame: ``e_k(n) = e_k(n')`` (the correction is a smooth warp:
   where links are sparse it follows the nodes that have them).
 
-The noise of each kind is measured in the window, not assumed. A link pair's noise is what a
+The noise of each kind is read from the window, not assumed. A link pair's noise is what a
 homography between its points leaves (the floor, as the flyover's scorer measures it; at least
-``min_link_sigma_px``). The frames' own local stages' noise is how much more than their floor
-the pairs disagree through them (times ``prior_scale``; the smoothness a share of it). Frames
-whose local stages already agree to within their links' noise are so held where they are: on
-the simulator, whose local stage is within 0.1 px of the truth while its links are only within
-0.2-0.6 px of it, a fixed noise model (0.5 px per node, 0.15 per link) moved the local stage
-0.1 -> 0.14 px from the truth and made consecutive frames disagree more (0.14 -> 0.28 px),
-which the measured one does not (within 0.001 px of each frame's own).
+``min_link_sigma_px``). A frame's own local stage may move by as much as its best-agreeing pair
+disagrees through the two frames' local stages beyond that floor (and beyond the estimates'
+sampling error), at least the window's typical frame's, times ``prior_scale``; its correction
+varies between neighbouring nodes by a share of that, at most ``max_smooth_sigma_px``. So:
+
+* frames whose local stages already agree to within their links' noise are held where they
+  are. The simulator's local stage is within 0.1 px of the truth while its links are only
+  within 0.2-0.6 px of it: a fixed noise model (0.5 px per node, 0.15 per link) moved it
+  0.10 -> 0.14 px from the truth and made consecutive frames disagree more (0.14 -> 0.28 px),
+  the measured one leaves it within 0.001 px;
+* a frame whose own registration went wrong disagrees with every neighbour: it is free, and
+  follows them as a whole (a frame planted 15 px off: its local stage 15.0 -> 0.20 px from the
+  truth), while its neighbours keep the noise of their pairs with each other and are not pulled
+  (a window-wide noise let that frame pull them 0.10 -> 0.5-0.65 px).
+
+``prior_scale`` (16) is calibrated on the real flyover, where a best pair's excess is a lower
+bound of a frame's noise: 4, 8, 12, 16 and 20 gave k -> k+5 at 1.35x, 1.18x, 1.12x, 1.14x and
+1.13x the floor with the map agreement 0.431, 0.427, 0.423, 0.423 and 0.418.
 
 Frames held (those made final by an earlier window, the reference frame) enter with their
 corrections fixed. The links fix differences between frames; what is common to all of them
@@ -40,7 +51,7 @@ This replaced averaging each frame's field with its neighbours' node by node (th
 were within 5 base px): that assumed the neighbours' fields differ by noise alone, so it left
 frames that move further between frames as they were, and it could not see where two frames
 disagree, only that their fields differ. On the real flyover, frames k -> k+1 and k -> k+5 after
-the local stage went from 1.26x and 1.67x the floor (pooled) to 0.87x and 1.10x (solved); the
+the local stage went from 1.26x and 1.67x the floor (pooled) to 0.90x and 1.14x (solved); the
 map agreement went 0.439 -> 0.423, that of the adjusted global stage (0.425): the own fields'
 part of the agreement with a map of another season is where they disagree with each other.
 """
@@ -82,9 +93,11 @@ class FieldSolveConfig:
 
     Attributes:
         prior_scale: a frame's measured field noise is multiplied by this to give how far its
-            own local stage may be moved at a node.
+            own local stage may be moved at a node (calibrated on the real flyover: module
+            docstring).
         smooth_ratio: how much a correction may differ between neighbouring nodes, as a share
             of that.
+        max_smooth_sigma_px: at most this (base px): a frame free to move moves as a whole.
         min_sigma_px: the smallest field noise (base px): frames whose local stages already
             agree to within their links' noise are held at this.
         min_link_sigma_px: the smallest link noise (base px): a homography's floor measures
@@ -94,14 +107,19 @@ class FieldSolveConfig:
         iterations: reweighting rounds of the soft-L1 loss on the links.
     """
 
-    prior_scale: float = 4.0
+    prior_scale: float = 16.0
     smooth_ratio: float = 0.8
     min_sigma_px: float = 0.02
     min_link_sigma_px: float = 0.15
+    max_smooth_sigma_px: float = 0.4
     iterations: int = 4
 
     def __post_init__(self) -> None:
-        for name in ("prior_scale", "smooth_ratio", "min_sigma_px", "min_link_sigma_px"):
+        names = (
+            "prior_scale", "smooth_ratio", "min_sigma_px", "min_link_sigma_px",
+            "max_smooth_sigma_px",
+        )  # fmt: skip
+        for name in names:
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)!r}")
         if not self.iterations >= 1:
@@ -166,7 +184,10 @@ def _pairs(frames: Mapping[int, FieldFrame], links: Sequence[FrameLinks], solved
                 # A held frame's correction moves its side of the link: e = -δ.
                 t = t + sign * f.grid.sample(at, outside="clamp")
         floor = _floor_ms(src_k, src_l, xl)
-        out.append(_Pair(lk.k, lk.l, at, t, floor, max(_robust_ms(t) - floor, 0.0)))
+        # What the local stages' disagreement exceeds the floor by, beyond what two mean
+        # squares read from medians of n points differ by anyway (about 1.5/√n each).
+        excess = _robust_ms(t) - floor * (1.0 + 3.0 / np.sqrt(len(t)))
+        out.append(_Pair(lk.k, lk.l, at, t, floor, max(excess, 0.0)))
     return out
 
 
@@ -180,7 +201,14 @@ def _floor_ms(src_k: NDArray, src_l: NDArray, base_l: NDArray) -> float:
     """The links' own noise (mean square, base px): what a homography between the two frames'
     link points leaves (corrected px of frame ``l``), scaled to base px by how far the links
     spread in each."""
-    h, _ = cv2.findHomography(src_k, src_l, cv2.LMEDS)
+    # Least median of squares finds the ground's homography among cars and mismatches; refitted
+    # by least squares on its inliers, so that the residuals are not those it minimised (their
+    # median is what the noise is read from).
+    h, inliers = cv2.findHomography(src_k, src_l, cv2.LMEDS)
+    if h is None or inliers.sum() < 8:
+        return np.inf
+    inliers = inliers.ravel().astype(bool)
+    h, _ = cv2.findHomography(src_k[inliers], src_l[inliers], 0)
     if h is None:
         return np.inf
     pred = cv2.perspectiveTransform(src_k.reshape(-1, 1, 2), h).reshape(-1, 2)
@@ -197,11 +225,9 @@ def solve_corrections(
     """Each solved frame's correction field ``δ = -e`` (module docstring) on its grid, with
     ``valid`` where links reached a node; frames without any link keep a zero field.
 
-    The noise model is measured: a link pair's noise is what a homography between its points
-    leaves (the floor), and a frame's own local stage's noise is how much more than that its
-    pairs disagree, shared between the pair's two frames (per coordinate). Frames that agree
-    to within their links' noise are thus held where they are, and frames that disagree are
-    moved as far as their links show."""
+    The noise model is read from the links (module docstring): frames that agree to within
+    their links' noise are held where they are, frames that disagree are moved as far as their
+    links show."""
     cfg = config or FieldSolveConfig()
     solved = sorted(k for k, f in frames.items() if not f.held and f.grid is not None)
     offset, n_unknowns = {}, 0
@@ -235,17 +261,24 @@ def solve_corrections(
     )
     t = np.concatenate([p.target for p in pairs])
     sigma_l = np.concatenate(link_sigma)
-    # The frames' field noise per coordinate: half their pairs' excess mean square (two frames
-    # share it), over two coordinates; one value for the window (the median frame's), as
-    # frames' own noise measured from a handful of pairs varies more than it.
-    per_frame = [np.mean(excess[k]) for k in solved if excess[k]]
-    noise = cfg.prior_scale * np.sqrt(np.median(per_frame) / 4) if per_frame else 0.0
-    sigma_f = dict.fromkeys(solved, max(noise, cfg.min_sigma_px))
+    # A frame's field noise per coordinate: half the excess mean square (two frames share it,
+    # over two coordinates) of its best-agreeing pair, and at least the window's median frame's
+    # (one pair is a small sample). A frame whose own registration went wrong disagrees with
+    # every neighbour and is free to follow them; its neighbours keep the noise of their pairs
+    # with each other, and are not pulled by it.
+    best = {k: min(excess[k]) for k in solved if excess[k]}
+    typical = float(np.median(list(best.values()))) if best else 0.0
+    sigma_f = {
+        k: max(cfg.prior_scale * np.sqrt(max(best.get(k, 0.0), typical) / 4), cfg.min_sigma_px)
+        for k in solved
+    }
     shapes = [frames[k].grid.shape for k in solved]
     prior = np.concatenate(
         [np.full(gy * gx, sigma_f[k] ** -2) for k, (gy, gx) in zip(solved, shapes, strict=True)]
     )
-    smooth = _smoothness(shapes, [(cfg.smooth_ratio * sigma_f[k]) ** -2 for k in solved])
+    smooth = _smoothness(
+        shapes, [min(cfg.smooth_ratio * sigma_f[k], cfg.max_smooth_sigma_px) ** -2 for k in solved]
+    )
     fixed = sp.diags(prior) + smooth
     weights = sigma_l**-2
     e = np.zeros((n_unknowns, 2))

@@ -352,6 +352,18 @@ def config_to_dict(config: PipelineConfig) -> dict:
     return out
 
 
+_POOLED = (
+    "whose sequence adjustment pooled neighbours' local fields; register it afresh to go on "
+    "with this release"
+)
+# Settings earlier releases wrote that no longer exist, and what to do with their results.
+RETIRED_KEYS = {
+    "config.adjust.field_radius": _POOLED,
+    "config.adjust.field_baseline_px": _POOLED,
+    "config.adjust.field_support": _POOLED,
+}
+
+
 def config_from_dict(data: dict, cls: type = PipelineConfig, path: str = "config"):
     """Rebuild a (nested) config dataclass; unknown keys are an error, missing keys take defaults."""
     if not isinstance(data, dict):
@@ -359,6 +371,10 @@ def config_from_dict(data: dict, cls: type = PipelineConfig, path: str = "config
     hints = typing.get_type_hints(cls)
     known = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(data) - known)
+    retired = [k for k in unknown if f"{path}.{k}" in RETIRED_KEYS]
+    if retired:
+        key = f"{path}.{retired[0]}"
+        raise ValueError(f"{key}: made by an earlier release, {RETIRED_KEYS[key]}")
     if unknown:
         raise ValueError(f"unknown key {path}.{unknown[0]} (known: {', '.join(sorted(known))})")
     kwargs = {}

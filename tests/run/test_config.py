@@ -184,3 +184,11 @@ def test_bad_names_are_one_line_errors():
         )
     with pytest.raises(ValueError, match="flow_point_spacing_px must be >= 1, got 0"):
         dataclasses.replace(intra, flow_point_spacing_px=0)
+
+
+def test_a_result_of_an_earlier_release_with_pooled_fields_says_so_in_one_line():
+    data = config_to_dict(get_preset("default"))
+    data["adjust"].pop("fields")
+    data["adjust"].update(field_radius=5, field_baseline_px=5.0, field_support=1.0)
+    with pytest.raises(ValueError, match=r"^config\.adjust\.field_baseline_px: made by an earlier"):
+        config_from_dict(data)
