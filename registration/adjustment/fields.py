@@ -142,17 +142,6 @@ class FieldFrame:
     held: bool
 
 
-def _bilinear(grid: DisplacementField, xy: NDArray) -> tuple[NDArray, NDArray]:
-    """Node indices ``(N, 4)`` (flat, row-major) and weights ``(N, 4)`` of ``grid``'s bilinear
-    interpolation at ``xy``, constant beyond its outermost nodes (as ``sample(outside="clamp")``)."""
-    gy, gx = grid.shape
-    j0, j1, fx, _ = grid._weights(xy[:, 0], grid.origin[0], gx)
-    i0, i1, fy, _ = grid._weights(xy[:, 1], grid.origin[1], gy)
-    idx = np.stack([i0 * gx + j0, i0 * gx + j1, i1 * gx + j0, i1 * gx + j1], axis=1)
-    w = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], axis=1)
-    return idx, w
-
-
 @dataclass(frozen=True)
 class _Pair:
     """One link pair in base px: where each side's own local stage puts the links, the
@@ -234,10 +223,10 @@ def solve_corrections(
     for k in solved:
         offset[k] = n_unknowns
         n_unknowns += frames[k].grid.shape[0] * frames[k].grid.shape[1]
-    touched = np.zeros(n_unknowns, bool)
-    pairs = [p for p in _pairs(frames, links, offset) if np.isfinite(p.floor_ms)]
     if n_unknowns == 0:
         return {}
+    touched = np.zeros(n_unknowns, bool)
+    pairs = [p for p in _pairs(frames, links, offset) if np.isfinite(p.floor_ms)]
     if not pairs:
         return {k: _as_field(frames[k].grid, np.zeros((0, 2)), touched, 0) for k in solved}
     rows, cols, vals, link_sigma = [], [], [], []
@@ -247,7 +236,7 @@ def solve_corrections(
         r = np.arange(n_rows, n_rows + len(p.at))
         for k, sign in ((p.k, 1.0), (p.l, -1.0)):
             if k in offset:
-                idx, w = _bilinear(frames[k].grid, p.at)
+                idx, w = frames[k].grid.bilinear(p.at)
                 rows.append(np.repeat(r, 4))
                 cols.append((idx + offset[k]).ravel())
                 vals.append(sign * w.ravel())

@@ -162,6 +162,19 @@ class DisplacementField:
         i1 = np.minimum(i0 + 1, n - 1)
         return i0, i1, f, inside
 
+    def bilinear(self, xy: ArrayLike) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
+        """How :meth:`sample` (``outside="clamp"``) interpolates at base points ``(N, 2)``: the
+        flat (row-major) indices ``(N, 4)`` of the nodes it reads and their weights ``(N, 4)``
+        (for solving for node values that interpolate to given values)."""
+        p = as_points(xy, "xy")
+        gy, gx = self.shape
+        with np.errstate(invalid="ignore"):
+            j0, j1, fx, _ = self._weights(p[:, 0], self.origin[0], gx)
+            i0, i1, fy, _ = self._weights(p[:, 1], self.origin[1], gy)
+        idx = np.stack([i0 * gx + j0, i0 * gx + j1, i1 * gx + j0, i1 * gx + j1], axis=1)
+        w = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], axis=1)
+        return idx, w
+
     def sample(self, xy: ArrayLike, *, outside: str = "nan") -> NDArray[np.float64]:
         """Displacement at base points: ``(N, 2)`` -> ``(N, 2)`` base px.
 

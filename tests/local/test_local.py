@@ -777,3 +777,18 @@ def test_flow_correspondences_are_read_through_the_warps_lattice():
     assert middle.sum() > 200 and ring.sum() > 30
     assert np.median(err[middle]) < 0.115, np.median(err[middle])  # measured 0.095
     assert np.median(err[ring]) < 0.3, np.median(err[ring])  # measured 0.249
+
+
+def test_bilinear_weights_reproduce_the_field_inside_and_beyond_it():
+    rng = np.random.default_rng(11)
+    f = DisplacementField(
+        (40.0, -20.0), 50.0, rng.normal(0, 1, (5, 7, 2)).astype(np.float32), np.ones((5, 7), bool)
+    )
+    # Points inside, beyond every edge, and on nodes.
+    xy = np.r_[rng.uniform(-100, 500, (200, 2)), f.node_xy.reshape(-1, 2)]
+    idx, w = f.bilinear(xy)
+    assert idx.shape == w.shape == (len(xy), 4)
+    np.testing.assert_allclose(w.sum(axis=1), 1.0)
+    flat = f.vectors.reshape(-1, 2).astype(np.float64)
+    via_weights = np.einsum("nk,nkc->nc", w, flat[idx])
+    np.testing.assert_allclose(via_weights, f.sample(xy, outside="clamp"), atol=1e-9)
