@@ -65,7 +65,7 @@ import cv2
 import numpy as np
 import scipy.sparse as sp
 from numpy.typing import NDArray
-from scipy.sparse.linalg import splu
+from scipy.sparse.linalg import cg, splu
 
 from registration.adjustment.solve import FrameLinks
 from registration.geometry import DisplacementField
@@ -273,7 +273,7 @@ def solve_corrections(
     e = np.zeros((n_unknowns, 2))
     for _ in range(cfg.iterations):
         aw = a.T.multiply(weights).tocsr()
-        e = _solve_spd((aw @ a + fixed).tocsc(), np.asarray(aw @ t))
+        e = _solve_spd((aw @ a + fixed).tocsr(), np.asarray(aw @ t), e)
         z = np.sum((a @ e - t) ** 2, axis=1) / sigma_l**2
         weights = 1.0 / (np.sqrt(1.0 + z) * sigma_l**2)  # soft-L1
     return {k: _as_field(frames[k].grid, e, touched, offset[k]) for k in solved}
@@ -312,10 +312,21 @@ def _as_field(
     )  # fmt: skip
 
 
-def _solve_spd(normal: sp.csc_matrix, rhs: NDArray) -> NDArray:
-    """``normal⁻¹ rhs`` for a symmetric positive definite ``normal``: SuperLU with a symmetric
-    ordering and no pivoting (the default column ordering filled the factor in: 4x slower)."""
-    lu = splu(
-        normal, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True}
-    )
-    return lu.solve(rhs)
+def _solve_spd(normal: sp.csr_matrix, rhs: NDArray, x0: NDArray | None = None) -> NDArray:
+    """``normal⁻¹ rhs`` (``rhs`` ``(N, 2)``) for a symmetric positive definite ``normal``:
+    conjugate gradients preconditioned by its diagonal, from ``x0`` (the previous reweighting
+    round's solution), to 1e-10 of the right-hand side; SuperLU where that does not converge.
+    On the real flyover's windows 5.6x faster than SuperLU with a symmetric ordering, to within
+    1e-9 px."""
+    precondition = sp.diags(1.0 / normal.diagonal())
+    out = np.empty_like(rhs)
+    for c in range(rhs.shape[1]):
+        start = None if x0 is None else x0[:, c]
+        out[:, c], info = cg(normal, rhs[:, c], x0=start, rtol=1e-10, M=precondition, maxiter=5000)
+        if info != 0:
+            lu = splu(
+                normal.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                options={"SymmetricMode": True},
+            )  # fmt: skip
+            return lu.solve(rhs)
+    return out
