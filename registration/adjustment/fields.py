@@ -228,7 +228,8 @@ def solve_corrections(
     touched = np.zeros(n_unknowns, bool)
     pairs = [p for p in _pairs(frames, links, offset) if np.isfinite(p.floor_ms)]
     if not pairs:
-        return {k: _as_field(frames[k].grid, np.zeros((0, 2)), touched, 0) for k in solved}
+        e = np.zeros((n_unknowns, 2))
+        return {k: _as_field(frames[k].grid, e, touched, offset[k]) for k in solved}
     rows, cols, vals, link_sigma = [], [], [], []
     excess = {k: [] for k in solved}
     n_rows = 0
@@ -302,10 +303,7 @@ def _as_field(
 ) -> DisplacementField:
     gy, gx = grid.shape
     n = gy * gx
-    if len(e):
-        vec = -e[start : start + n].reshape(gy, gx, 2)
-    else:
-        vec = np.zeros((gy, gx, 2))
+    vec = -e[start : start + n].reshape(gy, gx, 2)
     return DisplacementField(
         grid.origin, grid.spacing, vec.astype(np.float32),
         touched[start : start + n].reshape(gy, gx).copy(),
