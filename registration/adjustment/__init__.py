@@ -11,6 +11,13 @@ from registration.adjustment.fields import (
     solve_corrections,
 )
 from registration.adjustment.links import measure_links
+from registration.adjustment.map_points import (
+    FrameMapPoints,
+    MapPoint,
+    apply_map_points,
+    moved_onto,
+    similarity_onto,
+)
 from registration.adjustment.sequence import (
     FrameAdjustment,
     SequenceAdjustConfig,
@@ -35,6 +42,8 @@ __all__ = [
     "AdjustmentResult",
     "ControlPointSet",
     "FrameAdjustment",
+    "FrameMapPoints",
+    "MapPoint",
     "FieldFrame",
     "FieldSolveConfig",
     "FrameLinks",
@@ -44,6 +53,9 @@ __all__ = [
     "adjust_models",
     "adjust_sequence",
     "adjust_window",
+    "apply_map_points",
+    "moved_onto",
+    "similarity_onto",
     "as_polyprojective",
     "measure_links",
     "predicted_error",

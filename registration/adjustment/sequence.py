@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 
 from registration.adjustment.fields import FieldSolveConfig
 from registration.adjustment.links import measure_links
+from registration.adjustment.map_points import FrameMapPoints
 from registration.adjustment.solve import (
     AdjustmentConfig,
     ControlPointSet,
@@ -145,6 +146,9 @@ class FrameAdjustment:
         flagged: why the frame is likely worse than ``flag_px`` (``""``: it is not).
         moved_px: RMS shift of its control points from its own model to the adjusted one
             (base px).
+        n_map_points: the analyst's map points on it; map_point_rms_px: their RMS residual
+            (base px) after the adjustment (None without any).
+        note: what its map points made of its own evidence (``FrameMapPoints.note``).
     """
 
     k: int
@@ -158,9 +162,20 @@ class FrameAdjustment:
     predicted_error_px: float
     flagged: str
     moved_px: float
+    n_map_points: int = 0
+    map_point_rms_px: float | None = None
+    note: str = ""
 
     def to_dict(self) -> dict:
-        """JSON-able, without the model (the record holds it)."""
+        """JSON-able, without the model (the record holds it); the map points' entries only
+        where the frame has some."""
+        extra = {}
+        if self.n_map_points:
+            extra = {
+                "n_map_points": self.n_map_points,
+                "map_point_rms_px": self.map_point_rms_px,
+                "note": self.note,
+            }
         return {
             "window": list(self.window),
             "n_links": self.n_links,
@@ -171,6 +186,7 @@ class FrameAdjustment:
             "predicted_error_px": self.predicted_error_px,
             "flagged": self.flagged,
             "moved_px": self.moved_px,
+            **extra,
         }
 
 
@@ -214,6 +230,8 @@ class SequenceEvidence:
             each frame's prior holds, ``SequenceAdjustConfig.prior_sigma_px``).
         fixed: frames whose models are held (the reference frame: the mid base image every
             other frame's control points were measured on is made of it).
+        map_points: the analyst's map points of a frame, and what they made of its evidence
+            (``models`` and ``controls`` already say it: :func:`apply_map_points`).
     """
 
     models: list[PolyProjective | None]
@@ -222,6 +240,7 @@ class SequenceEvidence:
     lens: object
     outline: NDArray[np.float64]
     fixed: frozenset[int] = frozenset()
+    map_points: Mapping[int, FrameMapPoints] = field(default_factory=dict)
     _links: dict = field(default_factory=dict, repr=False)
     _probes: dict = field(default_factory=dict, repr=False)
 
@@ -272,14 +291,12 @@ def adjust_window(
         for k in range(first, window.end - s)
         if k + s >= window.start and models[k] is not None and models[k + s] is not None
     ]
-    controls = [
-        evidence.controls[k]
-        for k in range(window.start, window.end)
-        if evidence.controls[k] is not None and k not in held
+    solving = [
+        k for k in range(window.start, window.end) if models[k] is not None and k not in held
     ]
-    priors = [_prior(k, models[k], evidence.outline, config.prior_sigma_px)
-              for k in range(window.start, window.end)
-              if models[k] is not None and k not in held]  # fmt: skip
+    controls = [evidence.controls[k] for k in solving if evidence.controls[k] is not None]
+    controls += [evidence.map_points[k].points for k in solving if k in evidence.map_points]
+    priors = [_prior(k, models[k], evidence.outline, config.prior_sigma_px) for k in solving]
     out = adjust_models(models, links, controls, config.solver, fixed=held, priors=priors)
     n_links = np.zeros(window.end, int)
     for lk in links:
@@ -294,20 +311,24 @@ def adjust_window(
         link_rms = _finite(out.link_rms_px[k])
         position = _finite(out.position_sigma_px[k])
         predicted = predicted_error(position, link_rms, sigma_link)
+        mp = evidence.map_points.get(k)
+        mp_rms = None if mp is None else _rms(out.models[k].apply(mp.points.src) - mp.points.dst)
         flagged = ""
         if predicted > config.flag_px:
             flagged = f"predicted error {predicted:.2f} px"
         elif n_links[k] == 0 and _has_neighbour(models, k, steps):
             flagged = "no links to its neighbours"
+        elif mp_rms is not None and mp_rms > config.solver.f_scale * mp.points.sigma_px:
+            flagged = f"its map points are {mp_rms:.1f} px from it"
         moved = 0.0
         if c is not None and len(c.src):
-            moved = float(np.sqrt(np.mean(np.sum(
-                (out.models[k].apply(c.src) - models[k].apply(c.src)) ** 2, axis=1
-            ))))  # fmt: skip
+            moved = _rms(out.models[k].apply(c.src) - models[k].apply(c.src))
         results.append(FrameAdjustment(
             k, out.models[k], (window.start, window.end), int(n_links[k]),
             0 if c is None else len(c.src), link_rms, control_rms, position,
             round(predicted, 6), flagged, round(moved, 6),
+            0 if mp is None else len(mp.points.src),
+            None if mp_rms is None else round(mp_rms, 6), "" if mp is None else mp.note,
         ))  # fmt: skip
     solution = {k: out.models[k] for k in range(first, window.end) if out.models[k] is not None}
     return results, solution
@@ -351,6 +372,11 @@ def _has_neighbour(models, k: int, steps) -> bool:
     return any(
         0 <= k + d < len(models) and models[k + d] is not None for s in steps for d in (-s, s)
     )
+
+
+def _rms(d: NDArray) -> float:
+    """RMS length of the ``(N, 2)`` vectors ``d``."""
+    return float(np.sqrt(np.mean(np.sum(d**2, axis=1))))
 
 
 def _finite(v: float) -> float | None:

@@ -92,12 +92,14 @@ class FrameLinks:
 @dataclass(frozen=True)
 class ControlPointSet:
     """Frame ``k``'s control points: ``src`` corrected px -> ``dst`` base px (``(N, 2)``), with
-    their noise ``sigma_px`` (base px)."""
+    their noise ``sigma_px`` (base px); ``fixed_noise``: the noise is known (an analyst's map
+    points) and not re-estimated from the residuals."""
 
     k: int
     src: NDArray[np.float64]
     dst: NDArray[np.float64]
     sigma_px: float
+    fixed_noise: bool = False
 
 
 @dataclass(frozen=True)
@@ -273,7 +275,7 @@ class _Problem:
                 continue
             e = r[start : start + m].reshape(-1, 2) / self.control_w[ci]
             seen = float(np.median(np.hypot(e[:, 0], e[:, 1]))) / 1.177
-            if seen * self.control_w[ci] > 1.2:
+            if not self.controls[ci].fixed_noise and seen * self.control_w[ci] > 1.2:
                 self.control_w[ci] = 1.0 / seen
                 changed = True
             ci += 1

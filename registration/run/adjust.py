@@ -24,12 +24,14 @@ from registration.adjustment import (
     SequenceAdjustConfig,
     SequenceEvidence,
     adjust_sequence,
+    apply_map_points,
     as_polyprojective,
     refined_grid,
     solve_corrections,
 )
 from registration.geometry import DisplacementField, local_frame_to_base, model_from_dict
 from registration.matching import to_grey
+from registration.run.map_points import read_map_points
 from registration.run.result import RegistrationResult
 from registration.run.writer import ResultWriter
 
@@ -136,9 +138,12 @@ class _Fields:
         return self.result.local_stage(j)[2] if self.result.is_adjusted(j) else None
 
     def _own_local(self, j: int) -> Callable:
-        """Corrected px -> base px through frame j's own local stage (its own model and field)."""
+        """Corrected px -> base px through frame j's own local stage (its own model and field:
+        the local stage the correction applies to, even where map points moved the model the
+        adjustment starts from)."""
         if j not in self._to_base:
-            model, field_ = self.evidence.models[j], self.result.field(j)
+            model = as_polyprojective(self.result.own_model(j), *self.result.frame_size)
+            field_ = self.result.field(j)
             if field_ is None:
                 self._to_base[j] = model.apply
             else:
@@ -148,7 +153,8 @@ class _Fields:
 
 def _evidence(result: RegistrationResult, frames, config: SequenceAdjustConfig) -> SequenceEvidence:
     """The adjustment's view of a result: own models, kept control points with their noise,
-    grey frames read on demand."""
+    the analyst's map points (:mod:`registration.adjustment.map_points`), grey frames read on
+    demand."""
     models, controls = [], []
     width, height = result.frame_size
     for k in range(result.n_frames):
@@ -164,6 +170,17 @@ def _evidence(result: RegistrationResult, frames, config: SequenceAdjustConfig) 
         controls.append(ControlPointSet(
             k, src[kept], dst[kept], float(sigma) if sigma else config.default_control_sigma_px,
         ))  # fmt: skip
+    map_points = {}
+    for k, points in _map_points_by_frame(result).items():
+        if models[k] is None or k == result.reference_frame:
+            continue  # refused when they were added; a frame registered again since may fail
+        src = result.lens.corrected_from_raw(np.array([p.frame_xy for p in points]))
+        dst = np.array([p.base_xy for p in points])
+        mp = apply_map_points(
+            k, models[k], controls[k], src, dst, np.array([p.sigma_px for p in points]),
+            config.solver.f_scale,
+        )  # fmt: skip
+        models[k], controls[k], map_points[k] = mp.start, mp.controls, mp
     greys: OrderedDict[int, np.ndarray] = OrderedDict()
 
     def grey(k: int) -> np.ndarray:
@@ -174,8 +191,16 @@ def _evidence(result: RegistrationResult, frames, config: SequenceAdjustConfig) 
         return greys[k]
 
     return SequenceEvidence(
-        models, controls, grey, result.lens, _outline(result), frozenset({result.reference_frame})
-    )
+        models, controls, grey, result.lens, _outline(result),
+        frozenset({result.reference_frame}), map_points,
+    )  # fmt: skip
+
+
+def _map_points_by_frame(result: RegistrationResult) -> dict:
+    by_frame: dict[int, list] = {}
+    for p in read_map_points(result.out_dir):
+        by_frame.setdefault(p.k, []).append(p)
+    return by_frame
 
 
 def _write_adjusted(

@@ -21,6 +21,7 @@ VERSION = 1
 RESULT_JSON = "result.json"
 MID_BASE = "mid_base.png"
 MID_BASE_VALID = "mid_base_valid.png"
+MAP_POINTS_JSON = "map_points.json"
 
 
 def frame_record_path(out_dir: Path, k: int, suffix: str) -> Path:

@@ -22,13 +22,19 @@ from registration.errors import (
     ResultExists,
 )
 from registration.io import temp_target
-from registration.run.records import MID_BASE, MID_BASE_VALID, RESULT_JSON, _read_meta
+from registration.run.records import (
+    MAP_POINTS_JSON,
+    MID_BASE,
+    MID_BASE_VALID,
+    RESULT_JSON,
+    _read_meta,
+)
 
 LOCK_NAME = ".lock"
 # What a result folder may hold; only these are ever deleted (``--force``).
 _OWN = {
     ".": re.compile(
-        "^(" + "|".join(map(re.escape, (RESULT_JSON, MID_BASE, MID_BASE_VALID))) + ")$"
+        "^(" + "|".join(map(re.escape, (RESULT_JSON, MID_BASE, MID_BASE_VALID, MAP_POINTS_JSON))) + ")$"
     ),
     "frames": re.compile(r"^\d{6}\.(json|npz)$"),
     "registered": re.compile(r"^registered\.mp4$"),
