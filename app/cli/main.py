@@ -23,6 +23,7 @@ COMMANDS = (
     "undistort",
     "calibrate",
     "register",
+    "adjust",
     "evaluate",
     "export",
     "traffic",

@@ -5,15 +5,21 @@ map, one more constraint on that frame.
 A map point is a control point of known noise (the precision of two clicks, not re-estimated
 from residuals as a frame's own control points are: one point's residual says nothing about its
 noise). Where the frame's own model disagrees with its map points by more than the solver's
-robust scale (``f_scale`` noises), its own registration went wrong as a whole: its control
-points, which agree with each other and so survive any robust loss, are set aside, and the
-adjustment starts from the own model moved onto the map points (a translation for one point, a
-similarity for more), so that its links to its neighbours are measured where its image shows
-their ground.
+robust scale (``f_scale`` noises), either the frame's own registration went wrong as a whole or
+the click did, and the frame's image decides: its links to its neighbours are measured through
+its own model and through the own model moved onto the map points (a translation for one point,
+a similarity for more), and each model is judged by how far its links land from where the
+neighbours' own models put them (a model the links cannot be found through is judged
+wrong). Where the moved model agrees better, the frame's own control points, which agree with
+each other and so would survive any robust loss, are set aside and the adjustment starts from
+the moved model, so that its links are measured where its image shows its neighbours' ground.
+Where the own model agrees better, it stays: the map points are one more constraint, and a
+frame left far from them is flagged.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -98,10 +104,14 @@ def apply_map_points(
     dst: NDArray,
     sigma_px: NDArray,
     f_scale: float,
+    links_through: Callable[[PolyProjective], float] | None = None,
 ) -> FrameMapPoints:
-    """Frame ``k``'s evidence (its own ``model`` and ``controls``) with its map points ``src`` (corrected px, ``(N, 2)``) ->
-    ``dst`` (base px), each of noise ``sigma_px`` (``(N,)``, base px); ``f_scale``: the
-    solver's robust scale in noises (module docstring)."""
+    """Frame ``k``'s evidence (its own ``model`` and ``controls``) with its map points ``src``
+    (corrected px, ``(N, 2)``) -> ``dst`` (base px), each of noise ``sigma_px`` (``(N,)``, base
+    px); ``f_scale``: the solver's robust scale in noises; ``links_through(model)``: the median
+    distance (base px) of the frame's links to its neighbours, measured through ``model``, from
+    where the neighbours put them (inf where none is found; None: the map points are taken over
+    the own model whenever they disagree). Module docstring."""
     src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
     sigma = float(np.sqrt(np.mean(np.square(sigma_px))))
     points = ControlPointSet(k, src, dst, sigma, fixed_noise=True)
@@ -110,9 +120,23 @@ def apply_map_points(
     if worst <= f_scale * sigma:
         return FrameMapPoints(model, controls, points, worst, "")
     start = moved_onto(model, similarity_onto(model.apply(src), dst))
+    confirmed = ""
+    if links_through is not None:
+        own, moved = links_through(model), links_through(start)
+        counts = (
+            f"its links to its neighbours are {moved:.2f} base px off through them, "
+            f"{own:.2f} through it"
+        )
+        if own < moved:
+            note = (
+                f"the analyst's map points are up to {worst:.1f} base px from its own "
+                f"registration, which its image confirms ({counts}): it is kept"
+            )
+            return FrameMapPoints(model, controls, points, worst, note)
+        confirmed = f", and its image confirms them ({counts})"
     note = (
         f"its own control points were set aside: the analyst's map points are up to "
-        f"{worst:.1f} base px from where its own registration puts them"
+        f"{worst:.1f} base px from where its own registration puts them{confirmed}"
     )
     return FrameMapPoints(start, None, points, worst, note)
 

@@ -138,7 +138,7 @@ class FrameAdjustment:
         window: the window's ``(start, end)`` that made it final.
         n_links: link points that touch it; n_controls: its control points.
         link_rms_px, control_rms_px: RMS residuals (base px) of its links and control points
-            after the adjustment (None where it has none).
+            (its map points among them) after the adjustment (None where it has none).
         position_sigma_px: standard deviation of its points' positions (base px) from the
             solution's covariance (None where it was held fixed).
         predicted_error_px: what the evidence says about its error (base px):

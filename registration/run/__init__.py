@@ -3,6 +3,7 @@ every other frame in chunks), re-anchoring to the map, read-ahead, Dask scale-ou
 folder (records, identity, lock, reader, writer).
 """
 
+from registration.run.adjust import adjust_folder
 from registration.run.anchoring import ANCHOR_STAGE, render_anchor
 from registration.run.chunks import (
     ChunkContext,
@@ -29,6 +30,7 @@ from registration.run.dask_executor import (
 )
 from registration.run.identity import make_metadata
 from registration.run.intra_frames import SerialExecutor
+from registration.run.map_points import read_map_points, set_map_points
 from registration.run.pipeline import (
     RegistrationFailed,
     load_config,
@@ -49,6 +51,9 @@ from registration.run.result_folder import ResultLock, check_out_dir
 from registration.run.writer import ResultWriter
 
 __all__ = [
+    "adjust_folder",
+    "read_map_points",
+    "set_map_points",
     "FrameRecord",
     "ANCHOR_STAGE",
     "CHANGE_LOG_RATIO",

@@ -14,6 +14,7 @@ from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import replace
 from functools import partial
+from pathlib import Path
 
 import numpy as np
 
@@ -26,17 +27,61 @@ from registration.adjustment import (
     adjust_sequence,
     apply_map_points,
     as_polyprojective,
+    measure_links,
     refined_grid,
     solve_corrections,
 )
+from registration.adjustment.sequence import probes_for
 from registration.geometry import DisplacementField, local_frame_to_base, model_from_dict
-from registration.matching import to_grey
+from registration.matching import textured_probes, to_grey
 from registration.run.map_points import read_map_points
 from registration.run.result import RegistrationResult
+from registration.run.result_folder import ResultLock
 from registration.run.writer import ResultWriter
 
 # Frames kept decoded: a window's links reach this far back at most.
 _GREY_CACHE = 64
+
+
+def adjust_folder(
+    out_dir: str | Path,
+    frames=None,
+    progress: Callable[[int, int], None] | None = None,
+    cancel: threading.Event | None = None,
+) -> int:
+    """Adjust the frames of the result folder ``out_dir`` that are not adjusted (after
+    :func:`registration.run.set_map_points`, say), with the folder's own settings; ``frames``:
+    the run's frame source (None: the one the folder records). Returns the number adjusted.
+
+    Raises:
+        ValueError: one line: the folder was made without the adjustment, or frames are not
+            registered yet (resume the run); :class:`ResultBusy` while another process
+            writes it.
+    """
+    from registration.io import open_frames
+    from registration.run.config import config_from_dict
+    from registration.run.records import _read_meta
+
+    out_dir = Path(out_dir)
+    meta = _read_meta(out_dir)
+    config = config_from_dict(meta["config"]).adjust
+    if config is None:
+        raise ValueError(f"{out_dir} was registered without the sequence adjustment (--adjust)")
+    lock = ResultLock(out_dir).acquire()
+    try:
+        writer = ResultWriter(out_dir, lock, frames)
+        pending = [k for k in range(writer.n_frames) if not writer.done(k)]
+        if pending:
+            raise ValueError(
+                f"{out_dir}: {len(pending)} frames are not registered yet (first: {pending[0]}); "
+                "resume the run (aerialreg register --resume) to register and adjust them"
+            )
+        if frames is None:
+            frames = open_frames(meta["frames_source"])
+            writer = ResultWriter(out_dir, lock, frames)
+        return adjust_result(writer, frames, config, progress, cancel)
+    finally:
+        lock.release()
 
 
 def adjust_result(
@@ -170,17 +215,6 @@ def _evidence(result: RegistrationResult, frames, config: SequenceAdjustConfig) 
         controls.append(ControlPointSet(
             k, src[kept], dst[kept], float(sigma) if sigma else config.default_control_sigma_px,
         ))  # fmt: skip
-    map_points = {}
-    for k, points in _map_points_by_frame(result).items():
-        if models[k] is None or k == result.reference_frame:
-            continue  # refused when they were added; a frame registered again since may fail
-        src = result.lens.corrected_from_raw(np.array([p.frame_xy for p in points]))
-        dst = np.array([p.base_xy for p in points])
-        mp = apply_map_points(
-            k, models[k], controls[k], src, dst, np.array([p.sigma_px for p in points]),
-            config.solver.f_scale,
-        )  # fmt: skip
-        models[k], controls[k], map_points[k] = mp.start, mp.controls, mp
     greys: OrderedDict[int, np.ndarray] = OrderedDict()
 
     def grey(k: int) -> np.ndarray:
@@ -190,10 +224,39 @@ def _evidence(result: RegistrationResult, frames, config: SequenceAdjustConfig) 
                 greys.popitem(last=False)
         return greys[k]
 
+    map_points = {}
+    for k, points in _map_points_by_frame(result).items():
+        if models[k] is None or k == result.reference_frame:
+            continue  # refused when they were added; a frame registered again since may fail
+        src = result.lens.corrected_from_raw(np.array([p.frame_xy for p in points]))
+        dst = np.array([p.base_xy for p in points])
+        mp = apply_map_points(
+            k, models[k], controls[k], src, dst, np.array([p.sigma_px for p in points]),
+            config.solver.f_scale, partial(_links_through, k, models, grey, result.lens, config),
+        )  # fmt: skip
+        models[k], controls[k], map_points[k] = mp.start, mp.controls, mp
     return SequenceEvidence(
         models, controls, grey, result.lens, _outline(result),
         frozenset({result.reference_frame}), map_points,
     )  # fmt: skip
+
+
+def _links_through(k: int, models, grey, lens, config: SequenceAdjustConfig, model) -> float:
+    """The median distance (base px) between where ``model`` puts frame ``k``'s links to its
+    nearest neighbours (k - 1, k + 1) and where the neighbours' own models put them, the links
+    measured through ``model``; inf where none is found."""
+    probes = textured_probes(grey(k), probes_for(grey(k), config.probes))
+    distances = []
+    for j in (k - 1, k + 1):
+        if 0 <= j < len(models) and models[j] is not None:
+            links = measure_links(
+                grey(k), grey(j), k, j, model, models[j], lens, config.probes, probes,
+                config.link_matcher,
+            )  # fmt: skip
+            d = model.apply(links.src_k) - models[j].apply(links.src_l)
+            distances.append(np.hypot(d[:, 0], d[:, 1]))
+    distances = np.concatenate(distances) if distances else np.zeros(0)
+    return float(np.median(distances)) if len(distances) else float("inf")
 
 
 def _map_points_by_frame(result: RegistrationResult) -> dict:

@@ -93,6 +93,36 @@ def test_map_points_that_disagree_set_the_own_control_points_aside_and_move_the_
     assert np.max(np.hypot(*(mp.start.apply(grid) - truth.apply(grid)).T)) < 1e-6
 
 
+@pytest.mark.parametrize("own_links, moved_links", [(0.3, 30.0), (np.inf, 0.3)])
+def test_the_frames_image_decides_between_its_own_model_and_its_map_points(own_links, moved_links):
+    """Map points 30 px from the own model: the model its links to its neighbours agree with
+    is kept (a mis-click is then one more constraint, and the frame stays), else the map
+    points'."""
+    truth = _model()
+    wrong = moved_onto(truth, _similarity(1.0, 0.0, (24.0, 18.0)))
+    src = np.array([[100.0, 120.0]])
+    controls = _controls(wrong)
+
+    def links_through(model) -> float:
+        return own_links if model is wrong else moved_links
+
+    mp = apply_map_points(3, wrong, controls, src, truth.apply(src), np.ones(1), 3.0, links_through)
+    if own_links < moved_links:
+        assert mp.start is wrong and mp.controls is controls
+        assert (
+            "which its image confirms (its links to its neighbours are 30.00 base px off "
+            "through them, 0.30 through it): it is kept" in mp.note
+        )
+    else:
+        assert mp.controls is None
+        assert np.allclose(mp.start.apply(src), truth.apply(src), atol=1e-6)
+        assert "set aside" in mp.note
+        assert (
+            "its image confirms them (its links to its neighbours are 0.30 base px off "
+            "through them, inf through it)" in mp.note
+        )
+
+
 def test_map_point_records_refuse_non_finite_values():
     with pytest.raises(ValueError, match=r"map point of frame 2: coordinates must be finite"):
         MapPoint(2, (np.nan, 3.0), (1.0, 2.0))

@@ -669,6 +669,62 @@ def test_sequence_adjusted_together_shows_predicted_errors(fitted):
     assert "flagged" not in seq.panel.frame_md.content
 
 
+def test_sequence_map_point_on_a_frame_and_solve_again(registered):
+    """The analyst adds a map point on frame 2: a click on a feature of the frame drawn over
+    the map, then a click where it lies on the map. The frames it touches are adjusted again
+    with it (*Solve again*); the frame's line, the panel and the chart say so; removing it and
+    solving again leaves no trace of it."""
+    from registration.run.map_points import read_map_points
+
+    app, truth, bxy = registered
+    seq = app.views["Sequence"]
+    tool, panel = seq.map_points, seq.panel.map_points
+    seq.set_frame(0)
+    app.worker.wait_idle()
+    assert not tool.start()  # the reference frame is fitted in the Seed view
+    seq.set_frame(2)
+    app.worker.wait_idle()
+    r = app.state.result
+    assert r.is_adjusted(2)
+    fxy = np.array([[250.0, 200.0]])
+    drawn = r.frame_to_base(2, fxy, "local")[0]  # where the registration draws that pixel
+    true = truth.frame_to_base(2, fxy)[0]
+    base = seq.scene.planes["base"]
+    assert tool.start()
+    assert "Click the feature in the frame" in panel.status_md.content and panel.btn_cancel.visible
+    click(app, base, drawn)
+    assert "Now click where it lies on the map" in panel.status_md.content
+    click(app, base, true)
+    assert app.jobs.join(60)
+    app.worker.wait_idle()
+    (point,) = read_map_points(app.project.result_dir)
+    assert point.k == 2
+    assert np.allclose(point.frame_xy, fxy[0], atol=0.01)
+    assert np.allclose(point.base_xy, true, atol=0.01)
+    assert not app.state.result.is_adjusted(2)
+    assert "not adjusted with them yet" in panel.status_md.content
+    assert tool.solve()
+    assert app.jobs.join(300)
+    app.worker.wait_idle()
+    r = app.state.result
+    assert all(r.is_adjusted(k) for k in range(r.n_frames)), app.errors
+    adj = r.records[2].stats["adjustment"]
+    assert adj["n_map_points"] == 1 and adj["map_point_rms_px"] < 1.0
+    assert "1 map points of the analyst's" in seq.panel.frame_md.content
+    assert "base px from them after the adjustment" in panel.status_md.content
+    seq.draw_plot()
+    marks = seq.panel.plot.data[6]
+    assert np.isfinite(marks[2]) and np.isnan(marks[[0, 1, 3]]).all()
+    # Removed, and solved again: no trace.
+    assert tool.remove()
+    assert app.jobs.join(60)
+    assert read_map_points(app.project.result_dir) == []
+    assert tool.solve()
+    assert app.jobs.join(300)
+    app.worker.wait_idle()
+    assert "n_map_points" not in app.state.result.records[2].stats["adjustment"]
+
+
 def test_sequence_text_follows_the_seed(tmp_path, small_seq, make_app):
     """The Sequence view no longer says "no seed" after a seed was set elsewhere."""
     app = make_app(tmp_path / "proj", small_seq)

@@ -24,7 +24,7 @@ from registration.run.map_points import read_map_points, set_map_points
 from registration.run.result_folder import ResultLock
 from registration.run.writer import ResultWriter
 from registration.synth import load_truth
-from tests.run.test_adjust import _map_error, _plant_offset, _strip_adjustment
+from tests.run.test_adjust import _grid, _map_error, _plant_offset, _strip_adjustment
 
 # Windows of 4 frames, 2 final each: the 6 frames take windows (0, 4) and (2, 6); frame 4 is
 # only in the second.
@@ -124,6 +124,34 @@ def test_points_added_later_reach_the_same_bits_and_keep_earlier_windows(
         assert (out / "frames" / f"{k:06d}.json").read_bytes() == before[k], k
 
 
+def test_a_mis_click_on_a_good_frame_is_flagged_and_moves_nothing(
+    sim_seq, default_result, tmp_path
+):
+    """A map point 6 base px from the truth on frame 2, which is registered well: its image
+    confirms its own model, not the click's, so the frame stays (within 0.05 px of the run
+    without the point) and is flagged for its map point; its neighbours do not move."""
+    out = _folder(sim_seq, default_result, tmp_path / "out")
+    _adjust(sim_seq, out)
+    without = registration.load(out)
+    truth = load_truth(sim_seq)
+    w, h = truth.frame_size
+    fxy = np.array([[0.5 * w, 0.5 * h]])
+    bxy = truth.frame_to_base(2, fxy)[0] + [6.0, 0.0]
+    set_map_points(out, [MapPoint(2, tuple(fxy[0]), tuple(bxy))])
+    _adjust(sim_seq, out)
+    result = registration.load(out)
+    adjustment = result.records[2].stats["adjustment"]
+    assert adjustment["flagged"].startswith("its map points are") and adjustment["n_controls"] > 0
+    assert "which its image confirms" in adjustment["note"] and "it is kept" in adjustment["note"]
+    for k in (1, 2, 3):
+        for stage in ("global", "local"):
+            g = _grid(truth)
+            moved = np.hypot(
+                *(result.frame_to_base(k, g, stage) - without.frame_to_base(k, g, stage)).T
+            )
+            assert moved.mean() < 0.05, (k, stage)
+
+
 def test_bad_map_points_are_refused_in_one_line(sim_seq, with_points):
     (good,) = _points(sim_seq)[:1]
     cases = [
@@ -153,3 +181,32 @@ def test_a_folder_without_the_adjustment_refuses_map_points(sim_seq, tmp_path, d
     (out / "result.json").write_text(json.dumps(meta))
     with pytest.raises(ValueError, match="registered without the sequence adjustment"):
         set_map_points(out, _points(sim_seq))
+
+
+def test_the_adjust_command_adds_a_point_and_adjusts_again(
+    sim_seq, default_result, tmp_path, capsys
+):
+    """``aerialreg adjust OUT --add K,FX,FY,BX,BY``: the point stored, the frames it touches
+    adjusted again with the folder's own settings and frame source, the frame's outcome said."""
+    from app.cli import main as cli_main
+
+    out = _folder(sim_seq, default_result, tmp_path / "out")
+    assert cli_main(["adjust", str(out), "--json"]) == 0  # no points: adjusts the rest
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["n_readjusted"] == 6 and summary["n_map_points"] == 0
+    assert registration.load(out).records[PLANTED].stats["adjustment"]["flagged"]
+    (p,) = _points(sim_seq)
+    spec = f"{PLANTED}," + ",".join(f"{v:.4f}" for v in (*p.frame_xy, *p.base_xy))
+    assert cli_main(["adjust", str(out), "--add", spec]) == 0
+    text = capsys.readouterr().out
+    assert "1 map point(s)" in text and "adjusted 4 frame(s) again" in text
+    assert f"frame {PLANTED}: 1 map point(s)" in text and "set aside" in text
+    assert "flagged" not in text
+    truth = load_truth(sim_seq)
+    assert _map_error(registration.load(out), truth, PLANTED) < 0.5
+    assert cli_main(["adjust", str(out), "--add", "4,1,2"]) == 2
+    assert "--add must be K,FX,FY,BX,BY, got '4,1,2'" in capsys.readouterr().err
+    assert cli_main(["adjust", str(out), "--remove", str(PLANTED), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["n_map_points"] == 0 and summary["n_readjusted"] == 4
+    assert registration.load(out).records[PLANTED].stats["adjustment"]["flagged"]

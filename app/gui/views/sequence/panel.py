@@ -1,5 +1,5 @@
 """Sequence view: its panel (the run, the scrubber and play, the per-frame chart, failed frames,
-display options, the frame's control points and the export)."""
+display options, the analyst's map points, the frame's control points and the export)."""
 
 from __future__ import annotations
 
@@ -17,6 +17,41 @@ from app.gui.views.sequence.export_panel import ExportPanel
 from app.gui.views.widgets import ClientCallback, on_any_change, on_change, on_choice, on_press
 
 PLOT_TITLE = "Per-frame residual RMS (px): hover for values, click a frame to show it"
+MAP_POINTS_NOTE = (
+    "A point of this frame and where it lies on the map: one more constraint on the frame "
+    "when the frames are adjusted together (Seed view, Run settings). *Add* then click the "
+    "feature in the frame, then on the map; *Solve again* adjusts the frames it touches."
+)
+
+
+class MapPointsPanel:
+    """Widgets of the Sequence view's "Map points" folder."""
+
+    def __init__(self, gui) -> None:
+        self.md = gui.add_markdown(MAP_POINTS_NOTE)
+        self.status_md = gui.add_markdown("")
+        self.btn_add = gui.add_button("Add a map point on this frame")
+        self.btn_cancel = gui.add_button("Cancel the point", visible=False)
+        self.btn_remove = gui.add_button("Remove this frame's map points")
+        self.btn_solve = gui.add_button("Solve again")
+
+    def on_actions(
+        self,
+        *,
+        add: ClientCallback,
+        cancel: ClientCallback,
+        remove: ClientCallback,
+        solve: ClientCallback,
+    ) -> None:
+        on_press(self.btn_add, add)
+        on_press(self.btn_cancel, cancel)
+        on_press(self.btn_remove, remove)
+        on_press(self.btn_solve, solve)
+
+    def show(self, text: str, picking: bool) -> None:
+        self.status_md.content = text
+        self.btn_cancel.visible = picking
+        self.btn_add.visible = not picking
 
 
 @dataclass(frozen=True)
@@ -54,7 +89,7 @@ class SequencePanel:
         self.jump = gui.add_button_group("Jump to", ("worst frame", "next failed"))
         self.btn_rerun = gui.add_button("Register this frame again")
         self.plot = gui.add_uplot(
-            data=(np.array([0.0, 1.0]),) + tuple(np.array([np.nan, np.nan]) for _ in range(5)),
+            data=(np.array([0.0, 1.0]),) + tuple(np.array([np.nan, np.nan]) for _ in range(6)),
             series=(
                 up.Series(label="frame"),
                 up.Series(
@@ -84,6 +119,12 @@ class SequencePanel:
                     width=2,
                     dash=[6, 4],
                 ),
+                up.Series(
+                    label="map points",
+                    stroke="#7048e8",
+                    width=0,
+                    points={"show": True, "size": 9, "fill": "#7048e8"},
+                ),
             ),
             title=PLOT_TITLE,
             scales={
@@ -107,6 +148,8 @@ class SequencePanel:
             self.colourbar = gui.add_image(
                 np.full((40, 320, 3), 255, np.uint8), label="|d| (base px)", visible=False
             )
+        with gui.add_folder("Map points", expand_by_default=False):
+            self.map_points = MapPointsPanel(gui)
         with gui.add_folder("Control points of this frame", expand_by_default=False):
             self.cps = ControlPointPanel(gui, editable=False, scope="seq")
         with gui.add_folder("Earlier results", expand_by_default=False):
@@ -218,9 +261,10 @@ class SequencePanel:
         self.colourbar.image = image
         self.colourbar.visible = True
 
-    def show_plot(self, values, flags, failed, current, predicted=None) -> None:
+    def show_plot(self, values, flags, failed, current, predicted=None, marked=None) -> None:
         """The chart: RMS per frame, excursions and flagged frames, failed frames, the frame
-        shown, and each frame's predicted error where the frames were adjusted together.
+        shown, each frame's predicted error where the frames were adjusted together, and the
+        frames with the analyst's map points (``marked``, drawn at the chart's foot).
 
         uPlot's autoscale breaks on NaN (it has no NaN gaps, only nulls, which a numpy array
         cannot carry): both axes get explicit ranges, and NaN points are simply not drawn."""
@@ -243,12 +287,14 @@ class SequencePanel:
             shown[current] = values[current] if np.isfinite(values[current]) else 0.0
         exc = np.where(flags, values, np.nan)
         fail = np.where(failed, 0.0, np.nan)
+        marks = np.zeros(n, bool) if marked is None else np.asarray(marked, bool)
+        points = np.where(marks, 0.03 * ymax, np.nan)
         if n == 1:  # uPlot needs two x values
-            x, values, exc, fail, shown, predicted = (
-                np.append(v, np.nan) for v in (x, values, exc, fail, shown, predicted)
+            x, values, exc, fail, shown, predicted, points = (
+                np.append(v, np.nan) for v in (x, values, exc, fail, shown, predicted, points)
             )
             x[1] = 1.0
-        self.plot.data = (x, np.asarray(values, np.float64), exc, fail, shown, predicted)
+        self.plot.data = (x, np.asarray(values, np.float64), exc, fail, shown, predicted, points)
 
     def show_failed(self, failed: list[tuple[int, str]]) -> None:
         if not failed:

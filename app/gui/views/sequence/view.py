@@ -21,6 +21,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 
 import numpy as np
 
@@ -33,6 +34,7 @@ from app.gui.views.cptable.table import ControlPointTableView
 from app.gui.views.sequence.earlier import EarlierResults
 from app.gui.views.sequence.export import Exporter
 from app.gui.views.sequence.frames import RegisteredFrames, excursion_flags, frame_preview_side
+from app.gui.views.sequence.map_points import MapPointsTool
 from app.gui.views.sequence.panel import DisplayOptions, SequencePanel
 from app.gui.views.sequence.scene import RESIDUAL_OK, RESIDUAL_REMOVED, SequenceScene
 from registration.errors import ResultDamaged, ResumeMismatch
@@ -101,6 +103,7 @@ class SequenceView(View):
         p.cps.on_point_actions(centre=self.cp.centre_on_selected)
         p.cps.on_export(self.export_points)
         self.exporter = Exporter(self.ctx, p.export)
+        self.map_points = MapPointsTool(self, p.map_points)
         self.ctx.events.on("plot-frame", lambda v, client: self.set_frame(int(v)))
         self.ctx.events.on("seq-frame", lambda v, client: self.set_frame(int(v)))
         self._threads_stop = threading.Event()
@@ -410,10 +413,9 @@ class SequenceView(View):
     def rerun_frame(self, client: Client = None) -> bool:
         """Register the frame under the scrubber again with its result's own settings."""
         r = self.result()
-        inp = self.ctx.inputs
         with self.state.lock:
             k = self.state.seq_frame
-        if r is None or inp is None:
+        if r is None or self.ctx.inputs is None:
             self.notify(client, "No result", "Register the sequence first", "yellow")
             return False
         if k == r.reference_frame:
@@ -424,12 +426,31 @@ class SequenceView(View):
                 "yellow",
             )
             return False
+
+        def done() -> str:
+            rec = self.result().records[k]
+            return f"{rec.status} {rec.reason}"
+
+        return self.resume_own_run(
+            client, f"register frame {k}", done, before=lambda: calls.forget_frame(r.out_dir, k),
+            title=f"Frame {k} registered again",
+        )  # fmt: skip
+
+    def resume_own_run(
+        self, client: Client, name: str, done: Callable[[], str], before=None, title: str = ""
+    ) -> bool:
+        """Resume the result's own run (its γ, seed and settings, not the app's current
+        choices) as a job: it registers the frames without a record and adjusts those not
+        adjusted; ``before()`` runs first in the job, ``done()`` says the outcome."""
+        r = self.result()
+        inp = self.ctx.inputs
         settings = calls.rerun_settings(r)
         out_dir = str(r.out_dir)
 
         def job(progress) -> None:
-            progress(0, 1, f"frame {k}")
-            calls.forget_frame(out_dir, k)
+            progress(0, 1, name)
+            if before is not None:
+                before()
             pipeline.register_sequence(
                 inp.frames,
                 inp.base,
@@ -444,20 +465,15 @@ class SequenceView(View):
                 base_georef=inp.base_georef,
                 resume=True,
                 cancel=progress.cancel,
+                adjust_progress=lambda d, t: progress(d, t, "frames adjusted together"),
             )
             self.load_result(out_dir)
             self.refresh_text()
             self.ctx.state_changed()
             self.request_render()
-            rec = self.result().records[k]
-            self.notify(
-                client,
-                f"Frame {k} registered again",
-                f"{rec.status} {rec.reason}",
-                "green",
-            )
+            self.notify(client, title or name[0].upper() + name[1:], done(), "green")
 
-        return self.ctx.run_job(f"register frame {k}", job, client)
+        return self.ctx.run_job(name, job, client)
 
     def jump_to_worst(self) -> None:
         """Show the frame with the largest residual RMS."""
@@ -482,7 +498,11 @@ class SequenceView(View):
         return self.frames.error_values()
 
     def on_click(self, plane: str, xy, client: Client) -> None:
-        """A click on the map selects the nearest control point of the frame shown."""
+        """A click on the map places a map point's frame or map click while one is being
+        placed (:mod:`app.gui.views.sequence.map_points`), else selects the nearest control
+        point of the frame shown."""
+        if self.map_points.on_click(xy, client):
+            return
         t = self.cp.table
         if t is None or not len(t.ids):
             return
@@ -574,6 +594,7 @@ class SequenceView(View):
             self._frame_table(k)
             self._draw_vectors(display)
             self._draw_field(k, display)
+            self.map_points.refresh(k)
         self.draw_plot()
         self._update_frame_md(k)
         self.ctx.shown[self.MODE] = (k, stage, overlay, reg is not None, side)
@@ -626,7 +647,9 @@ class SequenceView(View):
             return
         failed = np.array([rec.status == "failed" for rec in r.records])
         flags = excursion_flags(vals) | np.array([bool(flagged(rec)) for rec in r.records])
-        self.panel.show_plot(vals, flags, failed, k, predicted_errors(r.records))
+        marked = np.zeros(len(vals), bool)
+        marked[[p.k for p in self.map_points.points() if p.k < len(vals)]] = True
+        self.panel.show_plot(vals, flags, failed, k, predicted_errors(r.records), marked)
 
     def _update_frame_md(self, k: int) -> None:
         self.panel.show_frame_info(self.frame_text(k))
@@ -699,6 +722,11 @@ def adjustment_text(adjustment: dict) -> str:
         f"{adjustment.get('n_links', 0)} link points, "
         f"{adjustment.get('n_controls', 0)} control points to the map"
     )
+    if adjustment.get("n_map_points"):
+        text += (
+            f", {adjustment['n_map_points']} map points of the analyst's "
+            f"({adjustment['map_point_rms_px']:.2f} px from them)"
+        )
     if adjustment.get("flagged"):
         text += f" — **flagged: {escape_md(str(adjustment['flagged']))}**"
     return text
