@@ -245,3 +245,48 @@ def write_qgis_points(table: ControlPointTable, path, georef=None):
     return write_points_file(
         path, table.frame_xy, map_xy, crs_wkt=crs, enabled=table.enabled, residual_xy=residual
     )
+
+
+def read_qgis_points(path, frame_size, base_size, georef=None) -> tuple[NDArray, NDArray]:
+    """Manual points ``(N, 4)`` (raw frame px, base px) and their ``enable`` column ``(N,)``
+    from a QGIS Georeferencer ``.points`` file, the inverse of :func:`write_qgis_points`:
+    the source is the frame, the map the base map's CRS where it is georeferenced (the file's
+    ``#CRS:`` must then be the same, when it has one), else its pixels in QGIS's corner/y-up
+    convention.
+
+    Raises:
+        ValueError: one line naming the file and the problem (malformed, another CRS, a map
+            CRS for a plain image, a point outside the frame or the map).
+    """
+    from pathlib import Path
+
+    from registration.gis import parse_crs, read_points_file
+
+    name = Path(path).name
+    data = read_points_file(path)
+    crs = data["crs"]
+    if georef is not None:
+        if crs and georef.crs is not None and not parse_crs(crs).equals(georef.crs):
+            raise ValueError(
+                f"{name}: its map coordinates are in {parse_crs(crs).name}, the base map's in "
+                f"{georef.crs.name}"
+            )
+        base = georef.base_from_map(data["map"]) if len(data["map"]) else data["map"]
+    elif crs:
+        raise ValueError(
+            f"{name}: its map coordinates are in {parse_crs(crs).name}, and the base map has no "
+            "georeference"
+        )
+    else:
+        base = np.c_[data["map"][:, 0] - 0.5, -data["map"][:, 1] - 0.5]
+    src = data["source"]
+    if not len(src):
+        raise ValueError(f"{name}: no control points")
+    for i, (f, b) in enumerate(zip(src, base, strict=True)):
+        for what, xy, (w, h) in (("frame", f, frame_size), ("map", b, base_size)):
+            if not (-0.5 <= xy[0] <= w - 0.5 and -0.5 <= xy[1] <= h - 0.5):
+                raise ValueError(
+                    f"{name} point {i + 1}: its {what} point ({xy[0]:.1f}, {xy[1]:.1f}) is "
+                    f"outside the {w}x{h} {what}"
+                )
+    return np.c_[src, base], data["enable"]

@@ -86,7 +86,8 @@ class FrameMapPoints:
         points: the map points as control points (corrected px -> base px, their noise).
         own_disagreement_px: the largest distance (base px) between a map point and where the
             frame's own model puts it.
-        note: why the own control points were set aside (``""``: they were not).
+        note: what the map points made of the frame's evidence: its own control points set
+            aside, or its own model kept against them (``""``: they agree with it).
     """
 
     start: PolyProjective

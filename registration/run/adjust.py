@@ -225,6 +225,7 @@ def _evidence(result: RegistrationResult, frames, config: SequenceAdjustConfig) 
         return greys[k]
 
     map_points = {}
+    own = list(models)  # the neighbours' own models judge a frame's, whatever the order
     for k, points in _map_points_by_frame(result).items():
         if models[k] is None or k == result.reference_frame:
             continue  # refused when they were added; a frame registered again since may fail
@@ -232,7 +233,7 @@ def _evidence(result: RegistrationResult, frames, config: SequenceAdjustConfig) 
         dst = np.array([p.base_xy for p in points])
         mp = apply_map_points(
             k, models[k], controls[k], src, dst, np.array([p.sigma_px for p in points]),
-            config.solver.f_scale, partial(_links_through, k, models, grey, result.lens, config),
+            config.solver.f_scale, partial(_links_through, k, own, grey, result.lens, config),
         )  # fmt: skip
         models[k], controls[k], map_points[k] = mp.start, mp.controls, mp
     return SequenceEvidence(

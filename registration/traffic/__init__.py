@@ -8,6 +8,13 @@ from the map, written as inD-style CSVs, GIS layers and a velocity field.
 """
 
 from registration.traffic.config import TrafficConfig
+from registration.traffic.counts import (
+    Crossing,
+    SectionCounts,
+    count_crossings,
+    count_sections,
+    write_counts_csvs,
+)
 from registration.traffic.detect import Detection, detect_vehicles
 from registration.traffic.outputs import TrackRows, read_tracks_csv
 from registration.traffic.runner import run_traffic
@@ -16,6 +23,11 @@ from registration.traffic.timing import MetricFrame, frame_times, video_frame_ti
 from registration.traffic.track import SmoothTrack, smooth_track, track_detections
 
 __all__ = [
+    "Crossing",
+    "SectionCounts",
+    "count_crossings",
+    "count_sections",
+    "write_counts_csvs",
     "Detection",
     "MetricFrame",
     "SmoothTrack",

@@ -507,6 +507,50 @@ def test_control_points_disable_worst_manual_and_export(fitted):
     assert int(pts["enable"].sum()) == t.n_enabled
 
 
+def test_control_points_import_from_a_qgis_points_file(fitted):
+    """A QGIS ``.points`` file of the reference frame (three points at the truth, one
+    disabled) joins the fit as manual points, enabled as the file says, undoably; a file in a
+    map CRS for a plain base, or with a point outside the frame, is refused in one line and
+    changes nothing."""
+    from registration.gis import write_points_file
+
+    app, truth, bxy = fitted
+    seed = app.views["Seed"]
+    n0 = len(seed.table.ids)
+    fxy = np.array([[200.0, 150.0], [420.0, 300.0], [320.0, 100.0]])
+    base = truth.frame_to_base(0, fxy)
+    plain = base * (1, -1) + (0.5, -0.5)  # QGIS's corner/y-up pixels of a plain base
+    path = write_points_file(
+        app.project.folder / "mine.points", fxy, plain, crs_wkt=None,
+        enabled=np.array([True, False, True]),
+    )  # fmt: skip
+    assert seed.points.import_points("mine.points", path.read_bytes())
+    app.worker.wait_idle()
+    t = seed.table
+    assert len(t.ids) == n0 + 3 and t.source[-3:] == ["manual"] * 3
+    assert np.allclose(np.array(app.state.cp_edits.manual), np.c_[fxy, base], atol=1e-9)
+    assert list(t.enabled[-3:]) == [True, False, True]
+    assert np.all(t.residual[-3:] < 2.0)  # at the truth: the fit agrees
+    assert "3 manual points from mine.points (1 disabled)" in app.notices[-1][1]
+    seed.undo()
+    app.worker.wait_idle()
+    assert len(seed.table.ids) == n0 and not app.state.cp_edits.manual
+    bad = [
+        (write_points_file(
+            app.project.folder / "geo.points", fxy, plain, crs_wkt="EPSG:32633"
+        ), "its map coordinates are in WGS 84 / UTM zone 33N, and the base map has no "
+           "georeference"),
+        (write_points_file(
+            app.project.folder / "off.points", fxy + (0, 400), plain, crs_wkt=None
+        ), "off.points point 1: its frame point (200.0, 550.0) is outside the 640x480 frame"),
+    ]  # fmt: skip
+    for p, message in bad:
+        assert not seed.points.import_points(p.name, p.read_bytes())
+        assert message in app.notices[-1][1] and "\n" not in app.notices[-1][1]
+    app.worker.wait_idle()
+    assert len(seed.table.ids) == n0 and not app.state.cp_edits.manual
+
+
 def test_review_inliers_only_by_default_and_screen_sized(fitted):
     """Match lines: a sample of at most the chosen count, spread over the frame, only between
     points on the images shown, with the counts said; a toggle hides them."""
@@ -681,6 +725,7 @@ def test_sequence_map_point_on_a_frame_and_solve_again(registered):
     tool, panel = seq.map_points, seq.panel.map_points
     seq.set_frame(0)
     app.worker.wait_idle()
+    assert "registered to the map (the reference frame)" in seq.panel.frame_md.content
     assert not tool.start()  # the reference frame is fitted in the Seed view
     seq.set_frame(2)
     app.worker.wait_idle()
@@ -713,8 +758,8 @@ def test_sequence_map_point_on_a_frame_and_solve_again(registered):
     assert "1 map points of the analyst's" in seq.panel.frame_md.content
     assert "base px from them after the adjustment" in panel.status_md.content
     seq.draw_plot()
-    marks = seq.panel.plot.data[6]
-    assert np.isfinite(marks[2]) and np.isnan(marks[[0, 1, 3]]).all()
+    on_map = seq.panel.plot.data[6]  # the reference frame and the frame with the map point
+    assert np.isfinite(on_map[[0, 2]]).all() and np.isnan(on_map[[1, 3]]).all()
     # Removed, and solved again: no trace.
     assert tool.remove()
     assert app.jobs.join(60)

@@ -124,6 +124,14 @@ def test_qgis_points_plain_and_georeferenced(known, tmp_path):
     text = (tmp_path / "geo.points").read_text().splitlines()
     dx, dy = (float(v) for v in text[2].split(",")[5:7])
     assert (dx, dy) == pytest.approx((0.5, 1.0))
+    # Read back (the app's import): raw frame px and base px again, plain and georeferenced.
+    for path, g in ((plain, None), (tmp_path / "geo.points", georef)):
+        rows, enabled = controlpoints.read_qgis_points(path, (640, 480), (2000, 2000), g)
+        assert np.allclose(rows, np.c_[src[:3], dst[:3]], atol=1e-6) and enabled.all()
+    other = GeoReference(georef.transform, "EPSG:32613")
+    with pytest.raises(ValueError, match=r"geo.points: its map coordinates are in WGS 84 / UTM "
+                       r"zone 12N, the base map's in WGS 84 / UTM zone 13N"):  # fmt: skip
+        controlpoints.read_qgis_points(tmp_path / "geo.points", (640, 480), (2000, 2000), other)
 
 
 def test_clip_segments_known_cases():

@@ -43,6 +43,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="polygons never to look for vehicles in (map coordinates of a georeferenced base, "
         "else base pixels)",
     )
+    p.add_argument(
+        "--sections",
+        metavar="SECTIONS.geojson",
+        help="lines drawn across roads (LineStrings from their first to their last point, map "
+        "coordinates of a georeferenced base, else base pixels; named by a 'name' property): "
+        "counts.csv and crossings.csv say how many vehicles crossed each, in each direction",
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object with the summary")
 
 
@@ -74,6 +81,37 @@ def read_regions(path: str, result):
     return mask.astype(bool)
 
 
+def read_sections(path: str, result) -> list[tuple[str, tuple, tuple]]:
+    """``(name, a, b)`` per GeoJSON LineString in ``path``, its ends in base px (one-line
+    errors)."""
+    import numpy as np
+
+    try:
+        doc = json.loads(Path(path).read_text())
+    except OSError as exc:
+        raise ValueError(f"--sections {path}: {exc.strerror or exc}") from None
+    except ValueError as exc:
+        raise ValueError(f"--sections {path} is not valid JSON ({exc})") from None
+    feats = doc.get("features", [doc]) if isinstance(doc, dict) else []
+    out = []
+    for f in feats:
+        g = f.get("geometry", f) if isinstance(f, dict) else None
+        if not isinstance(g, dict) or g.get("type") != "LineString":
+            continue
+        line = np.asarray(g.get("coordinates"), float)
+        if line.ndim != 2 or len(line) < 2 or line.shape[1] < 2:
+            raise ValueError(f"--sections {path}: a LineString needs two points or more")
+        ends = line[[0, -1], :2]
+        if result.georef is not None:
+            ends = result.georef.base_from_map(ends)
+        props = f.get("properties") or {}
+        name = str(props.get("name") or f"S{len(out) + 1}")
+        out.append((name, tuple(ends[0]), tuple(ends[1])))
+    if not out:
+        raise ValueError(f"--sections {path} holds no LineString")
+    return out
+
+
 def run(args: argparse.Namespace) -> int:
     import registration
     from registration.io import check_result_frames, open_frames
@@ -83,6 +121,7 @@ def run(args: argparse.Namespace) -> int:
     frames = open_frames(args.frames or result.meta["frames_source"])
     check_result_frames(frames, result)
     exclude = read_regions(args.exclude, result) if args.exclude else None
+    sections = read_sections(args.sections, result) if args.sections else None
     progress = LazyProgressBar("traffic")
     t0 = time.perf_counter()
     try:
@@ -97,6 +136,8 @@ def run(args: argparse.Namespace) -> int:
         )
     finally:
         progress.close()
+    if sections and not summary.get("cancelled"):
+        summary["sections"] = section_summary(args.out, result, args.gsd, sections)
     summary["total_s"] = round(time.perf_counter() - t0, 3)
     if args.json:
         emit_json(summary)
@@ -107,4 +148,36 @@ def run(args: argparse.Namespace) -> int:
         f"{summary['n_used']} frames ({skipped} skipped) into {args.out} in "
         f"{summary['total_s']:.1f} s\n"
     )
+    for sec in summary.get("sections", []):
+        parts = [
+            f"{d['count']} towards {d['heading']} at {d['mean_speed_mps']:.1f} m/s"
+            for d in sec["directions"]
+            if d["count"]
+        ]
+        sys.stdout.write(f"  section {sec['name']}: {'; '.join(parts) or 'no vehicle crossed'}\n")
     return 0
+
+
+def section_summary(out: str, result, gsd: float | None, sections) -> list[dict]:
+    """Count the run's tracks across ``sections`` (``counts.csv``, ``crossings.csv`` in
+    ``out``); per section and direction: count, heading, mean speed."""
+    from registration.traffic import MetricFrame, count_sections, read_tracks_csv, write_counts_csvs
+
+    tracks = read_tracks_csv(Path(out) / "tracks.csv")
+    counted = count_sections(tracks, MetricFrame.for_result(result.georef, gsd), sections)
+    write_counts_csvs(Path(out), counted)
+    out = []
+    for sec in counted:
+        directions = []
+        for d in (1, 2):
+            n, speed, heading = sec.direction(d)
+            directions.append(
+                {
+                    "direction": d,
+                    "count": n,
+                    "heading": heading,
+                    "mean_speed_mps": speed if n else None,
+                }
+            )
+        out.append({"name": sec.name, "directions": directions})
+    return out

@@ -15,7 +15,7 @@ import numpy as np
 from app.gui.context import Client
 from app.gui.controlpoints import SORTS, ControlPointTable
 from app.gui.security import escape_md
-from app.gui.views.widgets import ClientCallback, on_change, on_choice, on_press
+from app.gui.views.widgets import ClientCallback, on_change, on_choice, on_press, on_upload
 
 PAGE_ROWS = 25
 
@@ -91,6 +91,8 @@ class ControlPointPanel:
             self.typed_x = gui.add_number("Map x (typed)", 0.0, step=0.01)
             self.typed_y = gui.add_number("Map y (typed)", 0.0, step=0.01)
             self.btn_typed = gui.add_button("Place the map point at these coordinates")
+            # Control points made elsewhere (QGIS's Georeferencer, an earlier project).
+            self.upload = gui.add_upload_button("Import control points (.points)", icon=None)
         self.export = gui.add_button("Export control points (.points)")
         self.offset = 0  # position of the first row shown, in the sorted order
 
@@ -140,6 +142,10 @@ class ControlPointPanel:
 
     def on_export(self, callback: ClientCallback) -> None:
         on_press(self.export, callback)
+
+    def on_import(self, callback: Callable[[str, bytes, Client], None]) -> None:
+        """``callback(file name, content, client)`` for an uploaded ``.points`` (editable)."""
+        on_upload(self.upload, "control.points", callback)
 
     def on_typed_map_point(self, callback: Callable[[float, float, Client], None]) -> None:
         """``callback(x, y, client)`` with the typed map coordinates (editable table)."""

@@ -79,6 +79,7 @@ class ReferencePoints:
         )
         panel.on_export(self.export)
         panel.on_typed_map_point(self.typed_map_point)
+        panel.on_import(self.import_points)
 
     @property
     def table(self) -> controlpoints.ControlPointTable | None:
@@ -311,6 +312,56 @@ class ReferencePoints:
             )
             return False
         self.manual_click("base", (float(b[0]), float(b[1])), client)
+        return True
+
+    def import_points(self, name: str, content: bytes, client: Client = None) -> bool:
+        """Add the control points of an uploaded QGIS ``.points`` file (of the reference frame;
+        :func:`app.gui.controlpoints.read_qgis_points`) as manual points, enabled as the file
+        says (undoable), then re-fit."""
+        import tempfile
+        from pathlib import Path
+
+        from registration.evaluation.points import MAX_POINTS_FILE_BYTES
+
+        inp = self.ctx.inputs
+        with self.state.lock:
+            fitted = self.state.current_reference() is not None
+        if inp is None or not fitted:
+            self.ctx.notify(
+                client, "Fit the reference frame first", "Imported points refine a fine fit",
+                color="yellow",
+            )  # fmt: skip
+            return False
+        if len(content) > MAX_POINTS_FILE_BYTES:
+            self.ctx.notify(client, "Not imported", f"{name} is over the size limit", color="red")
+            return False
+        with tempfile.TemporaryDirectory() as tmp:
+            path = Path(tmp) / (Path(name).name or "control.points")
+            path.write_bytes(content)
+            try:
+                rows, enabled = controlpoints.read_qgis_points(
+                    path, inp.frame_size, inp.base_size, getattr(inp, "base_georef", None)
+                )
+            except (ValueError, UnicodeDecodeError) as exc:
+                self.ctx.notify(client, "Not imported", str(exc), color="red")
+                return False
+        n_auto = self._n_auto()
+        with self.state.lock:
+            self.state.push_undo()
+            edits = self.state.cp_edits
+            first = n_auto + len(edits.manual)
+            edits.manual.extend(tuple(float(v) for v in row) for row in rows)
+            for i in np.flatnonzero(~enabled):
+                edits.manual_enabled[first + int(i)] = False
+            self.state.revision += 1
+        self.submit("refit", self.refit)
+        off = int((~enabled).sum())
+        self.ctx.notify(
+            client,
+            "Control points imported",
+            f"{len(rows)} manual points from {name}" + (f" ({off} disabled)" if off else ""),
+            color="green",
+        )
         return True
 
     def export(self, client: Client = None) -> bool:

@@ -153,6 +153,9 @@ class MapPointsTool:
         if r is None:
             self.view.notify(client, "No result", "Register the sequence first", "yellow")
             return False
+        if r.config.get("adjust") is None:
+            self.view.notify(client, "Nothing to solve", self._refusal(r, -1), "yellow")
+            return False
         todo = [k for k in range(r.n_frames) if r.is_ok(k) and not r.is_adjusted(k)]
         if not todo:
             self.view.notify(client, "Nothing to solve", "Every frame is adjusted", "yellow")
@@ -160,7 +163,7 @@ class MapPointsTool:
         with self.view.state.lock:
             k = self.view.state.seq_frame
 
-        def done() -> None:
+        def done() -> str:
             adj = self.view.result().records[k].stats.get("adjustment") or {}
             text = f"{len(todo)} frames adjusted again"
             if adj.get("n_map_points"):

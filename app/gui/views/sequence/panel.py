@@ -120,7 +120,7 @@ class SequencePanel:
                     dash=[6, 4],
                 ),
                 up.Series(
-                    label="map points",
+                    label="on the map",
                     stroke="#7048e8",
                     width=0,
                     points={"show": True, "size": 9, "fill": "#7048e8"},
@@ -264,7 +264,8 @@ class SequencePanel:
     def show_plot(self, values, flags, failed, current, predicted=None, marked=None) -> None:
         """The chart: RMS per frame, excursions and flagged frames, failed frames, the frame
         shown, each frame's predicted error where the frames were adjusted together, and the
-        frames with the analyst's map points (``marked``, drawn at the chart's foot).
+        frames that carry evidence from the map (``marked``: the reference frame, re-anchored
+        frames, frames with the analyst's map points; drawn at the chart's foot).
 
         uPlot's autoscale breaks on NaN (it has no NaN gaps, only nulls, which a numpy array
         cannot carry): both axes get explicit ranges, and NaN points are simply not drawn."""

@@ -38,7 +38,7 @@ from app.gui.views.sequence.map_points import MapPointsTool
 from app.gui.views.sequence.panel import DisplayOptions, SequencePanel
 from app.gui.views.sequence.scene import RESIDUAL_OK, RESIDUAL_REMOVED, SequenceScene
 from registration.errors import ResultDamaged, ResumeMismatch
-from registration.run import pipeline
+from registration.run import ANCHOR_STAGE, pipeline
 
 log = logging.getLogger(__name__)
 
@@ -52,6 +52,8 @@ def fit_fingerprint(edits) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
+MAP_STAGES = ("inter-sensor", ANCHOR_STAGE)
+"""Record stages of frames registered to the map itself."""
 FLICKER_S = 0.5
 PLAY_S = 0.4
 SETTLE_S = 0.35
@@ -647,9 +649,14 @@ class SequenceView(View):
             return
         failed = np.array([rec.status == "failed" for rec in r.records])
         flags = excursion_flags(vals) | np.array([bool(flagged(rec)) for rec in r.records])
-        marked = np.zeros(len(vals), bool)
-        marked[[p.k for p in self.map_points.points() if p.k < len(vals)]] = True
-        self.panel.show_plot(vals, flags, failed, k, predicted_errors(r.records), marked)
+        self.panel.show_plot(vals, flags, failed, k, predicted_errors(r.records), self.on_map(r))
+
+    def on_map(self, r) -> np.ndarray:
+        """``(N,)`` bool: the frames that carry evidence from the map (the reference frame,
+        frames re-anchored to it, frames with the analyst's map points)."""
+        out = np.array([rec.ok and rec.stage in MAP_STAGES for rec in r.records], bool)
+        out[[p.k for p in self.map_points.points() if p.k < len(out)]] = True
+        return out
 
     def _update_frame_md(self, k: int) -> None:
         self.panel.show_frame_info(self.frame_text(k))
@@ -664,6 +671,12 @@ class SequenceView(View):
         parts = [f"Frame {k}: **{escape_md(rec.status)}**"]
         if rec.status != "ok":
             parts.append(escape_md(rec.reason))
+        elif rec.stage in MAP_STAGES:
+            parts.append(
+                "registered to the map (the reference frame)"
+                if rec.stage == "inter-sensor"
+                else "re-anchored to the map"
+            )
         labels = {
             "n_control_points": "control points",
             "n_inliers": "kept by REQCON",
