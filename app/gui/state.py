@@ -125,6 +125,8 @@ class AppState:
         traffic_fps, traffic_gsd: the Traffic view's frame rate (frames/s; 0 = the video's own
             timestamps) and ground sampling distance (m per base px; 0 = from the map's CRS).
         traffic_frame: the frame the Traffic view shows.
+        traffic_sections: road sections drawn in the Traffic view, each ``[a, b]`` (base px),
+            named S1, S2, ... in order.
         traffic: the last traffic run (``app.gui.views.traffic.view.TrafficRun``; not saved).
         zoom: world units per screen pixel of the last camera a browser reported.
         revision: bumped on every change (the worker uses it to drop stale renders).
@@ -171,6 +173,7 @@ class AppState:
     traffic_fps: float = 0.0
     traffic_gsd: float = 0.0
     traffic_frame: int = 0
+    traffic_sections: list[list[tuple[float, float]]] = field(default_factory=list)
     traffic: Any = None
     zoom: float | None = None
     revision: int = 0
@@ -210,6 +213,7 @@ class AppState:
         "traffic_fps",
         "traffic_gsd",
         "traffic_frame",
+        "traffic_sections",
     )
     _UNDOABLE = (
         "seed_frame",
@@ -337,7 +341,7 @@ class AppState:
                 }
             elif name == "pending":
                 value = [[p, int(k), *m.to_json()] for (p, k), m in sorted(value.items())]
-            elif name == "lines":
+            elif name in ("lines", "traffic_sections"):
                 value = [[[float(x), float(y)] for x, y in line] for line in value]
             elif name == "cp_edits":
                 value = value.to_json()
@@ -368,7 +372,7 @@ class AppState:
                     }
                 elif name == "pending":
                     value = {(str(e[0]), int(e[1])): PendingMark.from_json(e[2:]) for e in value}
-                elif name == "lines":
+                elif name in ("lines", "traffic_sections"):
                     value = [[(float(x), float(y)) for x, y in line] for line in value]
                 elif name in (
                     "seed_frame",

@@ -1505,14 +1505,32 @@ def test_traffic_view_finds_tracks_on_the_map(tmp_path, traffic_seq, make_app):
     # The vehicles of a frame lie where the simulator drove vehicles (base px).
     v = truth.vehicles()
     k = 6
-    ids, xy, speed = tv.vehicles_at(k)
-    true_xy = np.c_[v["x_base"][v["frame"] == k], v["y_base"][v["frame"] == k]]
+    ids, xy, speed, boxes = tv.vehicles_at(k)
+    at_k = v["frame"] == k
+    true_xy = np.c_[v["x_base"][at_k], v["y_base"][at_k]]
     gaps = [np.min(np.hypot(*(true_xy - p).T)) for p in xy]
     px_per_m = 1.0 / truth_metric_frame(truth).gsd_m
     assert len(ids) >= 2 and np.median(gaps) < 2.0 * px_per_m, gaps
+    # Each vehicle's box: around its centre, its track's width and length, its long side along
+    # the direction the simulator drove the nearest vehicle.
+    assert np.allclose(boxes.mean(axis=1), xy, atol=1e-6)
+    long_side = boxes[:, 0] - boxes[:, 3]
+    nearest = [int(np.argmin(np.hypot(*(true_xy - p).T))) for p in xy]
+    true_dir = np.c_[v["ux"][at_k], v["uy"][at_k]][nearest]
+    cos = np.abs(np.sum(long_side * true_dir, axis=1)) / np.hypot(*long_side.T)
+    assert np.median(cos) > 0.95, cos
     tv.set_frame(k)
     app.worker.wait_idle()
     assert tv.scene.planes["base"].overlay("vehicles") is not None
+    assert tv.scene.planes["base"].overlay("boxes") is not None
+    # Play moves on frame by frame (5 frames/s) while the view is shown.
+    tv.panel.play.value = True
+    time.sleep(0.7)
+    tv.panel.play.value = False
+    app.worker.wait_idle()
+    assert app.state.traffic_frame != k
+    tv.set_frame(k)
+    app.worker.wait_idle()
     # A click on a track selects it and charts its speed.
     tv.on_click("base", tuple(xy[0]), None)
     app.worker.wait_idle()
@@ -1524,3 +1542,28 @@ def test_traffic_view_finds_tracks_on_the_map(tmp_path, traffic_seq, make_app):
     app.send_download = lambda client, name, data: sent.append((name, data))
     assert tv.download("tracks.csv")
     assert sent and sent[0][0] == "tracks.csv" and sent[0][1].startswith(b"recordingId,trackId")
+    # A road section drawn across the selected track's path (two clicks) counts it, in its
+    # direction of travel; the counts download; the section is saved with the project.
+    tr, b = next(
+        (t, b) for t, b in zip(run.tracks, run.base_xy, strict=True) if t.track_id == ids[0]
+    )
+    i = int(np.flatnonzero(tr.frames == k)[0])
+    i = min(i, len(b) - 2)
+    mid, step = (b[i] + b[i + 1]) / 2, b[i + 1] - b[i]
+    across = np.array([-step[1], step[0]]) / np.hypot(*step) * 5.0 * px_per_m
+    tv.start_section()
+    tv.on_click("base", tuple(mid - across), None)
+    tv.on_click("base", tuple(mid + across), None)
+    app.worker.wait_idle()
+    assert len(app.state.traffic_sections) == 1
+    assert tv.scene.planes["base"].overlay("sections") is not None
+    crossings = (tv.out_dir / "crossings.csv").read_text().splitlines()
+    assert any(line.split(",")[2] == str(ids[0]) for line in crossings[1:]), crossings
+    heading = np.degrees(np.arctan2(*tr.velocity[i])) % 360  # clockwise from north
+    compass = ("N", "NE", "E", "SE", "S", "SW", "W", "NW")[int(round(heading / 45)) % 8]
+    assert f"| S1 | {compass} |" in tv.panel.counts_md.content, tv.panel.counts_md.content
+    assert tv.download("counts.csv") and sent[-1][1].startswith(b"section,direction,heading")
+    assert json.loads((app.project.folder / "project.json").read_text())["traffic_sections"]
+    tv.remove_last_section()
+    app.worker.wait_idle()
+    assert not app.state.traffic_sections and tv.panel.counts_md.content == ""

@@ -1,5 +1,6 @@
 """Traffic view: its panel (frame rate and ground sampling distance, *Find vehicles*, the run's
-summary, the frame shown, the selected track's speed chart, the downloads)."""
+summary, the frame shown, the selected track's speed chart, the road sections and their counts,
+the downloads)."""
 
 from __future__ import annotations
 
@@ -11,8 +12,14 @@ import viser.uplot as up
 from app.gui.context import Client
 from app.gui.views.widgets import ClientCallback, on_change, on_choice, on_press
 
-DOWNLOADS = ("tracks.csv", "trajectories.geojson", "velocity_field.tif")
+DOWNLOADS = ("tracks.csv", "trajectories.geojson", "velocity_field.tif", "counts.csv")
 """The files of a traffic run the panel sends (researchers' formats, docs/traffic.md)."""
+
+
+SECTIONS_NOTE = (
+    "A line across a road: *Draw a section*, then click its two ends on the map. Each "
+    "section counts the tracked vehicles that cross it, in each direction (counts.csv)."
+)
 
 
 class TrafficPanel:
@@ -38,6 +45,7 @@ class TrafficPanel:
         self.btn_find = gui.add_button("Find vehicles")
         self.summary_md = gui.add_markdown("")
         self.frame_slider = gui.add_slider("Frame", 0, 1, 1, 0)
+        self.play = gui.add_checkbox("Play", False, hint="each vehicle's box, frame by frame")
         self.track = gui.add_number("Track id", -1, min=-1, step=1)
         self.track_md = gui.add_markdown("")
         self.plot = gui.add_uplot(
@@ -52,6 +60,10 @@ class TrafficPanel:
             aspect=1.8,
             visible=False,
         )
+        with gui.add_folder("Road sections", expand_by_default=False):
+            self.sections_md = gui.add_markdown(SECTIONS_NOTE)
+            self.sections = gui.add_button_group("Sections", ("Draw a section", "Remove the last"))
+            self.counts_md = gui.add_markdown("")
         self.download = gui.add_button_group("Download", DOWNLOADS)
 
     # ---------------------------------------------------------------- callbacks
@@ -69,6 +81,9 @@ class TrafficPanel:
     def on_track_changed(self, callback: Callable[[int, Client], None]) -> None:
         on_change(self.track, int, callback)
 
+    def on_sections(self, *, draw: ClientCallback, remove_last: ClientCallback) -> None:
+        on_choice(self.sections, {"Draw a section": draw, "Remove the last": remove_last})
+
     def on_download(self, callback: Callable[[str, Client], None]) -> None:
         on_choice(
             self.download,
@@ -85,6 +100,10 @@ class TrafficPanel:
         self.gsd.value = float(gsd)
 
     @property
+    def playing(self) -> bool:
+        return bool(self.play.value)
+
+    @property
     def frame(self) -> int:
         return int(self.frame_slider.value)
 
@@ -94,6 +113,9 @@ class TrafficPanel:
 
     def show_summary(self, text: str) -> None:
         self.summary_md.content = text
+
+    def show_counts(self, text: str) -> None:
+        self.counts_md.content = text
 
     def show_track(self, track_id: int, frames, speed, text: str) -> None:
         """The selected track's speed over its frames (none: ``track_id`` -1)."""

@@ -7,11 +7,15 @@ shows every track, each step coloured by its speed (blue slow, red fast), and th
 the frame chosen with the slider; a click near a track, or its id, selects it and charts its
 speed over its frames. The run's files download from the panel. The frame rate comes from the
 video's timestamps or is given here; metres from the map's projected CRS or a ground sampling
-distance given here (the stage refuses in one line when neither is known).
+distance given here (the stage refuses in one line when neither is known). Road sections the
+analyst draws (two clicks across a road) count the tracked vehicles crossing them in each
+direction (``registration.traffic.count_sections``; ``counts.csv`` beside the run's files).
 """
 
 from __future__ import annotations
 
+import threading
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,6 +29,8 @@ from app.gui.views.traffic.panel import TrafficPanel
 from app.gui.views.traffic.scene import TrafficScene, speed_colours
 
 TRAFFIC_DIR = "traffic"
+PLAY_S = 0.2
+"""Playback: a frame every this many seconds (5 frames/s)."""
 PICK_RADIUS_PX = 20.0
 """A click within this many screen-sized map pixels of a track selects it."""
 
@@ -33,13 +39,15 @@ PICK_RADIUS_PX = 20.0
 class TrafficRun:
     """A finished traffic run: its ``summary`` (``summary.json``), its tracks
     (``registration.traffic.TrackRows``) and their positions in base px (``base_xy``, one
-    ``(M, 2)`` array per track), the speed shown as red (``top_speed``, m/s)."""
+    ``(M, 2)`` array per track), the speed shown as red (``top_speed``, m/s), its metric frame
+    (``registration.traffic.MetricFrame``)."""
 
     out: Path
     summary: dict
     tracks: list
     base_xy: list[np.ndarray]
     top_speed: float
+    metric: object
 
 
 class TrafficView(View):
@@ -62,7 +70,28 @@ class TrafficView(View):
         p.on_frame_changed(lambda k, client: self.set_frame(k))
         p.on_track_changed(lambda tid, client: self.select_track(tid))
         p.on_download(self.download)
+        p.on_sections(draw=self.start_section, remove_last=self.remove_last_section)
         self.selected = -1
+        self._drawing = False
+        self._section_start: tuple[float, float] | None = None
+        self._stop = threading.Event()
+        threading.Thread(target=self._ticker, name="traffic-ticker", daemon=True).start()
+
+    def shutdown(self) -> None:
+        self._stop.set()
+
+    def _ticker(self) -> None:
+        """Playback clock: the next frame every ``PLAY_S`` while *Play* is on (posts; never
+        draws itself)."""
+        last = time.monotonic()
+        while not self._stop.wait(0.05):
+            if not self.visible or self.ctx.inputs is None or not self.panel.playing:
+                continue
+            if time.monotonic() - last >= PLAY_S:
+                last = time.monotonic()
+                with self.state.lock:
+                    k = (self.state.traffic_frame + 1) % max(self.ctx.inputs.n_frames, 1)
+                self.panel.frame = k  # its callback sets the frame and draws
 
     # ---------------------------------------------------------------- state
     def on_inputs(self) -> None:
@@ -215,11 +244,12 @@ class TrafficView(View):
         base_xy = [metric.base_from_metres(t.xy_m) for t in tracks]
         speeds = np.concatenate([t.speed for t in tracks]) if tracks else np.zeros(0)
         top = float(np.percentile(speeds, 95)) if len(speeds) else 1.0
-        run = TrafficRun(self.out_dir, summary, tracks, base_xy, max(top, 1.0))
+        run = TrafficRun(self.out_dir, summary, tracks, base_xy, max(top, 1.0), metric)
         with self.state.lock:
             self.state.traffic = run
             self.state.revision += 1
         self.panel.show_summary(self.summary_text())
+        self.count()
         self.ctx.state_changed()
         self.render()
 
@@ -243,8 +273,78 @@ class TrafficView(View):
         self.selected = int(track_id)
         self.submit("traffic-selected", self.draw_selected)
 
+    # ---------------------------------------------------------------- road sections
+    def start_section(self, client: Client = None) -> None:
+        """The next two clicks on the map are a new section's ends."""
+        self._drawing, self._section_start = True, None
+        self.panel.show_counts("**Click the section's first end on the map.**")
+
+    def remove_last_section(self, client: Client = None) -> None:
+        with self.state.lock:
+            if self.state.traffic_sections:
+                self.state.traffic_sections.pop()
+        self._drawing, self._section_start = False, None
+        self.ctx.save()
+        self.submit("traffic-counts", self.count)
+
+    def _section_click(self, xy) -> None:
+        if self._section_start is None:
+            self._section_start = (float(xy[0]), float(xy[1]))
+            self.panel.show_counts("**Now click its other end.**")
+        else:
+            with self.state.lock:
+                self.state.traffic_sections.append(
+                    [self._section_start, (float(xy[0]), float(xy[1]))]
+                )
+            self._drawing, self._section_start = False, None
+            self.ctx.save()
+        self.submit("traffic-counts", self.count)
+
+    def count(self) -> None:
+        """Count the run's tracks across the sections (``counts.csv``) and show them (worker)."""
+        from registration.traffic import count_sections, write_counts_csvs
+
+        with self.state.lock:
+            run, sections = self.state.traffic, [list(s) for s in self.state.traffic_sections]
+        named = [(f"S{i + 1}", a, b) for i, (a, b) in enumerate(sections)]
+        self.draw_sections()
+        if self._drawing:
+            return
+        if not named:
+            self.panel.show_counts("")
+            return
+        if run is None:
+            self.panel.show_counts(f"{len(named)} section(s): find the vehicles to count them.")
+            return
+        try:
+            counted = count_sections(run.tracks, run.metric, named)
+            write_counts_csvs(run.out, counted)
+        except (ValueError, OSError) as exc:
+            self.ctx.record_error(f"road sections not counted: {exc}")
+            self.panel.show_counts(f"Not counted: {browser_message(exc)}")
+            return
+        rows = ["| section | towards | vehicles | mean speed |", "|---|---|---:|---:|"]
+        for sec in counted:
+            for d in (1, 2):
+                n, speed, heading = sec.direction(d)
+                if n:
+                    rows.append(f"| {sec.name} | {heading} | {n} | {speed:.1f} m/s |")
+            if not sec.crossings:
+                rows.append(f"| {sec.name} | – | 0 | – |")
+        self.panel.show_counts("\n".join(rows))
+
+    def draw_sections(self) -> None:
+        with self.state.lock:
+            sections = [list(s) for s in self.state.traffic_sections]
+        with self.ctx.atomic():
+            self.scene.draw_sections(sections, self._section_start)
+
     def on_click(self, plane: str, xy, client) -> None:
-        """A click near a track selects the nearest one."""
+        """A click draws a road section's end while one is being drawn, else selects the
+        nearest track."""
+        if self._drawing and plane == "base":
+            self._section_click(xy)
+            return
         with self.state.lock:
             run, zoom = self.state.traffic, self.state.zoom
         if run is None or plane != "base":
@@ -278,6 +378,7 @@ class TrafficView(View):
         self.draw_tracks()
         self.draw_vehicles()
         self.draw_selected()
+        self.draw_sections()
         self.ctx.shown[self.MODE] = (self.state.revision,)
 
     def draw_tracks(self) -> None:
@@ -299,11 +400,13 @@ class TrafficView(View):
             else:
                 self.scene.draw_tracks(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 3)))
 
-    def vehicles_at(self, k: int) -> tuple[list[int], np.ndarray, np.ndarray]:
-        """``(track ids, base px (N, 2), speeds (N,))`` of the vehicles tracked in frame ``k``."""
+    def vehicles_at(self, k: int) -> tuple[list[int], np.ndarray, np.ndarray, np.ndarray]:
+        """``(track ids, base px (N, 2), speeds (N,), boxes (N, 4, 2) base px)`` of the vehicles
+        tracked in frame ``k``; a box is the track's width and length around its centre, along
+        its direction of travel (its mean direction where it stands)."""
         with self.state.lock:
             run = self.state.traffic
-        ids, xy, speed = [], [], []
+        ids, xy, speed, boxes = [], [], [], []
         if run is not None:
             for tr, b in zip(run.tracks, run.base_xy, strict=True):
                 i = np.flatnonzero(tr.frames == k)
@@ -311,15 +414,19 @@ class TrafficView(View):
                     ids.append(tr.track_id)
                     xy.append(b[i[0]])
                     speed.append(tr.speed[i[0]])
-        return ids, np.array(xy).reshape(-1, 2), np.array(speed, float)
+                    boxes.append(run.metric.base_from_metres(_box_m(tr, i[0])))
+        return (
+            ids, np.array(xy).reshape(-1, 2), np.array(speed, float),
+            np.array(boxes).reshape(-1, 4, 2),
+        )  # fmt: skip
 
     def draw_vehicles(self) -> None:
         with self.state.lock:
             k, run = self.state.traffic_frame, self.state.traffic
-        ids, xy, speed = self.vehicles_at(k)
+        ids, xy, speed, boxes = self.vehicles_at(k)
         top = run.top_speed if run is not None else 1.0
         with self.ctx.atomic():
-            self.scene.draw_vehicles(xy, speed_colours(speed, top))
+            self.scene.draw_vehicles(xy, speed_colours(speed, top), boxes)
 
     def draw_selected(self) -> None:
         with self.state.lock:
@@ -349,3 +456,18 @@ class TrafficView(View):
             f"{np.mean(speed):.1f} m/s mean, {np.max(speed):.1f} max; "
             f"{tr.length_m:.1f} m long.",
         )
+
+
+def _box_m(track, i: int) -> np.ndarray:
+    """``(4, 2)`` metres: track row ``i``'s box (its width and length, along its direction of
+    travel there, or its mean direction where it barely moves)."""
+    v = track.velocity[i]
+    if np.hypot(*v) < 0.5:
+        v = track.velocity.mean(axis=0)
+    u = v / max(np.hypot(*v), 1e-9) if np.hypot(*v) > 1e-9 else np.array([1.0, 0.0])
+    n = np.array([-u[1], u[0]])
+    half_l, half_w = 0.5 * track.length_m * u, 0.5 * track.width_m * n
+    c = track.xy_m[i]
+    return np.array(
+        [c + half_l + half_w, c + half_l - half_w, c - half_l - half_w, c - half_l + half_w]
+    )
