@@ -15,7 +15,13 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from registration.io.images import MAX_BASE_PIXELS, check_image_size, decode_image_file
+from registration.io.images import (
+    GDAL_READ_BYTES_PER_PIXEL,
+    MAX_BASE_PIXELS,
+    check_image_size,
+    check_memory,
+    decode_image_file,
+)
 
 # --------------------------------------------------------------------------------------------
 # Base maps (georeferenced or plain)
@@ -227,6 +233,10 @@ def _read_gdal_base(p: Path, crs: Any, nodata) -> BaseMap:
     with ds:
         # The raster's size from its header, before any pixel is read.
         check_image_size((ds.width, ds.height), p, max_pixels=MAX_BASE_PIXELS)
+        item = max(np.dtype(t).itemsize for t in ds.dtypes)
+        check_memory(
+            (ds.width, ds.height), p, bytes_per_pixel=GDAL_READ_BYTES_PER_PIXEL + 6 * (item - 1)
+        )
         interp = list(ds.colorinterp)
         lossy = str(getattr(ds.compression, "value", ds.compression)).upper() in ("JPEG", "WEBP")
         has_mask = any(flags != [MaskFlags.all_valid] for flags in ds.mask_flag_enums)

@@ -26,6 +26,12 @@ MIN_IMAGE_SIDE = 16
 MAX_FRAME_PIXELS = 100_000_000
 MAX_BASE_PIXELS = 250_000_000
 MAX_IMAGE_FILE_BYTES = 2 << 30
+# Peak memory of reading an image, bytes per pixel, checked against the memory available before
+# a pixel is read. A base map read through GDAL (bands, no-data masks, the collar search, the
+# BGR image) peaked at 5.84 GB for a 15000x15000 RGB GeoTIFF: 26 B/px for 8-bit bands, more
+# for wider samples. OpenCV's decoder needs the file and the image, about 8 B/px.
+GDAL_READ_BYTES_PER_PIXEL = 26
+DECODE_BYTES_PER_PIXEL = 8
 
 
 def read_image(
@@ -64,6 +70,8 @@ def decode_image_file(path: str | os.PathLike, *, max_pixels: int = MAX_BASE_PIX
     problem = incomplete_image(data)
     if problem:
         raise ValueError(f"{p}: {problem}")
+    if size is not None:
+        check_memory(size, p, bytes_per_pixel=DECODE_BYTES_PER_PIXEL)
     img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if img is None or img.size == 0:
         raise ValueError(
@@ -109,6 +117,36 @@ def check_image_size(size: tuple[int, int], path: object, *, max_pixels: int) ->
         raise ValueError(
             f"{path}: image of {w}x{h} pixels ({w * h / 1e6:.0f} MP) is over the limit of "
             f"{max_pixels / 1e6:.0f} MP"
+        )
+
+
+def available_memory_bytes() -> int | None:
+    """Memory the system can give without swapping (Linux ``MemAvailable``; elsewhere the free
+    physical pages), bytes; None when unknown."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+def check_memory(size: tuple[int, int], path: object, *, bytes_per_pixel: float) -> None:
+    """ValueError naming ``path``, its size and the memory, when reading its ``(width,
+    height)`` pixels at ``bytes_per_pixel`` would need more memory than is available (checked
+    from the header, before a pixel is read)."""
+    w, h = int(size[0]), int(size[1])
+    need = w * h * bytes_per_pixel
+    available = available_memory_bytes()
+    if available is not None and need > available:
+        raise ValueError(
+            f"{path}: reading its {w}x{h} pixels needs about {need / 2**30:.1f} GiB of memory and "
+            f"{available / 2**30:.1f} GiB is available: crop or downsample it first"
         )
 
 

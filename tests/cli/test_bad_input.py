@@ -787,6 +787,46 @@ def test_register_bad_base_map(sims, tmp_path, capsys, kind, needle):
     assert not out.exists()
 
 
+@pytest.mark.parametrize("suffix", [".tif", ".png"])
+def test_a_base_map_too_large_for_the_memory_is_refused_before_reading(
+    sims, tmp_path, capsys, monkeypatch, suffix
+):
+    """A compressed base map declaring 6000x6000 pixels (a GeoTIFF of blank tiles read through
+    GDAL, a PNG through OpenCV), with 100 MB available: refused from its header in one line
+    naming its size and the memory, before a pixel is read."""
+    import rasterio
+    from rasterio.transform import from_origin
+
+    from registration.io import images
+
+    base = tmp_path / f"big{suffix}"
+    if suffix == ".tif":
+        with rasterio.open(
+            base, "w", driver="GTiff", width=6000, height=6000, count=3, dtype="uint8",
+            crs="EPSG:32633", transform=from_origin(500000, 4000000, 0.1, 0.1),
+            compress="deflate", tiled=True,
+        ):  # fmt: skip
+            pass
+    else:
+        cv2.imwrite(str(base), np.zeros((6000, 6000, 3), np.uint8))
+    assert base.stat().st_size < 2_000_000
+    monkeypatch.setattr(images, "available_memory_bytes", lambda: 100 << 20)
+    read = []
+    monkeypatch.setattr(images.cv2, "imdecode", lambda *a: read.append(1))
+    out = tmp_path / "out"
+    code, _, err = cli(
+        capsys, "register", "--base", base, "--frames", sims[0] / "frames", "--out", out,
+        "--gamma", "0.7",
+    )  # fmt: skip
+    per_px = images.GDAL_READ_BYTES_PER_PIXEL if suffix == ".tif" else images.DECODE_BYTES_PER_PIXEL
+    needle = (
+        f"reading its 6000x6000 pixels needs about {36e6 * per_px / 2**30:.1f} GiB of memory "
+        "and 0.1 GiB is available: crop or downsample it first"
+    )
+    assert_refused(code, err, "register", needle, str(base))
+    assert not read and not out.exists()
+
+
 def make_bad_frames(kind: str, folder: Path) -> Path:
     if kind == "missing":
         return folder / "nothing"
