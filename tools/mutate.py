@@ -441,8 +441,27 @@ MUTATIONS: list[Mutation] = [
         "click_refit_kept_when_missing",
         "the click refit kept even when it still misses the click",
         "registration/global_registration/fine.py",
-        [("if now <= limit_px and now < was:", "if now < was:", 1)],
-        ["tests/global_registration/test_global_registration.py"],
+        [
+            (
+                "if now < was and (now <= limit_px or was - now >= limit_px / 2):",
+                "if now < was:",
+                1,
+            )
+        ],
+        ["tests/global_registration/test_click_refit.py"],
+    ),
+    _m(
+        "click_refit_only_within_the_distance",
+        "a refit on the clicked plane discarded when the click is 8-10 px off",
+        "registration/global_registration/fine.py",
+        [
+            (
+                "if now < was and (now <= limit_px or was - now >= limit_px / 2):",
+                "if now < was and now <= limit_px:",
+                1,
+            )
+        ],
+        ["tests/global_registration/test_click_refit.py"],
     ),
     _m(
         "table2_points_from_frame_0",

@@ -72,7 +72,8 @@ class FineConfig:
         click_refit_px: beyond the paper (0 = off, the paper): where the fitted model puts a
             clicked frame point farther than this from its clicked map point (base px), the
             step is run again from the coarse model moved through the click, and that fit is
-            kept when it passes within this distance of the click. Where the images hold two
+            kept when it passes within this distance of the click, or nearer it than the first
+            fit by half this distance (a careless click on the right plane). Where the images hold two
             planes (roofs displaced by parallax between two dates, and the ground), the first
             fit follows the one with more texture; the analyst's click says which one the
             traffic is on. A fit the images do not support near the click is never kept, so a
@@ -337,8 +338,9 @@ def fine_register_reference(
 
 def _refit_through_clicks(fine, coarse, fit, camera: Camera, limit_px: float) -> FineResult:
     """``fine``, or the fit started from the coarse model moved through the clicks when
-    ``fine`` misses them by more than ``limit_px`` and that fit passes within it
-    (``FineConfig.click_refit_px``). ``fit``: start model -> FineResult."""
+    ``fine`` misses them by more than ``limit_px`` and that fit passes within it, or nearer
+    them than ``fine`` by half of it (``FineConfig.click_refit_px``). ``fit``: start model ->
+    FineResult."""
 
     def miss(model) -> float:
         return float(np.hypot(*seed_gaps(model, coarse.seeds, camera.lens).T).max())
@@ -356,7 +358,11 @@ def _refit_through_clicks(fine, coarse, fit, camera: Camera, limit_px: float) ->
         why = "too few control points match there"
     else:
         now = miss(again.base_from_corrected)
-        if now <= limit_px and now < was:
+        # Kept where it passes within the distance of the click, or where it is a plane the
+        # images support clearly nearer the click than the first fit's: a click on the ground
+        # 8-10 px off still says ground (the roofs' plane 14-16 px from it), while a fit that
+        # settles back on the first fit's plane is as far from a careless click as that one.
+        if now < was and (now <= limit_px or was - now >= limit_px / 2):
             return replace(
                 again,
                 model_reason=(

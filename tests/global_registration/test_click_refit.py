@@ -5,7 +5,8 @@ the one with more texture and the click says which one the traffic is on.
 Known truth: a real drone photo (SDD) is the frame; the map is that photo under a known
 similarity, with 60 % of it in 128 px blocks (the "roofs") moved by a further (13, -6) px. A
 click on a ground block, 2 px off, must give the ground; without the refit the roofs win. A
-careless click 8 px off must not drag a right registration.
+careless click 8 px off must not drag a right registration; a click 8-10 px off on the ground
+still takes the ground; a click as far from both planes keeps the first fit.
 """
 
 from __future__ import annotations
@@ -98,6 +99,37 @@ def test_a_click_on_the_ground_takes_the_ground_plane_not_the_roofs(scene):
     assert _corner_error(first.base_from_corrected, g, frame) > 10  # the roofs
     assert _corner_error(refit.base_from_corrected, g, frame) < 1.0
     assert refit.model_reason.startswith("refitted through the click"), refit.model_reason
+
+
+@pytest.mark.parametrize("error_px", [8.0, 10.0])
+def test_a_careless_click_on_the_ground_still_takes_the_ground_plane(scene, error_px):
+    """Two planes, the click on the ground but 8-10 px off: the fit started through it settles
+    on the ground 8-10 px from the click, beyond the refit distance, but far nearer the click
+    than the roofs' fit (14-16 px): the images support both planes and the click says which,
+    so the refit is kept."""
+    frame, g, roofs, ground_point = scene
+    base, valid = _map(frame, g, roofs)
+    _, refit = _register(frame, base, valid, _click(g, ground_point, error_px), 6.0)
+    assert _corner_error(refit.base_from_corrected, g, frame) < 1.0
+    assert refit.model_reason.startswith("refitted through the click"), refit.model_reason
+
+
+def test_a_click_as_far_from_both_planes_keeps_the_first_fit(scene):
+    """Two planes, the click 10.0 px from the ground's position and 10.0 px from the roofs':
+    it does not say which plane. The fit started through it settles 7.7 px from it, nearer
+    than the first fit (10.0 px) but by less than half the refit distance and not within it:
+    the first fit (the roofs, whose texture the images favour) stays, bit for bit."""
+    frame, g, roofs, ground_point = scene
+    base, valid = _map(frame, g, roofs)
+    along = ROOF_SHIFT / np.hypot(*ROOF_SHIFT)
+    error = 7.2 * along + 7.0 * np.array([-along[1], along[0]])
+    seed = (*ground_point, *(_apply(g, ground_point) + error))
+    _, kept = _register(frame, base, valid, seed, 6.0)
+    _, first = _register(frame, base, valid, seed, 0.0)
+    assert "not refitted through it (the fit started there settled 7.7 px" in kept.model_reason
+    np.testing.assert_array_equal(
+        kept.base_from_corrected.apply(first.src), first.base_from_corrected.apply(first.src)
+    )
 
 
 def test_a_careless_click_does_not_drag_a_right_registration(scene):

@@ -254,8 +254,9 @@ def test_intra_prediction_gate_drops_look_alikes_away_from_the_prediction(scene,
 
 
 def test_a_refit_through_the_click_is_kept_only_when_it_reaches_the_click():
-    """The first fit passes 12 px from the click (limit 6): a refit that settles 7 px from it
-    is closer but still misses, and is not kept; one that settles 2 px from it is."""
+    """The first fit passes 12 px from the click (limit 6): a refit that settles 10 px from it
+    is closer but by less than half the limit and still misses, and is not kept; one that
+    settles 7 px from it (5 px nearer: another plane, a careless click on it) or 2 px is."""
     from types import SimpleNamespace
 
     from registration.geometry import Translation
@@ -275,9 +276,9 @@ def test_a_refit_through_the_click_is_kept_only_when_it_reaches_the_click():
 
     coarse = SimpleNamespace(seeds=seeds, base_from_corrected=Translation(np.array([12.0, 0.0])))
     first = fine_at(12.0)
-    for settles, kept in ((7.0, False), (2.0, True)):
+    for settles, kept in ((10.0, False), (7.0, True), (2.0, True)):
         out = _refit_through_clicks(first, coarse, lambda start, s=settles: fine_at(s), camera, 6.0)
         miss = abs(float(out.base_from_corrected.apply(np.array([[100.0, 80.0]]))[0, 0] - 100.0))
         assert miss == pytest.approx(settles if kept else 12.0), (settles, out.model_reason)
         if not kept:
-            assert "settled 7.0 px from it" in out.model_reason
+            assert "settled 10.0 px from it" in out.model_reason
