@@ -827,6 +827,37 @@ def test_a_base_map_too_large_for_the_memory_is_refused_before_reading(
     assert not read and not out.exists()
 
 
+def test_a_blank_base_map_is_refused_before_it_is_read_whole(tmp_path, monkeypatch):
+    """A GeoTIFF declaring 6000x6000 blank pixels (under 2 MB) is refused as all no-data from a
+    scan of its windows, before it is read whole (measured on a 15000x15000 one: 0.11 GB and
+    0.8 s CPU, where reading it whole took 5.84 GB and 14.6 s); one whose only data sits in its
+    last window is read."""
+    import rasterio
+    from rasterio.transform import from_origin
+
+    from registration.gis import basemap
+
+    def tif(path, data=None):
+        with rasterio.open(
+            path, "w", driver="GTiff", width=6000, height=6000, count=3, dtype="uint8",
+            crs="EPSG:32633", transform=from_origin(500000, 4000000, 0.1, 0.1),
+            compress="deflate", tiled=True,
+        ) as ds:  # fmt: skip
+            if data is not None:
+                ds.write(data, window=rasterio.windows.Window(5900, 5900, 100, 100))
+        return path
+
+    whole = []
+    real = basemap._bands_to_bgr
+    monkeypatch.setattr(basemap, "_bands_to_bgr", lambda *a: whole.append(1) or real(*a))
+    with pytest.raises(ValueError, match=r"base map blank.tif has no valid pixels \(all no-data\)"):
+        basemap.read_base_map(tif(tmp_path / "blank.tif"))
+    assert not whole
+    patch = np.full((3, 100, 100), 200, np.uint8)
+    base = basemap.read_base_map(tif(tmp_path / "corner.tif", patch))
+    assert whole and base.valid[5950, 5950] and (base.image[5950, 5950] == 200).all()
+
+
 def make_bad_frames(kind: str, folder: Path) -> Path:
     if kind == "missing":
         return folder / "nothing"
