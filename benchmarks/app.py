@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -43,6 +44,21 @@ BEFORE = {
     "plot_click_ms": ("85 ms (a click on the plot image)", "chart click to frame"),
 }
 """The previous app's figures (2560x1920, 8 frames; this machine under the same shared load)."""
+
+JS_SHOWN = """async (ms) => {
+  // Distinct images on the canvas per second: a 64x40 thumbnail of the canvas every 40 ms,
+  // compared with the last one (up to 25 changes a second are resolved).
+  const c = window.__viserMutable.canvas; const t = document.createElement('canvas');
+  t.width = 64; t.height = 40; const g = t.getContext('2d', {willReadFrequently: true});
+  let last = null; let changes = 0; const t0 = performance.now();
+  while (performance.now() - t0 < ms) {
+    g.drawImage(c, 0, 0, 64, 40); const d = g.getImageData(0, 0, 64, 40).data;
+    let h = 0; for (let i = 0; i < d.length; i += 4) h = (h * 31 + d[i] + 3 * d[i + 1] + 7 * d[i + 2]) | 0;
+    if (last !== null && h !== last) changes++; last = h;
+    await new Promise((r) => setTimeout(r, 40));
+  }
+  return changes / ((performance.now() - t0) / 1000);
+}"""
 
 JS_FPS = """async (ms) => {
   const m = window.__viserMutable; const c = m.cameraControl; let frames = 0; let dir = 1;
@@ -440,6 +456,35 @@ def _browser(app, rows) -> dict:
         heap_mb = metrics.get("JSHeapUsedSize", float("nan")) / 2**20
         rss = _rss_mb(ours | (_chromium_pids() - before))
         out.update(fps_seed_review=fps, js_heap_mb=heap_mb, chromium_rss_mb=rss)
+        # Playback in the Sequence view: the registered frames as the browser shows them.
+        app.set_mode("Sequence")
+        app.worker.wait_idle()
+        time.sleep(2.0)
+        seqv = app.views["Sequence"]
+        seqv.panel.play.value = True
+        time.sleep(1.0)
+        # Frames the server hands to viser meanwhile (polled), against those the browser shows.
+        handed, stop = [], threading.Event()
+
+        def poll() -> None:
+            last = None
+            while not stop.wait(0.01):
+                k = (app.shown.get("Sequence") or (None,))[0]
+                if k != last:
+                    handed.append(time.perf_counter())
+                    last = k
+
+        poller = threading.Thread(target=poll, daemon=True)
+        poller.start()
+        t = time.perf_counter()
+        shown = page.evaluate(JS_SHOWN, 6000)
+        elapsed = time.perf_counter() - t
+        stop.set()
+        poller.join()
+        seqv.panel.play.value = False
+        app.worker.wait_idle()
+        out["playback_fps"] = shown
+        out["playback_server_fps"] = max(len(handed) - 1, 0) / elapsed
         rows += [
             (
                 "Page load to the Seed view on the canvas (browser)",
@@ -451,6 +496,13 @@ def _browser(app, rows) -> dict:
                 "Frame rate panning the Seed view with its review overlays (browser)",
                 f"{fps:.1f} fps",
                 "",
+                "software WebGL",
+            ),
+            (
+                "Playback in the Sequence view: frames shown per second (browser)",
+                f"{out['playback_fps']:.1f} fps",
+                "2.5 fps (its clock)",
+                f"aim >= 5 fps; frames handed to viser {out['playback_server_fps']:.1f} per s; "
                 "software WebGL",
             ),
             ("JS heap (browser)", f"{heap_mb:.0f} MB", "", ""),

@@ -795,6 +795,43 @@ def test_each_view_at_1440x900_is_drawn_and_nothing_overflows(browser, registere
     assert page.page.evaluate(JS_OVERFLOW) != []
 
 
+def test_the_gamma_slider_previews_while_it_is_dragged(browser, live_app):
+    """The γ slider dragged with the mouse held down: the frame is corrected for the slider's
+    γ while the button is still down (the preview follows the drag), not only on release."""
+    app = live_app()
+    page = Page(browser, app.server.get_port())
+    page.wait_node("/calibrate/frame")
+    slider = page.page.locator(
+        "xpath=//p[normalize-space(.)='γ']/ancestor::div[contains(@class,'mantine-Flex-root')][1]"
+        "//*[@role='slider']"
+    ).first
+    thumb = slider.bounding_box()
+    track = slider.locator("xpath=ancestor::div[contains(@class,'mantine-Slider-root')][1]")
+    right = track.bounding_box()
+    x, y = thumb["x"] + thumb["width"] / 2, thumb["y"] + thumb["height"] / 2
+    page.page.mouse.move(x, y)
+    page.page.mouse.down()
+    seen = []
+    try:
+        for i in range(1, 11):
+            page.page.mouse.move(x + i * (right["x"] + right["width"] - x) * 0.05, y)
+            time.sleep(0.15)
+            with app.state.lock:
+                seen.append(app.state.gamma)
+
+        def previewed():
+            with app.state.lock:
+                g = app.state.gamma
+            shown = app.shown.get("Calibrate")
+            return g > 0.05 and shown is not None and shown[1] == pytest.approx(g) and g
+
+        during = wait_until(previewed, what="the preview of the dragged γ, the button still down")
+    finally:
+        page.page.mouse.up()
+    assert len(set(seen)) >= 3, seen  # γ followed the drag step by step
+    assert during > 0.05
+
+
 def test_two_tabs_moving_sliders_stay_consistent(browser, live_app):
     app = live_app()
     a = Page(browser, app.server.get_port())

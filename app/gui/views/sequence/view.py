@@ -55,7 +55,8 @@ def fit_fingerprint(edits) -> str:
 MAP_STAGES = ("inter-sensor", ANCHOR_STAGE)
 """Record stages of frames registered to the map itself."""
 FLICKER_S = 0.5
-PLAY_S = 0.4
+PLAY_S = 0.2
+"""Playback: the next frame every this many seconds (5 frames/s)."""
 SETTLE_S = 0.35
 """After this long on one frame, it is drawn again at the map preview's full resolution."""
 SELECT_RADIUS_PX = 20
