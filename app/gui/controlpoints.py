@@ -226,22 +226,20 @@ def write_qgis_points(table: ControlPointTable, path, georef=None):
     Source: the raw frame in QGIS's pixel coordinates (corner of the top-left pixel at (0, 0),
     rows negative: raw ``(x, y)`` is ``(x + 0.5, -(y + 0.5))``). Map: with a georeferenced base
     (``georef``, :class:`registration.gis.georef.GeoReference`) the points' map coordinates in its CRS
-    (``#CRS:`` line), as QGIS expects; without one the base map's pixels in the same corner/y-up
-    convention as the source. ``dX``, ``dY``, ``residual``: ``model(frame point) - map point`` in
+    (``#CRS:`` line), as QGIS expects; without one the base map's own pixel grid
+    (:data:`registration.gis.georef.PIXEL_GRID`, the source's corner/y-up convention), as the
+    export writes them. ``dX``, ``dY``, ``residual``: ``model(frame point) - map point`` in
     map units (base px without a georeference; 0 where there is no model).
     """
     from registration.gis import write_points_file
+    from registration.gis.georef import PIXEL_GRID
 
     base = np.asarray(table.base_xy, np.float64).reshape(-1, 2)
     res = np.nan_to_num(np.asarray(table.residual_xy, np.float64).reshape(-1, 2), nan=0.0)
-    if georef is not None:
-        map_xy = georef.map_from_base(base)
-        residual = georef.map_from_base(base + res) - map_xy
-        crs = georef.crs_wkt
-    else:
-        map_xy = np.c_[base[:, 0] + 0.5, -(base[:, 1] + 0.5)]
-        residual = np.c_[res[:, 0], -res[:, 1]]
-        crs = None
+    grid = PIXEL_GRID if georef is None else georef  # a plain base: its own pixel grid
+    map_xy = grid.map_from_base(base)
+    residual = grid.map_from_base(base + res) - map_xy
+    crs = grid.crs_wkt
     return write_points_file(
         path, table.frame_xy, map_xy, crs_wkt=crs, enabled=table.enabled, residual_xy=residual
     )
@@ -261,6 +259,7 @@ def read_qgis_points(path, frame_size, base_size, georef=None) -> tuple[NDArray,
     from pathlib import Path
 
     from registration.gis import parse_crs, read_points_file
+    from registration.gis.georef import PIXEL_GRID
 
     name = Path(path).name
     data = read_points_file(path)
@@ -278,7 +277,7 @@ def read_qgis_points(path, frame_size, base_size, georef=None) -> tuple[NDArray,
             "georeference"
         )
     else:
-        base = np.c_[data["map"][:, 0] - 0.5, -data["map"][:, 1] - 0.5]
+        base = PIXEL_GRID.base_from_map(data["map"]) if len(data["map"]) else data["map"]
     src = data["source"]
     if not len(src):
         raise ValueError(f"{name}: no control points")

@@ -23,6 +23,10 @@ per-frame formats, and black in the video):
   evaluation points): map coordinates (:func:`registration.gis.vector.write_geojson`);
 * ``aerialreg.gpkg``: the same three layers in one GeoPackage.
 
+With a plain base map (no georeference) the PNGs' and the video's world files and the
+``.points`` files are in the base image's own pixel grid (:data:`registration.gis.georef.
+PIXEL_GRID`, as QGIS shows an image without georeference), and :data:`MAP_FORMATS` are refused.
+
 Registered frames are cropped to their own footprint (``crop="frame"``) or all to the
 sequence's (``crop="sequence"``, one grid for all). Every file is written to a temporary name and
 renamed, so a reader never sees half a file; existing files are an error unless ``force``.
@@ -45,7 +49,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from registration.errors import FilesExist, NotGeoreferenced
-from registration.gis.georef import GeoReference, aux_xml_text, esri_wkt, parse_crs, world_file_text
+from registration.gis.georef import (
+    PIXEL_GRID,
+    GeoReference,
+    aux_xml_text,
+    esri_wkt,
+    parse_crs,
+    world_file_text,
+)
 from registration.gis.vector import (
     control_point_layer,
     footprint_layer,
@@ -81,7 +92,7 @@ FORMATS: dict[str, str] = {
 # Formats that need the frames' pixels.
 RASTER_FORMATS = ("geotiff", "cog", "png", "mosaic", "mp4")
 # Formats that need map coordinates (a georeferenced base).
-MAP_FORMATS = ("geotiff", "cog", "mosaic", "points", "geojson", "gpkg")
+MAP_FORMATS = ("geotiff", "cog", "mosaic", "geojson", "gpkg")
 COMPRESSIONS = ("deflate", "lzw", "zstd", "none")
 
 
@@ -359,8 +370,7 @@ def _frame_files(result, out_dir: Path, formats: list[str], ks: list[int], *, ev
             for k in ks:
                 png = out_dir / "png" / f"{k:06d}.png"
                 files.append(png)
-                if every or georef is not None:
-                    files.append(png.with_suffix(".pgw"))
+                files.append(png.with_suffix(".pgw"))
                 if crs:
                     files += [png.with_suffix(".prj"), Path(str(png) + ".aux.xml")]
         elif f == "points":
@@ -384,8 +394,7 @@ def _sequence_files(result, out_dir: Path, formats: list[str], marks) -> list[Pa
             files.append(out_dir / "mosaic.tif")
         elif f == "mp4":
             files.append(out_dir / "registered.mp4")
-            if georef is not None:
-                files.append(out_dir / "registered.wld")
+            files.append(out_dir / "registered.wld")
             if crs:
                 files.append(out_dir / "registered.prj")
         elif f == "transforms":
@@ -591,7 +600,7 @@ def _export_vector(result, out: Path, fmt: str, marks, options: ExportOptions) -
         write_json_atomic(path, doc)
         return [path]
     if fmt == "points":
-        return write_points_files(result, out / "points", georef)
+        return write_points_files(result, out / "points", georef or PIXEL_GRID)
     vcrs = options.vector_crs
     crs_wkt = parse_crs(vcrs).to_wkt() if vcrs is not None else georef.crs_wkt
     layers = [
@@ -613,7 +622,9 @@ def _export_rasters(result, frames, out, raster, render_ks, options, summary, ti
     """Render the frames once (each in its own footprint box) and feed every raster format."""
     from registration.render import footprint, write_video
 
-    georef, stage = result.georef, options.stage
+    # A plain base's own pixel grid places the frames' PNGs and the video on the base image.
+    georef = result.georef if result.georef is not None else PIXEL_GRID
+    stage = options.stage
     fsize, bsize = tuple(result.frame_size), tuple(result.base_size)
     ok = [k for k in range(result.n_frames) if result.is_ok(k)]
     seq = footprint(

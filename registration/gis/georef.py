@@ -308,6 +308,13 @@ def read_world_file(path: str | os.PathLike) -> Affine6:
     return (a, b, cx - 0.5 * a - 0.5 * b, d, e, cy - 0.5 * d - 0.5 * e)
 
 
+PIXEL_GRID = GeoReference((1.0, 0.0, 0.0, 0.0, -1.0, 0.0), None)
+"""A plain base map's own pixels as GIS software shows an image without a georeference (QGIS,
+its Georeferencer's ``.points``): the corner of pixel (0, 0) at (0, 0), columns along x, rows
+along -y. World files and ``.points`` of a plain base are written in it, so that registered
+frames and control points land on the base image opened beside them."""
+
+
 def world_file_text(transform: Affine6) -> str:
     """The six lines of a world file for a pixel-corner transform (inverse of
     :func:`read_world_file`)."""

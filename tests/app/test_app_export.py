@@ -116,7 +116,8 @@ def test_plain_base_disables_map_formats_asks_before_overwriting_and_downloads(
     panel = ex.panel
     # Map formats are disabled, and the panel says why in one line.
     disabled = {f for f, box in panel.formats.items() if box.disabled}
-    assert disabled == {"geotiff", "cog", "mosaic", "points", "geojson", "gpkg"}
+    # (.points of a plain base are in its own pixel grid, as the Seed view and the CLI write.)
+    assert disabled == {"geotiff", "cog", "mosaic", "geojson", "gpkg"}
     assert "has no georeference" in panel.georef_md.content
     assert not panel.btn_export.disabled
     # Video + transforms: written into exports/, progress reported up to its total.
@@ -130,12 +131,22 @@ def test_plain_base_disables_map_formats_asks_before_overwriting_and_downloads(
     assert len(doc["frames"]) == 4
     total = seen[-1][1]
     assert total and seen[-1][0] == total, seen
-    assert "Export done" in panel.result_md.content and "| mp4 | 1 |" in panel.result_md.content
-    # The written files are offered: one file as it is.
+    assert "Export done" in panel.result_md.content and "| mp4 | 2 |" in panel.result_md.content
+    # The written files are offered: one file as it is, several as a zip (the video and its
+    # world file in the plain base's own pixel grid).
     sent = capture_downloads(app)
+    one = next(o for o in panel.download_pick.options if o.startswith("transforms"))
+    assert ex.download(one)
+    assert sent[-1] == ("transforms.json", (out / "transforms.json").read_bytes())
     mp4 = next(o for o in panel.download_pick.options if o.startswith("mp4"))
     assert ex.download(mp4)
-    assert sent[-1] == ("registered.mp4", (out / "registered.mp4").read_bytes())
+    app.worker.wait_idle()
+    import io
+    import zipfile
+
+    with zipfile.ZipFile(io.BytesIO(sent[-1][1])) as z:
+        assert sorted(z.namelist()) == ["registered.mp4", "registered.wld"]
+        assert z.read("registered.mp4") == (out / "registered.mp4").read_bytes()
     # Exporting again asks first and writes nothing yet ...
     before = (out / "transforms.json").stat().st_mtime_ns
     assert not ex.request(None, formats=["transforms"])

@@ -10,6 +10,7 @@ import json
 import os
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import rasterio
@@ -382,7 +383,7 @@ def test_existing_files_need_force_and_bad_input_is_one_line(result, sim, tmp_pa
     assert "unknown export format 'shapefile'" in capsys.readouterr().err
 
 
-def test_plain_base_allows_png_and_video_but_not_map_formats(result, sim, tmp_path):
+def test_plain_base_allows_png_and_video_but_not_map_formats(result, sim, tmp_path, capsys):
     plain = tmp_path / "plain"
     plain.mkdir()
     meta = json.loads((result.out_dir / "result.json").read_text())
@@ -392,10 +393,46 @@ def test_plain_base_allows_png_and_video_but_not_map_formats(result, sim, tmp_pa
     res = registration.load(plain)
     with pytest.raises(ValueError, match="needs a georeferenced base map"):
         export_result(res, tmp_path / "o", ["geotiff"], frames=open_frames(sim / "frames"))
-    summary = export_result(res, tmp_path / "o", ["png", "mp4"], frames=open_frames(sim / "frames"))
-    assert (
-        not list((tmp_path / "o").rglob("*.pgw")) and (tmp_path / "o" / "registered.mp4").is_file()
+    summary = export_result(
+        res, tmp_path / "o", ["png", "mp4", "points"], frames=open_frames(sim / "frames")
     )
+    assert (tmp_path / "o" / "registered.mp4").is_file()
+    # In the base image's own pixel grid (corner of pixel (0, 0) at (0, 0), rows along -y, as
+    # QGIS shows an image without georeference): each PNG's world file puts it where it was
+    # rendered, the video's too, and .points hold base px as the Seed view writes them.
+    w, h = res.frame_size
+    t = np.linspace(0, 1, 50)[:, None]
+    border = np.concatenate([
+        t * (w - 1, 0), (w - 1, 0) + t * (0, h - 1), (w - 1, h - 1) - t * (w - 1, 0),
+        (0, h - 1) - t * (0, h - 1),
+    ])  # fmt: skip
+    for pgw in sorted((tmp_path / "o" / "png").glob("*.pgw")):
+        a, d, b, e, c, f = (float(v) for v in pgw.read_text().split())
+        assert (a, d, b, e) == (1.0, 0.0, 0.0, -1.0)
+        alpha = cv2.imread(str(pgw.with_suffix(".png")), cv2.IMREAD_UNCHANGED)[..., 3] > 0
+        # The frame's outline on the map, drawn into the crop where the world file places it
+        # (c, f: the centre of the crop's pixel (0, 0), base pixel (c - 0.5, -f - 0.5)).
+        outline = res.frame_to_base(int(pgw.stem), border) - (c - 0.5, -f - 0.5)
+        drawn = np.zeros(alpha.shape, np.uint8)
+        cv2.fillPoly(drawn, [np.round(outline).astype(np.int32)], 1)
+        iou = (alpha & (drawn > 0)).sum() / (alpha | (drawn > 0)).sum()
+        assert iou > 0.98, (pgw.name, iou)  # measured 0.995
+    assert not list((tmp_path / "o").rglob("*.prj"))  # no CRS to write
+    wld = [float(v) for v in (tmp_path / "o" / "registered.wld").read_text().split()]
+    assert wld[:4] == [1.0, 0.0, 0.0, -1.0]
+    pts = read_points_file(tmp_path / "o" / "points" / "000001.points")
+    src, dst, kept, _ = res.control_points(1)
+    assert pts["crs"] is None
+    assert np.allclose(pts["map"], dst[: len(pts["map"])] * (1, -1) + (0.5, -0.5), atol=1e-9)
+    # --format all of a plain base writes what it can, as the app's Export panel offers, and
+    # says what it skipped; a map format asked for by name is refused.
+    args = ["export", str(plain), "--frames", str(sim / "frames"), "--to", str(tmp_path / "all")]
+    assert cli_main([*args, "--format", "all"]) == 0
+    text = capsys.readouterr().out
+    assert "skipped geotiff, cog, mosaic, geojson, gpkg: they need a georeferenced base" in text
+    assert (tmp_path / "all" / "points").is_dir() and (tmp_path / "all" / "png").is_dir()
+    assert cli_main([*args, "--format", "gpkg", "--force"]) == 2
+    assert "needs a georeferenced base map" in capsys.readouterr().err
     # --georef supplies the georeference afterwards; it must match the base map's size.
     out = tmp_path / "g"
     assert (

@@ -93,6 +93,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import registration
     from registration.gis import ExportOptions, export_result, read_georeference, resolve_formats
+    from registration.gis.export import MAP_FORMATS
     from registration.io import open_frames
 
     formats = resolve_formats([f for spec in args.formats for f in spec.split(",") if f.strip()])
@@ -114,6 +115,13 @@ def run(args: argparse.Namespace) -> int:
         from registration.evaluation import read_points_csv
 
         marks = read_points_csv(args.marks, result.n_frames, result.frame_size, min_frames=1)
+    skipped = []
+    if result.georef is None and georef is None and "all" in [
+        f.strip().lower() for spec in args.formats for f in spec.split(",")
+    ]:
+        # 'all' of a plain base: what it can write, as the app's Export panel offers.
+        skipped = [f for f in formats if f in MAP_FORMATS]
+        formats = [f for f in formats if f not in MAP_FORMATS]
     options = ExportOptions(
         stage=args.stage,
         crop=args.crop,
@@ -144,10 +152,15 @@ def run(args: argparse.Namespace) -> int:
     finally:
         progress.close()
     summary["total_s"] = round(time.perf_counter() - t0, 3)
+    summary["skipped_formats"] = skipped
     if args.json:
         emit_json(summary)
         return 0
     sys.stdout.write(f"exported into {out_dir} in {summary['total_s']:.1f} s\n")
+    if skipped:
+        sys.stdout.write(
+            f"  skipped {', '.join(skipped)}: they need a georeferenced base map (--georef)\n"
+        )
     for fmt, paths in summary["files"].items():
         sys.stdout.write(f"  {fmt}: {len(paths)} file(s)\n")
     failed = summary.get("failed_frames") or []
