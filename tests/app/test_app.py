@@ -1567,3 +1567,4 @@ def test_traffic_view_finds_tracks_on_the_map(tmp_path, traffic_seq, make_app):
     tv.remove_last_section()
     app.worker.wait_idle()
     assert not app.state.traffic_sections and tv.panel.counts_md.content == ""
+    assert not (tv.out_dir / "counts.csv").exists()  # nothing stale to download

@@ -311,6 +311,9 @@ class TrafficView(View):
         if self._drawing:
             return
         if not named:
+            if run is not None:  # no stale counts of removed sections to download
+                for name in ("counts.csv", "crossings.csv"):
+                    (run.out / name).unlink(missing_ok=True)
             self.panel.show_counts("")
             return
         if run is None:
