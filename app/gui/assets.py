@@ -5,6 +5,8 @@
   clickable rows, the step checklist).
 * ``static/events.js``: ``window.aerialreg.send(kind, value)`` for clickable table rows, and
   click-to-jump on the per-frame chart.
+* ``static/pointer.js``: the pixel and map coordinates under the mouse, from the images the
+  app publishes with :func:`publish_planes`.
 
 viser 1.1.1 has no public way to run a script in the client: :func:`install` queues viser's
 ``RunJavascriptMessage`` (the message viser itself uses to load plotly.js). The message is kept
@@ -24,7 +26,7 @@ from pathlib import Path
 
 log = logging.getLogger(__name__)
 
-ASSETS = ("camera.js", "app.css", "events.js")
+ASSETS = ("camera.js", "app.css", "events.js", "pointer.js")
 
 
 def static_dir() -> Path:
@@ -66,6 +68,13 @@ def run_javascript(server, source: str) -> None:
     from viser import _messages
 
     server.gui._websock_interface.queue_message(_messages.RunJavascriptMessage(source=source))
+
+
+def publish_planes(server, planes: list[dict]) -> None:
+    """Tell every client (and later ones) which images the view shown holds, for the pointer
+    readout (``static/pointer.js``): each ``{label, width, height, position, scale}`` and, on a
+    georeferenced map, ``affine`` (pixel-corner, GDAL's order), ``unit`` and ``crs``."""
+    run_javascript(server, f"window.aerialregPlanes = {json.dumps({'planes': planes})};")
 
 
 def resend_value(widget) -> None:
@@ -139,6 +148,7 @@ def install(server, channel: EventChannel) -> list[str]:
         "camera.js": lambda text: text,
         "app.css": css_loader_js,
         "events.js": lambda text: text.replace("__CHANNEL__", channel.uuid),
+        "pointer.js": lambda text: text,
     }
     for name, make in scripts.items():
         try:

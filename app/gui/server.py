@@ -443,6 +443,7 @@ class App:
         self._update_inputs_md()
         for view in self.views.values():
             view.on_inputs()
+        self.publish_planes()
         self.save()
         self.set_status(
             f"**{escape_md(Path(inputs.frames_path).name)}**: {inputs.n_frames} frames "
@@ -464,8 +465,38 @@ class App:
             view.on_show()
             self.fit_cameras(view.fit_geoms())
             self._zoom_applied = None
+        self.publish_planes()
         self.update_header()
         self.save()
+
+    def publish_planes(self) -> None:
+        """The images of the view shown, for the browser's pointer readout."""
+        with self.state.lock:
+            view = self.views.get(self.state.mode)
+        inp = self.inputs
+        if view is None or inp is None:
+            return
+        georef = getattr(inp, "base_georef", None)
+        planes = []
+        for name, plane in view.scene.planes.items():
+            g = plane.geom
+            entry = {
+                "node": plane.name,
+                "label": "map" if name == "base" else f"{name} (as drawn)",
+                "width": g.width,
+                "height": g.height,
+                "position": [float(v) for v in g.position],
+                "scale": float(g.scale),
+            }
+            if name == "base" and georef is not None:
+                epsg = georef.epsg
+                entry.update(
+                    affine=list(georef.transform),
+                    unit=georef.units or "",
+                    crs=f"EPSG:{epsg}" if epsg else "",
+                )
+            planes.append(entry)
+        assets.publish_planes(self.server, planes)
 
     def fit_cameras(self, geoms: list[scene2d.PlaneGeometry]) -> None:
         """Point every client's camera (and the initial camera) at ``geoms``."""

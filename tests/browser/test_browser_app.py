@@ -832,6 +832,49 @@ def test_the_gamma_slider_previews_while_it_is_dragged(browser, live_app):
     assert during > 0.05
 
 
+def test_the_pointer_readout_gives_the_pixel_and_map_coordinates_under_the_mouse(browser, live_app):
+    """The mouse over the map in the Seed view: the line at the canvas's bottom left gives the
+    map pixel under it (within the screen pixel's size); over a georeferenced map also its map
+    coordinates through the map's affine (pixel (x, y) at A (x + 0.5, y + 0.5))."""
+    import re
+
+    app = live_app()
+    app.set_mode("Seed")
+    app.worker.wait_idle()
+    page = Page(browser, app.server.get_port())
+    page.wait_node("/seed/base")
+    geom = app.views["Seed"].scene.planes["base"].geom
+    target = (300.0, 200.0)
+    sx, sy = page.screen_of("/seed/base", geom, target)
+    page.page.mouse.move(sx + 3, sy + 3)
+    page.page.mouse.move(sx, sy)
+    text = wait_until(
+        lambda: page.page.locator("#aerialreg-pointer").text_content() or "", what="the readout"
+    )
+    x, y = (float(v) for v in re.match(r"map px ([-0-9.]+), ([-0-9.]+)$", text).groups())
+    # One screen pixel spans this many map pixels at the view's zoom.
+    sx2, _ = page.screen_of("/seed/base", geom, (target[0] + 100, target[1]))
+    per_screen_px = 100 / (sx2 - sx)
+    assert abs(x - target[0]) <= per_screen_px + 0.1 and abs(y - target[1]) <= per_screen_px + 0.1
+    # A georeferenced map (the published description of the planes, as the app sends it for
+    # a GeoTIFF base): the map coordinates of that pixel.
+    page.page.evaluate(
+        """() => { const p = window.aerialregPlanes.planes.find((q) => q.label === 'map');
+          Object.assign(p, {affine: [0.5, 0, 500000, 0, -0.5, 4000000], unit: 'metre',
+          crs: 'EPSG:32643'}); }"""
+    )
+    text = page.page.evaluate("([x, y]) => window.aerialregPointerAt(x, y)", [sx, sy])
+    m = re.match(
+        r"map px ([-0-9.]+), ([-0-9.]+) · ([0-9.]+), ([0-9.]+) metre \(EPSG:32643\)$", text
+    )
+    assert m, text
+    px, py, east, north = (float(v) for v in m.groups())
+    assert east == pytest.approx(500000 + 0.5 * (px + 0.5), abs=0.06)
+    assert north == pytest.approx(4000000 - 0.5 * (py + 0.5), abs=0.06)
+    # Off every image: nothing.
+    assert page.page.evaluate("([x, y]) => window.aerialregPointerAt(x, y)", [2, 2]) == ""
+
+
 def test_two_tabs_moving_sliders_stay_consistent(browser, live_app):
     app = live_app()
     a = Page(browser, app.server.get_port())

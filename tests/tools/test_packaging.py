@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-ASSETS = ("camera.js", "app.css", "events.js")
+ASSETS = ("camera.js", "app.css", "events.js", "pointer.js")
 
 pytest.importorskip("wheel", reason="building a wheel offline needs the 'wheel' package")
 
