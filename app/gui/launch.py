@@ -67,6 +67,7 @@ def serve(
         allowed_dirs=allowed,
         max_upload_mb=max_upload_mb,
         project_is_explicit=project_dir is not None,
+        auto_gamma=True,
     )
     try:
         app.start()

@@ -98,8 +98,12 @@ class App:
         demo_builder: Callable[..., Path] | None = None,
         project_is_explicit: bool = True,
         data_dir: Path | None = None,
+        auto_gamma: bool = False,
     ) -> None:
         self.server = server
+        # Frames opened while no γ was ever set start the estimate from their motion, and a
+        # determined one becomes γ, as `aerialreg register`'s default --gamma auto does.
+        self.auto_gamma = auto_gamma
         self.project = project
         self.project_is_explicit = project_is_explicit
         self.data_dir = data_dir
@@ -445,6 +449,10 @@ class App:
             view.on_inputs()
         self.publish_planes()
         self.save()
+        with self.state.lock:
+            unset = not self.state.gamma_set
+        if self.auto_gamma and unset and inputs.n_frames >= 2:
+            self.views["Calibrate"].estimate_from_motion(client, as_default=True)
         self.set_status(
             f"**{escape_md(Path(inputs.frames_path).name)}**: {inputs.n_frames} frames "
             f"{inputs.frame_size[0]}x{inputs.frame_size[1]}; base "

@@ -110,6 +110,12 @@ class MotionGammaConfig:
             )
 
 
+AUTO_GAMMA_MAX_SIGMA = 0.03
+"""An estimate this uncertain or better stands in for a γ nobody gave (the estimate's own
+"confident" verdict asks for ±0.006; ±0.012 on the README's flight is still 0.0001 off the
+truth)."""
+
+
 @dataclass(frozen=True)
 class MotionGammaEstimate:
     """γ fitted to the matches between frame pairs (Harris model, frame-centred).
@@ -165,6 +171,18 @@ class MotionGammaEstimate:
     @property
     def n_inliers(self) -> int:
         return int(sum(self.pair_inliers))
+
+    def unusable_as_default(self) -> str:
+        """Why this estimate cannot stand in for a γ nobody gave (``""``: it can), the rule
+        ``aerialreg register --gamma auto`` and the app's opening estimate share: uncertain
+        by more than :data:`AUTO_GAMMA_MAX_SIGMA`, or at the end of the searched range (a
+        flight without motion)."""
+        lo, hi = self.gamma_range
+        if min(abs(self.gamma - lo), abs(self.gamma - hi)) < 1e-3:
+            return f"{self.gamma:.4f} is at the end of the searched range: {self.evidence}"
+        if not self.uncertainty <= AUTO_GAMMA_MAX_SIGMA:
+            return f"{self.gamma:.4f} ± {self.uncertainty:.4f}: {self.evidence}"
+        return ""
 
     def to_dict(self) -> dict:
         return {

@@ -986,6 +986,39 @@ def test_estimate_gamma_from_clicked_lines_and_automatically(tmp_path, small_seq
     assert cal.scene.planes["frame"].has("detected")
 
 
+def test_frames_opened_without_gamma_take_the_estimate_the_cli_would(
+    tmp_path, small_seq, make_app
+):
+    """``aerialreg app`` (``auto_gamma``) on frames whose γ was never set runs the estimate
+    from their motion and, when it passes ``--gamma auto``'s rule, uses it: one default for the
+    app and the command line. On a flight without motion the estimate is not determined: γ
+    stays unset and the analyst is told how to give it."""
+    import shutil
+
+    app = make_app(tmp_path / "proj", small_seq, auto_gamma=True)
+    assert app.jobs.join(120)
+    app.worker.wait_idle()
+    # Measured 0.6977 ± 0.0083 (the simulator's camera: 0.7).
+    assert app.state.gamma_set and abs(app.state.gamma - 0.7) < 0.02, app.notices[-3:]
+    assert app.state.steps()["calibrated"]
+    assert app.notices[-1][0] == "γ set from the frames' motion"
+    cal = app.views["Calibrate"]
+    assert "when the frames were opened" in cal.panel.estimate_md.content
+    # A flight without motion: four copies of one frame.
+    still = tmp_path / "still"
+    (still / "frames").mkdir(parents=True)
+    for k in range(4):
+        shutil.copy(small_seq / "frames" / "000000.png", still / "frames" / f"{k:06d}.png")
+    shutil.copy(small_seq / "base.png", still / "base.png")
+    app2 = make_app(tmp_path / "proj2", still, auto_gamma=True)
+    assert app2.jobs.join(120)
+    app2.worker.wait_idle()
+    assert not app2.state.gamma_set and app2.state.gamma == 0.0
+    title, body = app2.notices[-1][:2]
+    assert title == "γ not set" and "does not determine it" in body, app2.notices[-3:]
+    assert "\n" not in body
+
+
 def test_estimate_gamma_from_the_frames_motion(tmp_path, small_seq, make_app):
     """4 frames with a 0.04 s rolling shutter: the pairs are chosen from the frames' motion,
     the uncertainty covers the error, the chart marks the estimate, and the detected-lines

@@ -714,8 +714,13 @@ def test_scrub_plot_click_and_table2(browser, registered_app):
     out = app.project.folder / "exports"
     with page.page.expect_download(timeout=30000) as dl:
         page.button("Download").click()
-    assert dl.value.suggested_filename == "registered.mp4"
-    assert Path(dl.value.path()).read_bytes() == (out / "registered.mp4").read_bytes()
+    # The video and its world file (the plain base's own pixel grid): one zip.
+    assert dl.value.suggested_filename == "exports_mp4.zip"
+    import zipfile
+
+    with zipfile.ZipFile(dl.value.path()) as z:
+        assert sorted(z.namelist()) == ["registered.mp4", "registered.wld"]
+        assert z.read("registered.mp4") == (out / "registered.mp4").read_bytes()
     # Again: the files exist, so the app asks; a new numbered folder is one answer.
     page.button("Export the ticked formats").click()
     page.page.wait_for_selector("text=Files exist", timeout=15000)
@@ -1033,7 +1038,13 @@ def test_kill_mid_sequence_and_restart_keeps_frames(browser, tmp_path_factory):
     bxy = truth.frame_to_base(0, fxy[None])[0]
     # A session with γ and the seed already decided (as the analyst would have left it).
     Project(project).save(
-        {"gamma": truth.gamma, "seed_frame": list(fxy), "seed_base": list(bxy), "mode": "Sequence"}
+        {
+            "gamma": truth.gamma,
+            "gamma_set": True,
+            "seed_frame": list(fxy),
+            "seed_base": list(bxy),
+            "mode": "Sequence",
+        }
     )
     port = _free_port()
     proc = _serve(project, seq, port)

@@ -642,8 +642,11 @@ def test_a_failed_frame_is_a_hole_in_every_export_and_stale_files_go(sims, tmp_p
     code, out, err = cli(capsys, "export", reg, "--format", formats, "--to", ex, "--force")
     assert code == 0, err
     assert "1 frame(s) failed in the registration and are left out: 2" in out
-    assert "removed 2 stale file(s) of an earlier export" in out
+    # Frame 2's PNG and its world file (a plain base's own pixel grid), and the killed export's
+    # temporary file.
+    assert "removed 3 stale file(s) of an earlier export" in out
     assert not (ex / "png" / "000002.png").exists() and not killed.exists()
+    assert not (ex / "png" / "000002.pgw").exists()
     for k in (0, 1, 3, 4, 5):
         assert (ex / "png" / f"{k:06d}.png").is_file()
     assert (ex / "registered.mp4").stat().st_size > 0 and (ex / "transforms.json").is_file()

@@ -197,12 +197,6 @@ def parse_gamma(text: str) -> float | None:
     return value
 
 
-# --gamma auto registers with an estimate this uncertain or better (the estimate's own
-# "confident" verdict asks for ±0.006; ±0.012 on the README's flight is still 0.0001 off the
-# truth); beyond it, or at the end of the searched range (a flight without motion), it refuses.
-AUTO_GAMMA_MAX_SIGMA = 0.03
-
-
 def gamma_from_motion(frames) -> float:
     """``--gamma auto``: γ from frame pairs of the flight, reported on standard error."""
     from app.cli.commands.calibrate import motion_summary
@@ -214,14 +208,12 @@ def gamma_from_motion(frames) -> float:
         est = estimate_gamma_from_flight(
             frames.get, len(frames), progress=lambda done, total: bar.update(1)
         )
-    lo, hi = est.gamma_range
-    at_end = min(abs(est.gamma - lo), abs(est.gamma - hi)) < 1e-3
-    if at_end or not est.uncertainty <= AUTO_GAMMA_MAX_SIGMA:
+    problem = est.unusable_as_default()
+    if problem:
         raise UsageError(
-            f"gamma could not be estimated from the frames' motion ({est.gamma:.4f} ± "
-            f"{est.uncertainty:.4f}: {est.evidence}); give it with --gamma G "
-            "(0 for a lens without distortion; `aerialreg calibrate` measures it from straight "
-            "streets)"
+            f"gamma could not be estimated from the frames' motion ({problem}); give it with "
+            "--gamma G (0 for a lens without distortion; `aerialreg calibrate` measures it from "
+            "straight streets)"
         )
     sys.stderr.write(f"gamma {est.gamma:.4f} ± {est.uncertainty:.4f} from the frames' motion\n")
     sys.stderr.write(motion_summary(est) + "\n")

@@ -303,8 +303,12 @@ class CalibrateView(View):
 
         self.ctx.run_job("estimate γ", job, client)
 
-    def estimate_from_motion(self, client: Client = None) -> None:
-        """γ from the matches between frame pairs spread over the flight."""
+    def estimate_from_motion(self, client: Client = None, *, as_default: bool = False) -> None:
+        """γ from the matches between frame pairs spread over the flight. ``as_default``: the
+        estimate the app runs when frames are opened and no γ was ever set (``App(auto_gamma=
+        True)``, ``aerialreg app``): queued behind a running job, and it sets γ as
+        ``aerialreg register --gamma auto`` would, where γ is still unset then
+        (:meth:`_adopt_as_default`)."""
         inp = self.ctx.inputs
         if inp is None:
             return
@@ -328,11 +332,44 @@ class CalibrateView(View):
             if est is None or progress.cancel.is_set():
                 self._cancelled(client)
                 return
-            self._estimated(
-                est, f"from {len(est.frame_pairs)} frame pairs {est.step} apart", client
-            )
+            how = f"from {len(est.frame_pairs)} frame pairs {est.step} apart"
+            self._estimated(est, how, client)
+            if as_default:
+                self._adopt_as_default(est, how, client)
 
-        self.ctx.run_job("estimate γ from motion", job, client)
+        self.ctx.run_job("estimate γ from motion", job, client, queue=as_default)
+
+    def _adopt_as_default(self, est, how: str, client: Client) -> None:
+        """The opening estimate becomes γ when none was set meanwhile and it passes the rule
+        the command line's ``--gamma auto`` applies; otherwise it waits to be accepted, and
+        the analyst is told why."""
+        with self.state.lock:
+            unset = not self.state.gamma_set
+        if not unset:
+            return  # the analyst chose γ meanwhile: the estimate is only shown
+        problem = est.unusable_as_default()
+        if problem:
+            self.notify(
+                client,
+                "γ not set",
+                f"the frames' motion does not determine it ({problem}): set it here (slider, "
+                "lines along streets, or 0 for a lens without distortion)",
+                "yellow",
+            )
+            return
+        if self.use_estimate(client):
+            self.gamma_source = (
+                float(est.gamma),
+                f"± {est.uncertainty:.4f} (estimated {how} when the frames were opened, as "
+                "`aerialreg register --gamma auto` does)",
+            )
+            self._show_estimate(pending=False)
+            self.notify(
+                client,
+                "γ set from the frames' motion",
+                f"{est.gamma:.4f} ± {est.uncertainty:.4f}, as `aerialreg register` would use",
+                "green",
+            )
 
     def _cancelled(self, client: Client) -> None:
         """A cancelled estimate changes nothing: the previous estimate's text comes back."""
