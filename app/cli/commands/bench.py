@@ -103,6 +103,7 @@ def run(args: argparse.Namespace) -> int:
     size, frames = PROFILE_RUNS.get(args.profile, (DEFAULT_SIZE, DEFAULT_FRAMES))
     if len(suites) == 1 and suites[0] in SUITE_FRAMES and not args.profile:
         frames = SUITE_FRAMES[suites[0]]
+    args.size_given = args.size is not None
     args.size = size if args.size is None else args.size
     args.frames = frames if args.frames is None else args.frames
     if (args.scene is None) != (args.base is None):
