@@ -54,11 +54,11 @@ def adjust_folder(
     the run's frame source (None: the one the folder records). Returns the number adjusted.
 
     Raises:
-        ValueError: one line: the folder was made without the adjustment, or frames are not
-            registered yet (resume the run); :class:`ResultBusy` while another process
-            writes it.
+        ValueError: one line: the folder was made without the adjustment, frames are not
+            registered yet (resume the run), or ``frames`` are not the run's; :class:`ResultBusy`
+            while another process writes it.
     """
-    from registration.io import open_frames
+    from registration.io import check_result_frames, open_frames
     from registration.run.config import config_from_dict
     from registration.run.records import _read_meta
 
@@ -79,6 +79,8 @@ def adjust_folder(
         if frames is None:
             frames = open_frames(meta["frames_source"])
             writer = ResultWriter(out_dir, lock, frames)
+        # The frames the links are measured on must be the run's own (size, count, content).
+        check_result_frames(frames, RegistrationResult(out_dir))
         return adjust_result(writer, frames, config, progress, cancel)
     finally:
         lock.release()

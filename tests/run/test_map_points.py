@@ -206,6 +206,18 @@ def test_the_adjust_command_adds_a_point_and_adjusts_again(
     assert _map_error(registration.load(out), truth, PLANTED) < 0.5
     assert cli_main(["adjust", str(out), "--add", "4,1,2"]) == 2
     assert "--add must be K,FX,FY,BX,BY, got '4,1,2'" in capsys.readouterr().err
+    # Frames that are not the run's: refused in one line, before anything is adjusted.
+    other = tmp_path / "other"
+    other.mkdir()
+    for k in range(3):
+        shutil.copy(sim_seq / "frames" / f"{k:06d}.png", other)
+    before = read_map_points(out)
+    assert cli_main(["adjust", str(out), "--frames", str(other), "--add", spec]) == 2
+    assert (
+        "the frames (3 of 640x480) are not the result's (6 of 640x480)" in capsys.readouterr().err
+    )
+    assert read_map_points(out) == before  # no point changed, no frame left to adjust again
+    assert all(registration.load(out).is_adjusted(k) for k in range(6))
     assert cli_main(["adjust", str(out), "--remove", str(PLANTED), "--json"]) == 0
     summary = json.loads(capsys.readouterr().out)
     assert summary["n_map_points"] == 0 and summary["n_readjusted"] == 4

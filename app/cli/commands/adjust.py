@@ -59,14 +59,18 @@ def parse_point(text: str, sigma: float):
 
 def run(args: argparse.Namespace) -> int:
     import registration
-    from registration.io import open_frames
+    from registration.io import check_result_frames, open_frames
     from registration.run import adjust_folder, read_map_points, set_map_points
 
     added = [parse_point(t, args.sigma) for t in args.add]
+    result = registration.load(args.out)
+    # The frames first: points changed for frames that cannot be read would leave the frames
+    # they touch to adjust again, with nothing to adjust them from.
+    frames = open_frames(args.frames or result.meta["frames_source"])
+    check_result_frames(frames, result)
     points = [] if args.clear else read_map_points(args.out)
     points = [p for p in points if p.k not in set(args.remove)] + added
     undone = set_map_points(args.out, points)
-    frames = open_frames(args.frames) if args.frames else None
     progress = LazyProgressBar("adjust")
     try:
         n = adjust_folder(args.out, frames, progress)
