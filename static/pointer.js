@@ -2,7 +2,7 @@
 // image it is over and, on a georeferenced map, the map coordinates there, in a line at the
 // bottom left of the canvas (as QGIS's status bar shows them).
 //
-// The app publishes the images of the view shown as window.aerialregPlanes = {planes: [{node,
+// The app publishes the images of every view (those of hidden views are skipped) as window.aerialregPlanes = {planes: [{node,
 // label, width, height, position, scale, affine?: [a, b, c, d, e, f], unit?, crs?}]}
 // (app/gui/server.py); the mouse's ray from the camera is intersected with each image's plane
 // in its scene node's own frame (the geometry of app/gui/scene2d.py's PlaneGeometry), with no
@@ -36,6 +36,9 @@
     for (const pl of info.planes) {
       const node = mm.nodeRefFromName[pl.node];
       if (!node) continue;
+      let shown = true; // the view's images only: other views' nodes are hidden
+      for (let o = node; o; o = o.parent) if (!o.visible) shown = false;
+      if (!shown) continue;
       node.updateMatrixWorld(true);
       // The ray in the image node's own frame, where the image lies at z = 0 centred on the
       // origin, a pixel being pl.scale wide (app/gui/scene2d.py).

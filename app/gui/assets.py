@@ -71,7 +71,7 @@ def run_javascript(server, source: str) -> None:
 
 
 def publish_planes(server, planes: list[dict]) -> None:
-    """Tell every client (and later ones) which images the view shown holds, for the pointer
+    """Tell every client (and later ones) which images the views hold, for the pointer
     readout (``static/pointer.js``): each ``{label, width, height, position, scale}`` and, on a
     georeferenced map, ``affine`` (pixel-corner, GDAL's order), ``unit`` and ``crs``."""
     run_javascript(server, f"window.aerialregPlanes = {json.dumps({'planes': planes})};")

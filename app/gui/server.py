@@ -473,37 +473,37 @@ class App:
             view.on_show()
             self.fit_cameras(view.fit_geoms())
             self._zoom_applied = None
-        self.publish_planes()
         self.update_header()
         self.save()
 
     def publish_planes(self) -> None:
-        """The images of the view shown, for the browser's pointer readout."""
-        with self.state.lock:
-            view = self.views.get(self.state.mode)
+        """The images of every view, for the browser's pointer readout (which reads those of
+        the view shown: the others' scene nodes are hidden). Sent when the inputs change, not
+        on every view switch: each message stays in viser's buffer for later clients."""
         inp = self.inputs
-        if view is None or inp is None:
+        if inp is None:
             return
         georef = getattr(inp, "base_georef", None)
         planes = []
-        for name, plane in view.scene.planes.items():
-            g = plane.geom
-            entry = {
-                "node": plane.name,
-                "label": "map" if name == "base" else f"{name} (as drawn)",
-                "width": g.width,
-                "height": g.height,
-                "position": [float(v) for v in g.position],
-                "scale": float(g.scale),
-            }
-            if name == "base" and georef is not None:
-                epsg = georef.epsg
-                entry.update(
-                    affine=list(georef.transform),
-                    unit=georef.units or "",
-                    crs=f"EPSG:{epsg}" if epsg else "",
-                )
-            planes.append(entry)
+        for view in self.views.values():
+            for name, plane in view.scene.planes.items():
+                g = plane.geom
+                entry = {
+                    "node": plane.name,
+                    "label": "map" if name == "base" else f"{name} (as drawn)",
+                    "width": g.width,
+                    "height": g.height,
+                    "position": [float(v) for v in g.position],
+                    "scale": float(g.scale),
+                }
+                if name == "base" and georef is not None:
+                    epsg = georef.epsg
+                    entry.update(
+                        affine=list(georef.transform),
+                        unit=georef.units or "",
+                        crs=f"EPSG:{epsg}" if epsg else "",
+                    )
+                planes.append(entry)
         assets.publish_planes(self.server, planes)
 
     def fit_cameras(self, geoms: list[scene2d.PlaneGeometry]) -> None:

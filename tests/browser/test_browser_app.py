@@ -864,7 +864,7 @@ def test_the_pointer_readout_gives_the_pixel_and_map_coordinates_under_the_mouse
     # A georeferenced map (the published description of the planes, as the app sends it for
     # a GeoTIFF base): the map coordinates of that pixel.
     page.page.evaluate(
-        """() => { const p = window.aerialregPlanes.planes.find((q) => q.label === 'map');
+        """() => { const p = window.aerialregPlanes.planes.find((q) => q.node === '/seed/base');
           Object.assign(p, {affine: [0.5, 0, 500000, 0, -0.5, 4000000], unit: 'metre',
           crs: 'EPSG:32643'}); }"""
     )

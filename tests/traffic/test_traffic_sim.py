@@ -220,3 +220,17 @@ def test_counts_across_a_road_section_match_the_true_crossings(traffic_sim, tmp_
     assert sum(d["count"] for d in sec["directions"]) == len(counted)
     rows = (out / "counts.csv").read_text().splitlines()
     assert rows[0] == "section,direction,heading,count,meanSpeed,firstFrame,lastFrame"
+    # Sections that are not there, or not lines: one line each, before any work.
+    point = {"type": "Point", "coordinates": [1.0, 2.0]}
+    (tmp_path / "point.geojson").write_text(json.dumps(point))
+    for name, message in (
+        ("missing.geojson", "--sections file not found"),
+        ("point.geojson", "holds no LineString"),
+    ):
+        code = cli_main([
+            "traffic", str(result.out_dir), "--out", str(tmp_path / "refused"),
+            "--frames", str(root / "sim" / "frames"), "--sections", str(tmp_path / name),
+        ])  # fmt: skip
+        err = capsys.readouterr().err
+        assert code == 2 and message in err and err.count("\n") == 1, err
+    assert not (tmp_path / "refused").exists()

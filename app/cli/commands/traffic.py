@@ -53,22 +53,32 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object with the summary")
 
 
+def _geometries(path: str, option: str) -> list[tuple[dict, dict]]:
+    """``(geometry, properties)`` of each feature of the GeoJSON file ``path`` given with
+    ``option`` (a FeatureCollection, a Feature or a bare geometry; one-line errors)."""
+    from registration.io import read_text_file
+
+    try:
+        doc = json.loads(read_text_file(path, f"{option} file"))
+    except ValueError as exc:
+        raise ValueError(f"{option} {path} is not valid JSON ({exc})") from None
+    feats = doc.get("features", [doc]) if isinstance(doc, dict) else []
+    out = []
+    for f in feats:
+        g = f.get("geometry", f) if isinstance(f, dict) else None
+        if isinstance(g, dict):
+            out.append((g, f.get("properties") or {}))
+    return out
+
+
 def read_regions(path: str, result):
     """A base-sized bool mask of the GeoJSON polygons in ``path`` (one-line errors)."""
     import cv2
     import numpy as np
 
-    try:
-        doc = json.loads(Path(path).read_text())
-    except OSError as exc:
-        raise ValueError(f"--exclude {path}: {exc.strerror or exc}") from None
-    except ValueError as exc:
-        raise ValueError(f"--exclude {path} is not valid JSON ({exc})") from None
-    feats = doc.get("features", [doc]) if isinstance(doc, dict) else []
     rings = []
-    for f in feats:
-        g = f.get("geometry", f) if isinstance(f, dict) else None
-        if not isinstance(g, dict) or g.get("type") not in ("Polygon", "MultiPolygon"):
+    for g, _ in _geometries(path, "--exclude"):
+        if g.get("type") not in ("Polygon", "MultiPolygon"):
             continue
         polys = [g["coordinates"]] if g["type"] == "Polygon" else g["coordinates"]
         rings += [np.asarray(p[0], float) for p in polys]
@@ -86,17 +96,9 @@ def read_sections(path: str, result) -> list[tuple[str, tuple, tuple]]:
     errors)."""
     import numpy as np
 
-    try:
-        doc = json.loads(Path(path).read_text())
-    except OSError as exc:
-        raise ValueError(f"--sections {path}: {exc.strerror or exc}") from None
-    except ValueError as exc:
-        raise ValueError(f"--sections {path} is not valid JSON ({exc})") from None
-    feats = doc.get("features", [doc]) if isinstance(doc, dict) else []
     out = []
-    for f in feats:
-        g = f.get("geometry", f) if isinstance(f, dict) else None
-        if not isinstance(g, dict) or g.get("type") != "LineString":
+    for g, props in _geometries(path, "--sections"):
+        if g.get("type") != "LineString":
             continue
         line = np.asarray(g.get("coordinates"), float)
         if line.ndim != 2 or len(line) < 2 or line.shape[1] < 2:
@@ -104,7 +106,6 @@ def read_sections(path: str, result) -> list[tuple[str, tuple, tuple]]:
         ends = line[[0, -1], :2]
         if result.georef is not None:
             ends = result.georef.base_from_map(ends)
-        props = f.get("properties") or {}
         name = str(props.get("name") or f"S{len(out) + 1}")
         out.append((name, tuple(ends[0]), tuple(ends[1])))
     if not out:
