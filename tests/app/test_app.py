@@ -755,7 +755,7 @@ def test_sequence_map_point_on_a_frame_and_solve_again(registered):
     assert all(r.is_adjusted(k) for k in range(r.n_frames)), app.errors
     adj = r.records[2].stats["adjustment"]
     assert adj["n_map_points"] == 1 and adj["map_point_rms_px"] < 1.0
-    assert "1 map points of the analyst's" in seq.panel.frame_md.content
+    assert "1 map point of the analyst's" in seq.panel.frame_md.content
     assert "base px from them after the adjustment" in panel.status_md.content
     seq.draw_plot()
     on_map = seq.panel.plot.data[6]  # the reference frame and the frame with the map point

@@ -737,9 +737,10 @@ def adjustment_text(adjustment: dict) -> str:
         f"{adjustment.get('n_controls', 0)} control points to the map"
     )
     if adjustment.get("n_map_points"):
+        n = adjustment["n_map_points"]
         text += (
-            f", {adjustment['n_map_points']} map points of the analyst's "
-            f"({adjustment['map_point_rms_px']:.2f} px from them)"
+            f", {n} map point{'s' if n > 1 else ''} of the analyst's "
+            f"({adjustment['map_point_rms_px']:.2f} px from {'them' if n > 1 else 'it'})"
         )
     if adjustment.get("flagged"):
         text += f" — **flagged: {escape_md(str(adjustment['flagged']))}**"

@@ -198,7 +198,8 @@ class TrafficView(View):
                 )
                 return
             self.load(summary, result, gsd)
-            self.notify(client, "Traffic found", self.summary_text(), "green")
+            # A notification shows text as it is: the summary without its markdown.
+            self.notify(client, "Traffic found", self.summary_text().replace("**", ""), "green")
 
         return self.ctx.run_job("find vehicles", job, client)
 
@@ -266,7 +267,8 @@ class TrafficView(View):
             f"{s.get('n_frames', '?')} frames"
             + (f"; median speed {median:.1f} m/s" if median is not None else "")
             + f". Colours: blue slow to red at {run.top_speed:.1f} m/s and above. Times: "
-            f"{s.get('time_source', '?')}; metres: {s.get('metric', '?')}. Files in {run.out}."
+            f"{_time_source(s.get('time_source', '?'))}; metres: {s.get('metric', '?')}. "
+            f"Files in {run.out}."
         )
 
     def select_track(self, track_id: int) -> None:
@@ -459,6 +461,12 @@ class TrafficView(View):
             f"{np.mean(speed):.1f} m/s mean, {np.max(speed):.1f} max; "
             f"{tr.length_m:.1f} m long.",
         )
+
+
+def _time_source(text: str) -> str:
+    """The run's time source as the browser says it (the library names the command line's
+    ``--fps F`` for a frame rate given)."""
+    return f"the frame rate given, {text[6:]} frames/s" if text.startswith("--fps ") else text
 
 
 def _box_m(track, i: int) -> np.ndarray:
