@@ -45,20 +45,27 @@ BEFORE = {
 }
 """The previous app's figures (2560x1920, 8 frames; this machine under the same shared load)."""
 
-JS_SHOWN = """async (ms) => {
-  // Distinct images on the canvas per second: a 64x40 thumbnail of the canvas every 40 ms,
-  // compared with the last one (up to 25 changes a second are resolved).
-  const c = window.__viserMutable.canvas; const t = document.createElement('canvas');
-  t.width = 64; t.height = 40; const g = t.getContext('2d', {willReadFrequently: true});
-  let last = null; let changes = 0; const t0 = performance.now();
-  while (performance.now() - t0 < ms) {
-    g.drawImage(c, 0, 0, 64, 40); const d = g.getImageData(0, 0, 64, 40).data;
-    let h = 0; for (let i = 0; i < d.length; i += 4) h = (h * 31 + d[i] + 3 * d[i + 1] + 7 * d[i + 2]) | 0;
-    if (last !== null && h !== last) changes++; last = h;
-    await new Promise((r) => setTimeout(r, 40));
+JS_TEXTURES = """(() => {
+  // Images the browser uploads to WebGL as textures (128 px wide or more), with their times.
+  // A frame handed to viser is on screen once its texture is uploaded: three.js uploads a
+  // texture when it first draws it, and an image replaced before it was drawn is never
+  // uploaded. (Counting changes of a canvas thumbnail instead also counted the blank moments
+  // between an image removed and the next one drawn.)
+  window.__texUploads = [];
+  const wrap = (proto, name) => {
+    const f = proto[name];
+    if (!f) return;
+    proto[name] = function (...args) {
+      const src = args.find((a) => a && typeof a === 'object' && 'width' in a && 'height' in a);
+      if (src && src.width >= 128) window.__texUploads.push(performance.now());
+      return f.apply(this, args);
+    };
+  };
+  for (const P of [window.WebGLRenderingContext, window.WebGL2RenderingContext]) {
+    if (P) { wrap(P.prototype, 'texImage2D'); wrap(P.prototype, 'texSubImage2D'); }
   }
-  return changes / ((performance.now() - t0) / 1000);
-}"""
+})();"""
+"""Installed before the page loads (``page.add_init_script``)."""
 
 JS_FPS = """async (ms) => {
   const m = window.__viserMutable; const c = m.cameraControl; let frames = 0; let dir = 1;
@@ -432,6 +439,7 @@ def _browser(app, rows) -> dict:
         b = p.chromium.launch(executable_path=str(CHROMIUM), args=LAUNCH_ARGS)
         ours = _chromium_pids() - before
         page = b.new_page(viewport={"width": 1440, "height": 900})
+        page.add_init_script(JS_TEXTURES)
         t = time.perf_counter()
         page.goto(f"http://127.0.0.1:{port}/")
         page.wait_for_function(
@@ -468,7 +476,7 @@ def _browser(app, rows) -> dict:
         handed, stop = [], threading.Event()
 
         def poll() -> None:
-            last = None
+            last = (app.shown.get("Sequence") or (None,))[0]
             while not stop.wait(0.01):
                 k = (app.shown.get("Sequence") or (None,))[0]
                 if k != last:
@@ -477,15 +485,21 @@ def _browser(app, rows) -> dict:
 
         poller = threading.Thread(target=poll, daemon=True)
         poller.start()
-        t = time.perf_counter()
-        shown = page.evaluate(JS_SHOWN, 6000)
-        elapsed = time.perf_counter() - t
+        # Rates from the first to the last event in a 10 s window (not events over the window,
+        # whose edges cut a period): frames handed by the server, textures the browser uploaded.
+        b0 = page.evaluate("performance.now()")
+        time.sleep(10.0)
+        uploads = page.evaluate(f"window.__texUploads.filter((t) => t >= {b0})")
         stop.set()
         poller.join()
         seqv.panel.play.value = False
         app.worker.wait_idle()
-        out["playback_fps"] = shown
-        out["playback_server_fps"] = max(len(handed) - 1, 0) / elapsed
+
+        def rate(times_s) -> float:
+            return (len(times_s) - 1) / (times_s[-1] - times_s[0]) if len(times_s) > 2 else 0.0
+
+        out["playback_fps"] = rate(np.asarray(uploads) / 1000.0)
+        out["playback_server_fps"] = rate(handed)
         rows += [
             (
                 "Page load to the Seed view on the canvas (browser)",

@@ -986,9 +986,7 @@ def test_estimate_gamma_from_clicked_lines_and_automatically(tmp_path, small_seq
     assert cal.scene.planes["frame"].has("detected")
 
 
-def test_frames_opened_without_gamma_take_the_estimate_the_cli_would(
-    tmp_path, small_seq, make_app
-):
+def test_frames_opened_without_gamma_take_the_estimate_the_cli_would(tmp_path, small_seq, make_app):
     """``aerialreg app`` (``auto_gamma``) on frames whose γ was never set runs the estimate
     from their motion and, when it passes ``--gamma auto``'s rule, uses it: one default for the
     app and the command line. On a flight without motion the estimate is not determined: γ
@@ -1214,19 +1212,28 @@ def test_sequence_cancel_resume_play_and_flicker(tmp_path, small_seq, make_app):
     app.worker.wait_idle()
     assert all(r.status == "ok" for r in app.state.result.records), app.errors
     assert all(own(n) == m for n, m in done.items())
-    # Play advances the scrubber; pausing stops it.
+    # Play advances the scrubber, drawing frames from the smaller playback preview; pausing
+    # stops it, and the frame it stops on is drawn again at the map preview's full size.
+    from app.gui.views.sequence.view import PLAY_SIDE_FRACTION
+
     seq.set_frame(0)
     seq.panel.play.value = True
     t0 = time.monotonic()
     while app.state.seq_frame == 0 and time.monotonic() - t0 < 10:
         time.sleep(0.05)
+    sides = set()
+    while app.state.seq_frame < 2 and time.monotonic() - t0 < 10:
+        sides.add(app.shown["Sequence"][4])
+        time.sleep(0.02)
     seq.panel.play.value = False
     assert app.state.seq_frame != 0
+    assert int(PLAY_SIDE_FRACTION * app.display_max) in sides, sides
     time.sleep(0.5)
     app.worker.wait_idle()
     k = app.state.seq_frame
     time.sleep(1.0)
     assert app.state.seq_frame == k
+    assert app.shown["Sequence"][0] == k and app.shown["Sequence"][4] == 2 * app.display_max
     # Flicker toggles the registered overlay on and off.
     seq.panel.overlay.value = "flicker"
     app.worker.wait_idle()

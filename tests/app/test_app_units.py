@@ -290,3 +290,24 @@ def test_residuals_in_map_units_where_the_base_has_a_projected_crs():
     assert "<th>res. (m)</th>" in html and "<td>5.00</td><td>2.500</td>" in html
     assert "<td>1.00</td><td>0.500</td>" in html
     assert "res. (m)" not in table_html(table, [0, 1], None, "seed", None)
+
+
+def test_play_clock_keeps_its_rate_when_polled_late():
+    """Polled every 13 ms (never on a deadline), the clock still gives 5 frames a second: the
+    earlier clock ("a period since the tick was seen") gave one every 208 ms, 4.8 a second."""
+    from app.gui.views.base import PlayClock
+
+    clock = PlayClock(0.2)
+    polls = np.arange(0.0, 10.0, 0.013)
+    due = [t for t in polls if clock.due(True, float(t))]
+    assert len(due) == 49  # 0.2, 0.4, ... 9.8 s: the first one period after Play
+    assert np.abs(np.diff(due) - 0.2).max() < 0.013
+    # Not playing: nothing is due, and Play again starts one period later, not at once.
+    assert not clock.due(False, 10.5)
+    assert not clock.due(True, 11.0)
+    assert not clock.due(True, 11.19)
+    assert clock.due(True, 11.2)
+    # After a stall (a busy machine) it starts afresh from the late tick, without a burst.
+    assert clock.due(True, 13.0)
+    assert not clock.due(True, 13.1)
+    assert clock.due(True, 13.2)

@@ -12,6 +12,36 @@ from app.gui.context import Client, ViewContext
 
 GAP_PX = 80
 """Gap in pixels (of the right-hand image) between side-by-side images."""
+PLAY_S = 0.2
+"""Playback: the next frame every this many seconds (5 frames/s)."""
+
+
+class PlayClock:
+    """A playback clock polled by a view's ticker thread: ``due(playing, now)`` says whether the
+    next frame is due.
+
+    It keeps deadlines (the next one ``period_s`` after the last, not after the moment the tick
+    was polled), so polling late does not slow playback below its rate; after a stall of more
+    than a period, or while not playing, it starts afresh instead of catching up."""
+
+    def __init__(self, period_s: float = PLAY_S) -> None:
+        self.period_s = period_s
+        self._next: float | None = None
+
+    def due(self, playing: bool, now: float) -> bool:
+        """Whether a frame is due at ``now`` (seconds, a monotonic clock)."""
+        if not playing:
+            self._next = None
+            return False
+        if self._next is None:
+            self._next = now + self.period_s  # Play shows the next frame one period later
+            return False
+        if now < self._next:
+            return False
+        self._next += self.period_s
+        if self._next <= now:  # a whole period missed: no burst to catch up
+            self._next = now + self.period_s
+        return True
 
 
 class Scene:

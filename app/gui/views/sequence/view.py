@@ -29,7 +29,7 @@ from app.gui import calls, controlpoints, scene2d
 from app.gui.context import Client
 from app.gui.messages import result_started_afresh
 from app.gui.security import escape_md
-from app.gui.views.base import View
+from app.gui.views.base import PlayClock, View
 from app.gui.views.cptable.table import ControlPointTableView
 from app.gui.views.sequence.earlier import EarlierResults
 from app.gui.views.sequence.export import Exporter
@@ -55,8 +55,11 @@ def fit_fingerprint(edits) -> str:
 MAP_STAGES = ("inter-sensor", ANCHOR_STAGE)
 """Record stages of frames registered to the map itself."""
 FLICKER_S = 0.5
-PLAY_S = 0.2
-"""Playback: the next frame every this many seconds (5 frames/s)."""
+PLAY_SIDE_FRACTION = 0.5
+"""While playing, frames are warped into a map preview this fraction of the scrubbing one's
+side (``display_max``). In Chromium with software WebGL (`bench app`, 1280x960 frames) the browser
+drew 3.4-3.9 of the 5 frames/s handed to it at the scrubbing size, 4.7-5.0 at 0.75 and all 5 at
+0.5 (3 runs of 3). The frame playback stops on is drawn again at full resolution."""
 SETTLE_S = 0.35
 """After this long on one frame, it is drawn again at the map preview's full resolution."""
 SELECT_RADIUS_PX = 20
@@ -244,13 +247,13 @@ class SequenceView(View):
 
     def _ticker(self) -> None:
         """Play and flicker clocks (post render requests; never draw themselves)."""
-        last_play = last_flicker = time.monotonic()
-        while not self._threads_stop.wait(0.05):
+        clock = PlayClock()
+        last_flicker = time.monotonic()
+        while not self._threads_stop.wait(0.01):
             if not self.visible or self.ctx.inputs is None:
                 continue
             now = time.monotonic()
-            if self.panel.playing and now - last_play >= PLAY_S:
-                last_play = now
+            if clock.due(self.panel.playing, now):
                 with self.state.lock:
                     k = (self.state.seq_frame + 1) % max(self.ctx.inputs.n_frames, 1)
                 self.set_frame(k)
@@ -560,8 +563,14 @@ class SequenceView(View):
         if rev is not None and rev != cur:
             return  # the scrubber moved on: this settle render is stale
         fine_side = 2 * self.ctx.display_max
-        have_fine = self.frames.has_warp(k, stage, fine_side)
-        side = fine_side if (full or have_fine) else self.ctx.display_max
+        if full:
+            side = fine_side
+        elif self.panel.playing:
+            side = int(PLAY_SIDE_FRACTION * self.ctx.display_max)
+        elif self.frames.has_warp(k, stage, fine_side):
+            side = fine_side
+        else:
+            side = self.ctx.display_max
         if (
             full
             and self.ctx.shown.get(self.MODE, (None,) * 5)[:2] == (k, stage)

@@ -24,13 +24,11 @@ import numpy as np
 from app.gui import scene2d
 from app.gui.context import Client
 from app.gui.messages import browser_message
-from app.gui.views.base import View
+from app.gui.views.base import PlayClock, View
 from app.gui.views.traffic.panel import TrafficPanel
 from app.gui.views.traffic.scene import TrafficScene, speed_colours
 
 TRAFFIC_DIR = "traffic"
-PLAY_S = 0.2
-"""Playback: a frame every this many seconds (5 frames/s)."""
 PICK_RADIUS_PX = 20.0
 """A click within this many screen-sized map pixels of a track selects it."""
 
@@ -81,14 +79,13 @@ class TrafficView(View):
         self._stop.set()
 
     def _ticker(self) -> None:
-        """Playback clock: the next frame every ``PLAY_S`` while *Play* is on (posts; never
+        """Playback clock: the next frame every ``PLAY_S`` (base.py) while *Play* is on (posts; never
         draws itself)."""
-        last = time.monotonic()
-        while not self._stop.wait(0.05):
-            if not self.visible or self.ctx.inputs is None or not self.panel.playing:
+        clock = PlayClock()
+        while not self._stop.wait(0.01):
+            if not self.visible or self.ctx.inputs is None:
                 continue
-            if time.monotonic() - last >= PLAY_S:
-                last = time.monotonic()
+            if clock.due(self.panel.playing, time.monotonic()):
                 with self.state.lock:
                     k = (self.state.traffic_frame + 1) % max(self.ctx.inputs.n_frames, 1)
                 self.panel.frame = k  # its callback sets the frame and draws
