@@ -34,7 +34,9 @@ LOCK_NAME = ".lock"
 # What a result folder may hold; only these are ever deleted (``--force``).
 _OWN = {
     ".": re.compile(
-        "^(" + "|".join(map(re.escape, (RESULT_JSON, MID_BASE, MID_BASE_VALID, MAP_POINTS_JSON))) + ")$"
+        "^("
+        + "|".join(map(re.escape, (RESULT_JSON, MID_BASE, MID_BASE_VALID, MAP_POINTS_JSON)))
+        + ")$"
     ),
     "frames": re.compile(r"^\d{6}\.(json|npz)$"),
     "registered": re.compile(r"^registered\.mp4$"),

@@ -116,9 +116,11 @@ def run(args: argparse.Namespace) -> int:
 
         marks = read_points_csv(args.marks, result.n_frames, result.frame_size, min_frames=1)
     skipped = []
-    if result.georef is None and georef is None and "all" in [
-        f.strip().lower() for spec in args.formats for f in spec.split(",")
-    ]:
+    if (
+        result.georef is None
+        and georef is None
+        and "all" in [f.strip().lower() for spec in args.formats for f in spec.split(",")]
+    ):
         # 'all' of a plain base: what it can write, as the app's Export panel offers.
         skipped = [f for f in formats if f in MAP_FORMATS]
         formats = [f for f in formats if f not in MAP_FORMATS]
