@@ -120,11 +120,26 @@ def _marginal(stamps: list[float], result) -> float:
     return (stamps[n_intra] - stamps[1]) / (n_intra - 1)
 
 
+def _cpu_per_frame(cpu_stamps: list[float], cpu_end: float, result) -> dict[str, float]:
+    """CPU seconds (all the process's threads: decoding, lens correction, OpenCV's own threads
+    included) per intra-sensor frame between the progress reports of the first and the last
+    one (``registration``), and per frame from the last report to the end (``adjustment``: the
+    sequence adjustment and the result's last writes), and their sum (``total``)."""
+    n_intra = sum(1 for k in range(result.n_frames) if k != result.reference_frame)
+    nan = float("nan")
+    if n_intra < 2 or len(cpu_stamps) < n_intra + 1:
+        return {"registration": nan, "adjustment": nan, "total": nan}
+    reg = (cpu_stamps[n_intra] - cpu_stamps[1]) / (n_intra - 1)
+    adj = (cpu_end - cpu_stamps[n_intra]) / result.n_frames
+    return {"registration": reg, "adjustment": adj, "total": reg + adj}
+
+
 def _run_ours(key, config, overlap, seq, out) -> dict:
     """Register ``seq`` with ``config`` (and ``overlap``) and measure the result."""
     from registration.run import register_sequence
 
     stamps: list[float] = []
+    cpu_stamps: list[float] = []
     last = [-1]
 
     def progress(done: int, n: int) -> None:
@@ -132,6 +147,7 @@ def _run_ours(key, config, overlap, seq, out) -> dict:
             last[0] = done
             if done >= 1:
                 stamps.append(time.perf_counter())
+                cpu_stamps.append(time.process_time())
 
     t1 = time.perf_counter()
     result = register_sequence(
@@ -141,10 +157,12 @@ def _run_ours(key, config, overlap, seq, out) -> dict:
         overlap=overlap,
     )  # fmt: skip
     elapsed = time.perf_counter() - t1
+    cpu = _cpu_per_frame(cpu_stamps, time.process_time(), result)
     sys.stderr.write(f"bench register: {key} {elapsed:.1f} s\n")
     paths = [r.stats.get("coarse_path") for r in result.records]
     return {
         "times": _stat_times(result) | {"marginal": _marginal(stamps, result)},
+        "cpu": cpu,
         **_evaluate(result, seq.truth),
         "wall_s": elapsed,
         "fast_coarse_frames": sum(p == "fast" for p in paths),
@@ -153,12 +171,47 @@ def _run_ours(key, config, overlap, seq, out) -> dict:
     }
 
 
-def _baseline_row(res, truth, elapsed) -> dict:
+class _CpuStampedFrames:
+    """A frame source that notes the process's CPU time before each frame is decoded, so a
+    baseline's CPU per frame counts decoding too (the sources here decode on demand)."""
+
+    def __init__(self, frames) -> None:
+        self.frames, self.stamps = frames, []
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def __getattr__(self, name):
+        return getattr(self.frames, name)
+
+    def iter(self, start: int = 0):
+        frames = self.frames.iter(start)
+        while True:
+            self.stamps.append(time.process_time())
+            item = next(frames, None)
+            if item is None:
+                return
+            yield item
+
+
+def _baseline_cpu(stamped: _CpuStampedFrames, cpu_end: float, n_frames: int) -> dict:
+    """A baseline's CPU seconds per frame after frame 0 (its reference frame in these runs):
+    from before frame 1 is decoded to the end, over ``n_frames - 1`` frames, decoding and lens
+    correction included."""
+    nan = float("nan")
+    if n_frames < 3 or len(stamped.stamps) < 2:
+        return {"registration": nan, "adjustment": nan, "total": nan}
+    per = (cpu_end - stamped.stamps[1]) / (n_frames - 1)
+    return {"registration": per, "adjustment": 0.0, "total": per}
+
+
+def _baseline_row(res, truth, elapsed, cpu=None) -> dict:
     per_frame = [t for k, t in enumerate(res.times_s) if k != res.reference_frame]
     nan = float("nan")
     total = float(np.mean(per_frame)) if per_frame else nan
     return {
         "times": {s: nan for s in STAGES} | {"total": total, "marginal": nan},
+        "cpu": cpu or {"registration": nan, "adjustment": nan, "total": nan},
         **_evaluate(res, truth),
         "wall_s": elapsed,
         "failed_frames": sum(h is None for h in res.homographies),
@@ -204,13 +257,17 @@ def run(args) -> dict:
         )
 
     t1 = time.perf_counter()
-    opencv = register_baseline(seq.frames, seq.base, seq.truth.gamma)
-    rows["opencv"] = _baseline_row(opencv, seq.truth, time.perf_counter() - t1)
+    stamped = _CpuStampedFrames(seq.frames)
+    opencv = register_baseline(stamped, seq.base, seq.truth.gamma)
+    cpu = _baseline_cpu(stamped, time.process_time(), len(seq.frames))
+    rows["opencv"] = _baseline_row(opencv, seq.truth, time.perf_counter() - t1, cpu)
     # Stabilo has no base map: it reaches the base through the plain pipeline's reference link.
     t1 = time.perf_counter()
     link = opencv.homographies[opencv.reference_frame]
-    stabilo = register_stabilo(seq.frames, link, seq.truth.gamma)
-    rows["stabilo"] = _baseline_row(stabilo, seq.truth, time.perf_counter() - t1)
+    stamped = _CpuStampedFrames(seq.frames)
+    stabilo = register_stabilo(stamped, link, seq.truth.gamma)
+    cpu = _baseline_cpu(stamped, time.process_time(), len(seq.frames))
+    rows["stabilo"] = _baseline_row(stabilo, seq.truth, time.perf_counter() - t1, cpu)
     sys.stderr.write("bench register: baselines done\n")
     return {
         "size": [w, h],
@@ -237,6 +294,12 @@ ORDER = (
 )  # fmt: skip
 
 
+def _cpu_text(cpu: dict) -> str:
+    if not cpu["adjustment"]:
+        return _f(cpu["total"])
+    return f"{_f(cpu['total'])} ({_f(cpu['registration'])} + {_f(cpu['adjustment'])})"
+
+
 def _f(v: float | None, digits: int = 3) -> str:
     return "–" if v is None or not np.isfinite(v) else f"{v:.{digits}f}"
 
@@ -252,16 +315,19 @@ def _markdown(rows: dict, args, w: int, h: int) -> str:
         "writing included).",
         "",
         "| pipeline | global mean | global p95 | local mean | local p95 | failed | read s | "
-        "coarse s | fine s | local s | total s | marginal s | total vs default |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "coarse s | fine s | local s | total s | marginal s | total vs default | CPU s/frame | "
+        "CPU vs Stabilo's |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
+    stabilo_cpu = rows.get("stabilo", {}).get("cpu", {}).get("total", float("nan"))
     for key in (k for k in ORDER if k in rows):
         r, t = rows[key], rows[key]["times"]
         lines.append(
             f"| {NAMES[key]} | {_f(r['global']['mean'], 2)} | {_f(r['global']['p95'], 2)} | "
             f"{_f(r['local']['mean'], 2)} | {_f(r['local']['p95'], 2)} | {r['failed_frames']} | "
             f"{_f(t['read'])} | {_f(t['coarse'])} | {_f(t['fine'])} | {_f(t['local'])} | "
-            f"{_f(t['total'])} | {_f(t['marginal'])} | {_f(t['total'] / d, 2)}x |"
+            f"{_f(t['total'])} | {_f(t['marginal'])} | {_f(t['total'] / d, 2)}x | "
+            f"{_cpu_text(r['cpu'])} | {_f(r['cpu']['total'] / stabilo_cpu, 2)}x |"
         )
     lines += ["", *_tenths_table(rows, args.frames), ""]
     for key in (k for k in ORDER if rows.get(k, {}).get("fast_coarse_frames")):
@@ -270,7 +336,11 @@ def _markdown(rows: dict, args, w: int, h: int) -> str:
             "frames took the fast coarse path."
         )
     lines += [
-        "Baselines: decoding excluded from their times (as from ours' total).",
+        "Baselines: decoding excluded from their times (as from ours' total). CPU s/frame: the "
+        "process's CPU seconds (all threads) per frame after the first, decoding and lens "
+        "correction included for every row; ours: between the progress reports of the first and "
+        "the last intra-sensor frame, plus (after +) the sequence adjustment and last writes "
+        "spread over all frames.",
         "",
         f"Unregistered motion (corrected frame px): {rows['default']['unregistered_mean']:.1f}",
         "",
