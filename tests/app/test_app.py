@@ -1561,16 +1561,39 @@ def test_traffic_view_finds_tracks_on_the_map(tmp_path, traffic_seq, make_app):
     assert np.median(cos) > 0.95, cos
     tv.set_frame(k)
     app.worker.wait_idle()
-    assert tv.scene.planes["base"].overlay("vehicles") is not None
-    assert tv.scene.planes["base"].overlay("boxes") is not None
-    # Play moves on frame by frame (5 frames/s) while the view is shown.
+    plane = tv.scene.planes["base"]
+    assert plane.overlay("vehicles") is not None
+    assert plane.overlay("boxes") is not None
+    # Under the boxes, frame k registered to the map (its local stage): drawn over its
+    # footprint, which holds the frame's border as the result maps it.
+    assert plane.overlay("registered") is not None
+    x0, y0, x1, y1 = plane._sized["registered"][1]
+    from registration.coords import frame_outline
+
+    border = app.state.result.frame_to_base(k, frame_outline(*app.state.result.frame_size))
+    assert np.all(border.min(axis=0) >= (x0, y0)) and np.all(border.max(axis=0) <= (x1, y1))
+    assert (x1 - x0) < 1.5 * np.ptp(border[:, 0]) + 50
+    # Play moves on frame by frame (5 frames/s) while the view is shown, the frames warped
+    # from the smaller playback preview; when it stops, the frame is drawn again at full size.
+    from app.gui.views.base import PLAY_SIDE_FRACTION
+
     tv.panel.play.value = True
     time.sleep(0.7)
     tv.panel.play.value = False
+    time.sleep(0.1)
     app.worker.wait_idle()
-    assert app.state.traffic_frame != k
+    shown = app.state.traffic_frame
+    assert shown != k
+    assert tv.frames.has_warp(shown, "local", int(PLAY_SIDE_FRACTION * app.display_max))
+    assert tv.frames.has_warp(shown, "local", 2 * app.display_max)
+    # The frame can be hidden: the boxes over the map alone.
+    tv.panel.show_frame.value = False
+    app.worker.wait_idle()
+    assert plane.overlay("registered") is None and plane.overlay("boxes") is not None
+    tv.panel.show_frame.value = True
     tv.set_frame(k)
     app.worker.wait_idle()
+    assert plane.overlay("registered") is not None
     # A click on a track selects it and charts its speed.
     tv.on_click("base", tuple(xy[0]), None)
     app.worker.wait_idle()

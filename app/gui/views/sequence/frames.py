@@ -142,6 +142,16 @@ class RegisteredFrames:
                 self._warps.popitem(last=False)
         return out
 
+    def map_under(self, reg, side: int) -> np.ndarray:
+        """The map preview (longer side ``side`` px) under a :meth:`registered` frame ``reg``
+        warped for that preview: ``(h, w, 3)`` RGB, the crop's size."""
+        crop, _, box = reg
+        under = self.ctx.inputs.base_preview(side)
+        hp, wp = under.shape[:2]
+        f = (self.ctx.inputs.base_size[0] / wp, self.ctx.inputs.base_size[1] / hp)
+        x0, y0 = int(round(box[0] / f[0])), int(round(box[1] / f[1]))
+        return under[y0 : y0 + crop.shape[0], x0 : x0 + crop.shape[1]]
+
     def table(self, k: int) -> controlpoints.ControlPointTable | None:
         """Frame ``k``'s control-point table (read-only), kept for the recent frames."""
         key = (k, id(self.result()))

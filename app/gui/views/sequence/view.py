@@ -29,7 +29,7 @@ from app.gui import calls, controlpoints, scene2d
 from app.gui.context import Client
 from app.gui.messages import result_started_afresh
 from app.gui.security import escape_md
-from app.gui.views.base import PlayClock, View
+from app.gui.views.base import PLAY_SIDE_FRACTION, PlayClock, View
 from app.gui.views.cptable.table import ControlPointTableView
 from app.gui.views.sequence.earlier import EarlierResults
 from app.gui.views.sequence.export import Exporter
@@ -55,11 +55,6 @@ def fit_fingerprint(edits) -> str:
 MAP_STAGES = ("inter-sensor", ANCHOR_STAGE)
 """Record stages of frames registered to the map itself."""
 FLICKER_S = 0.5
-PLAY_SIDE_FRACTION = 0.5
-"""While playing, frames are warped into a map preview this fraction of the scrubbing one's
-side (``display_max``). In Chromium with software WebGL (`bench app`, 1280x960 frames) the browser
-drew 3.4-3.9 of the 5 frames/s handed to it at the scrubbing size, 4.7-5.0 at 0.75 and all 5 at
-0.5 (3 runs of 3). The frame playback stops on is drawn again at full resolution."""
 SETTLE_S = 0.35
 """After this long on one frame, it is drawn again at the map preview's full resolution."""
 SELECT_RADIUS_PX = 20
@@ -586,10 +581,7 @@ class SequenceView(View):
                 self.scene.show_registered(None, None)
             else:
                 crop, mask, box = reg
-                hp, wp = under_rgb.shape[:2]
-                f = (self.ctx.inputs.base_size[0] / wp, self.ctx.inputs.base_size[1] / hp)
-                x0, y0 = int(round(box[0] / f[0])), int(round(box[1] / f[1]))
-                under = under_rgb[y0 : y0 + crop.shape[0], x0 : x0 + crop.shape[1]]
+                under = self.frames.map_under(reg, side)
                 if overlay == "checkerboard":
                     tile = max(8, under_rgb.shape[1] // 16)
                     img = viz.checkerboard(crop, under, tile=tile, mask=mask)

@@ -46,6 +46,9 @@ class TrafficPanel:
         self.summary_md = gui.add_markdown("")
         self.frame_slider = gui.add_slider("Frame", 0, 1, 1, 0)
         self.play = gui.add_checkbox("Play", False, hint="each vehicle's box, frame by frame")
+        self.show_frame = gui.add_checkbox(
+            "Registered frame under the boxes", True, hint="off: the boxes over the map alone"
+        )
         self.track = gui.add_number("Track id", -1, min=-1, step=1)
         self.track_md = gui.add_markdown("")
         self.plot = gui.add_uplot(
@@ -77,6 +80,14 @@ class TrafficPanel:
 
     def on_frame_changed(self, callback: Callable[[int, Client], None]) -> None:
         on_change(self.frame_slider, int, callback)
+
+    def on_show_frame_changed(self, callback: Callable[[bool, Client], None]) -> None:
+        on_change(self.show_frame, bool, callback)
+
+    @property
+    def frame_shown(self) -> bool:
+        """Whether the registered frame is drawn under the boxes."""
+        return bool(self.show_frame.value)
 
     def on_track_changed(self, callback: Callable[[int, Client], None]) -> None:
         on_change(self.track, int, callback)

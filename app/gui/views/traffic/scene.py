@@ -26,6 +26,15 @@ class TrafficScene(Scene):
     def show_base(self, rgb) -> None:
         self.planes["base"].show(rgb)
 
+    def show_registered(self, patch, box) -> None:
+        """The registered frame (RGB, map preview px) over the map in ``box`` (full base px
+        corner coordinates), under the tracks and boxes; None removes it."""
+        plane = self.planes["base"]
+        if patch is None:
+            plane.remove("registered")
+        else:
+            plane.overlay_image("registered", patch, box=box)
+
     def draw_tracks(self, starts, ends, colours) -> None:
         """Every track's consecutive positions (base px) as segments, ``colours`` (N, 3)."""
         self.planes["base"].segments("tracks", starts, ends, colours, width=2.0)

@@ -24,7 +24,8 @@ import numpy as np
 from app.gui import scene2d
 from app.gui.context import Client
 from app.gui.messages import browser_message
-from app.gui.views.base import PlayClock, View
+from app.gui.views.base import PLAY_SIDE_FRACTION, PlayClock, View
+from app.gui.views.sequence.frames import RegisteredFrames, frame_preview_side
 from app.gui.views.traffic.panel import TrafficPanel
 from app.gui.views.traffic.scene import TrafficScene, speed_colours
 
@@ -66,6 +67,10 @@ class TrafficView(View):
         p.on_find(self.find)
         p.on_settings_changed(self.set_settings)
         p.on_frame_changed(lambda k, client: self.set_frame(k))
+        p.on_show_frame_changed(
+            lambda on, client: self.submit("traffic-vehicles", self.draw_vehicles)
+        )
+        self.frames = RegisteredFrames(self.ctx, self._result)
         p.on_track_changed(lambda tid, client: self.select_track(tid))
         p.on_download(self.download)
         p.on_sections(draw=self.start_section, remove_last=self.remove_last_section)
@@ -78,14 +83,24 @@ class TrafficView(View):
     def shutdown(self) -> None:
         self._stop.set()
 
+    def _result(self):
+        with self.state.lock:
+            return self.state.result
+
     def _ticker(self) -> None:
-        """Playback clock: the next frame every ``PLAY_S`` (base.py) while *Play* is on (posts; never
+        """Playback clock: the next frame every ``PLAY_S`` (base.py) while *Play* is on; when
+        it stops, the frame shown is drawn again from the full-size preview (posts; never
         draws itself)."""
         clock = PlayClock()
+        was_playing = False
         while not self._stop.wait(0.01):
             if not self.visible or self.ctx.inputs is None:
                 continue
-            if clock.due(self.panel.playing, time.monotonic()):
+            playing = self.panel.playing
+            if was_playing and not playing:
+                self.submit("traffic-vehicles", self.draw_vehicles)
+            was_playing = playing
+            if clock.due(playing, time.monotonic()):
                 with self.state.lock:
                     k = (self.state.traffic_frame + 1) % max(self.ctx.inputs.n_frames, 1)
                 self.panel.frame = k  # its callback sets the frame and draws
@@ -423,12 +438,31 @@ class TrafficView(View):
         )  # fmt: skip
 
     def draw_vehicles(self) -> None:
+        """The vehicles of the frame shown, over that frame registered to the map (the local
+        stage's, as the tracks were measured; from the smaller playback preview while
+        playing)."""
         with self.state.lock:
             k, run = self.state.traffic_frame, self.state.traffic
         ids, xy, speed, boxes = self.vehicles_at(k)
         top = run.top_speed if run is not None else 1.0
+        reg, side = None, 2 * self.ctx.display_max
+        if run is not None and self.panel.frame_shown:
+            if self.panel.playing:
+                side = int(PLAY_SIDE_FRACTION * self.ctx.display_max)
+            reg = self.frames.registered(k, "local", side)
+        patch = None
+        if reg is not None:
+            from registration.render import viz
+
+            crop, mask, _ = reg
+            # The frame where it has pixels, the map around them (the footprint's box).
+            patch = viz.blend(crop, self.frames.map_under(reg, side), 1.0, mask=mask)
         with self.ctx.atomic():
+            self.scene.show_registered(patch, None if reg is None else reg[2])
             self.scene.draw_vehicles(xy, speed_colours(speed, top), boxes)
+        if reg is not None:  # read the next frames ahead, as playback will want them
+            guess = frame_preview_side(reg[0].shape[1], reg[0].shape[0])
+            self.ctx.inputs.prefetch([k + 1, k + 2], preview_sides=(guess,))
 
     def draw_selected(self) -> None:
         with self.state.lock:
