@@ -691,7 +691,7 @@ class SequenceView(View):
                 parts.append(f"{label} {v:.3g}" if isinstance(v, float) else f"{label} {v}")
         adjustment = stats.get("adjustment")
         if isinstance(adjustment, dict):
-            parts.append(adjustment_text(adjustment))
+            parts.append(adjustment_text(adjustment, rec.stage in MAP_STAGES))
         lens = stats.get("lens")
         if isinstance(lens, dict) and lens.get("reason"):
             # The reference frame's estimate of the lens beyond Harris, and whether it was used.
@@ -729,13 +729,16 @@ def predicted_errors(records) -> np.ndarray | None:
     return np.array([np.nan if v is None else float(v) for v in values])
 
 
-def adjustment_text(adjustment: dict) -> str:
-    """A frame's outcome of the sequence adjustment, for the frame's line (markdown)."""
+def adjustment_text(adjustment: dict, to_map: bool = False) -> str:
+    """A frame's outcome of the sequence adjustment, for the frame's line (markdown);
+    ``to_map``: the frame's control points were measured on the map itself (the reference frame
+    and re-anchored frames), not on the mid base image and the previous frame."""
+    on = "the map" if to_map else "the mid base image and the previous frame"
     text = (
         f"adjusted with its neighbours: predicted error "
         f"{adjustment.get('predicted_error_px', float('nan')):.2f} base px, "
         f"{adjustment.get('n_links', 0)} link points, "
-        f"{adjustment.get('n_controls', 0)} control points to the map"
+        f"{adjustment.get('n_controls', 0)} control points on {on}"
     )
     if adjustment.get("n_map_points"):
         n = adjustment["n_map_points"]
