@@ -1530,6 +1530,9 @@ def test_traffic_view_finds_tracks_on_the_map(tmp_path, traffic_seq, make_app):
     app.jobs.join(600)
     app.worker.wait_idle()
     assert app.state.result is not None, app.errors
+    exporter = app.views["Sequence"].exporter
+    exporter.refresh()
+    assert exporter.panel.formats["traffic"].disabled  # no traffic run yet
     app.set_mode("Traffic")
     tv = app.views["Traffic"]
     # A plain base map and image frames: metres and times must be given, and the view says so.
@@ -1630,6 +1633,23 @@ def test_traffic_view_finds_tracks_on_the_map(tmp_path, traffic_seq, make_app):
     assert f"| S1 | {compass} |" in tv.panel.counts_md.content, tv.panel.counts_md.content
     assert tv.download("counts.csv") and sent[-1][1].startswith(b"section,direction,heading")
     assert json.loads((app.project.folder / "project.json").read_text())["traffic_sections"]
+    # The Sequence view's Export panel exports the traffic files too: copies of the run's.
+    exporter.refresh()
+    assert not exporter.panel.formats["traffic"].disabled
+    assert exporter.request(formats=["traffic"])
+    app.jobs.join(120)
+    app.worker.wait_idle()
+    expected = {p.name for p in exporter.traffic_files()}
+    assert {"tracks.csv", "trajectories.geojson", "velocity_field.tif", "counts.csv"} <= expected
+    copied = app.project.folder / "exports" / "traffic"
+    assert {p.name for p in copied.iterdir()} == expected
+    assert all((copied / n).read_bytes() == (tv.out_dir / n).read_bytes() for n in expected)
+    assert any(label.startswith("traffic: ") for label in exporter.format_of_label)
+    # Exporting again asks before replacing them.
+    assert not exporter.request(formats=["traffic"])
+    assert exporter.answer("overwrite")
+    app.jobs.join(120)
+    app.worker.wait_idle()
     tv.remove_last_section()
     app.worker.wait_idle()
     assert not app.state.traffic_sections and tv.panel.counts_md.content == ""

@@ -24,7 +24,7 @@ from pathlib import Path
 from app.gui.context import Client, ViewContext
 from app.gui.messages import browser_message
 from app.gui.security import escape_md
-from app.gui.views.sequence.export_panel import ExportPanel
+from app.gui.views.sequence.export_panel import TRAFFIC, ExportPanel
 from app.progress import human_size as _size
 
 EXPORT_DIR = "exports"
@@ -72,7 +72,10 @@ class Exporter:
             r = self.state.result
         georef = self.georef()
         ok = r is not None and any(r.is_ok(k) for k in range(r.n_frames))
-        self.panel.show_availability(set(MAP_FORMATS) if georef is None else set(), ok)
+        unavailable = set(MAP_FORMATS) if georef is None else set()
+        if not self.traffic_files():
+            unavailable.add(TRAFFIC)
+        self.panel.show_availability(unavailable, ok)
         self.panel.show_georef(
             f"_{NO_GEOREF}_"
             if georef is None
@@ -114,13 +117,37 @@ class Exporter:
             return None
         return PointMarks(marks=marks, order=sorted(marks), source="app")
 
+    def traffic_files(self) -> list[Path]:
+        """The files of the Traffic view's run of the open result (its own outputs and the
+        road sections' counts); none when there is no run, or it was made from another
+        result."""
+        import json
+
+        with self.state.lock:
+            run, result = self.state.traffic, self.state.result
+        if run is None or result is None:
+            return []
+        try:
+            identity = json.loads((run.out / "traffic.json").read_text())
+        except (OSError, ValueError):
+            return []
+        if identity.get("result") != str(Path(result.out_dir).resolve()):
+            return []
+        names = [*run.summary.get("files", []), "counts.csv", "crossings.csv"]
+        return [run.out / n for n in names if (run.out / n).is_file()]
+
     def target(self, result, formats, marks, folder: Path) -> list[Path]:
         """The files of ``formats`` that already exist in ``folder``."""
         from registration.gis import planned_files, resolve_formats
 
-        planned = copy.copy(result)
-        planned.georef = self.georef()
-        files = planned_files(planned, folder, resolve_formats(formats), marks)
+        files = (
+            [folder / TRAFFIC / p.name for p in self.traffic_files()] if TRAFFIC in formats else []
+        )
+        formats = [f for f in formats if f != TRAFFIC]
+        if formats:
+            planned = copy.copy(result)
+            planned.georef = self.georef()
+            files += planned_files(planned, folder, resolve_formats(formats), marks)
         return [f for f in files if f.exists()]
 
     def next_free_folder(self) -> Path:
@@ -200,23 +227,32 @@ class Exporter:
         inp = self.ctx.inputs
         georef = self.georef()
 
+        traffic = self.traffic_files() if TRAFFIC in formats else []
+        formats = [f for f in formats if f != TRAFFIC]
+
         def job(progress) -> None:
             t0 = time.perf_counter()
             progress(0, None, "starting")
+            summary = {"files": {}, "time_s": {}, "cancelled": False, "n_failed": 0}
             try:
-                # Its own decoder: the export reads every frame in order, the views seek.
-                frames = io_frames.open_frames(inp.frames_path) if inp is not None else None
-                summary = export_result(
-                    result,
-                    folder,
-                    formats,
-                    frames=frames,
-                    georef=georef if result.georef is None else None,
-                    marks=marks,
-                    options=options,
-                    progress=lambda done, total: progress(done, total, "steps"),
-                    cancel=progress.cancel,
-                )
+                if formats:
+                    # Its own decoder: the export reads every frame in order, the views seek.
+                    frames = io_frames.open_frames(inp.frames_path) if inp is not None else None
+                    summary = export_result(
+                        result,
+                        folder,
+                        formats,
+                        frames=frames,
+                        georef=georef if result.georef is None else None,
+                        marks=marks,
+                        options=options,
+                        progress=lambda done, total: progress(done, total, "steps"),
+                        cancel=progress.cancel,
+                    )
+                if traffic and not summary["cancelled"]:
+                    t1 = time.perf_counter()
+                    summary["files"][TRAFFIC] = copy_traffic(traffic, folder / TRAFFIC, force)
+                    summary["time_s"][TRAFFIC] = time.perf_counter() - t1
             except Exception as exc:  # the library's one-line reasons; a bug said as such
                 self.show_error(browser_message(exc), client)
                 return
@@ -302,6 +338,22 @@ class Exporter:
     def _send_zip(self, name: str, folder: Path, paths: list[Path], client) -> None:
         self.ctx.send_download(client, name, zip_files(folder, paths))
         self.ctx.notify(client, name, f"{len(paths)} files from {folder} sent", color="green")
+
+
+def copy_traffic(paths: list[Path], out: Path, force: bool) -> list[Path]:
+    """Copy a traffic run's files into ``out`` (each written atomically); an existing file is
+    replaced only with ``force`` (FileExistsError naming it otherwise)."""
+    from registration.io.atomic import write_bytes_atomic
+
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    for p in paths:
+        target = out / p.name
+        if target.exists() and not force:
+            raise FileExistsError(f"{target} exists: export with overwrite or into a new folder")
+        write_bytes_atomic(target, p.read_bytes())
+        written.append(target)
+    return written
 
 
 def zip_files(folder: Path, paths: list[Path]) -> bytes:

@@ -23,6 +23,13 @@ FORMAT_LABELS = {
     "gpkg": "GeoPackage",
 }
 """Format (``registration.gis.export.FORMATS``) -> checkbox label, in the panel's order."""
+TRAFFIC = "traffic"
+"""The export's one format that is not the registration's: the Traffic view's files."""
+TRAFFIC_HINT = (
+    "the Traffic view's run of this result: tracks.csv, tracksMeta.csv, recordingMeta.csv, "
+    "tracks_wgs84.csv, trajectories.geojson and .gpkg, velocity_field.tif, and counts.csv with "
+    "crossings.csv where road sections are drawn"
+)
 DEFAULT_FORMATS = ("mp4", "transforms")
 VECTOR_CRS = {"the map's CRS": None, "WGS 84 (longitude, latitude)": "EPSG:4326"}
 NO_DOWNLOAD = "(nothing exported yet)"
@@ -67,6 +74,8 @@ class ExportPanel:
             f: gui.add_checkbox(label, f in DEFAULT_FORMATS, hint=FORMATS[f])
             for f, label in FORMAT_LABELS.items()
         }
+        self.formats[TRAFFIC] = gui.add_checkbox("Traffic (tracks, velocity field, counts)", False,
+                                                 hint=TRAFFIC_HINT)  # fmt: skip
         gui.add_markdown(
             "_Frames are registered into the map's pixel grid, each cropped to its footprint; "
             "GeoJSON and GeoPackage hold the control points, the frames' footprints and the "
