@@ -26,17 +26,20 @@ import cv2
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-# (stage, the profiled function whose cumulative time it is), in pipeline order. Functions are
-# named as pstats names them: (file suffix, line-independent function name).
+# (stage, the profiled function whose cumulative time it is[, only its calls from this
+# function]), in pipeline order; a function is named by its file's path and its name (the
+# file "~": a built-in, as pstats names it).
 OURS = (
-    ("decode the frame", "registration/run/intra_frames.py", "read_frame"),
+    ("decode the frame", "registration/run/intra_frames.py", "read_frame", "_chunk_frames"),
     ("coarse step (fast path)", "registration/global_registration/intra.py", "_intra_coarse"),
     ("control points (templates)", "registration/global_registration/intra.py",
      "_intra_control_points"),
-    ("fine fit (REQCON, LM)", "registration/global_registration/fine.py", "fit_fine"),
+    ("fine fit (REQCON, LM)", "registration/global_registration/fine.py", "fit_fine",
+     "register_intra"),
     ("local stage (DIS flow + field)", "registration/run/intra_frames.py", "_local_stage"),
-    ("... of which DIS flow", "~", "<method 'calc' of 'cv2.DenseOpticalFlow' objects>"),
-    ("write the frame's record", "registration/run/writer.py", "write_frame"),
+    ("... of which DIS flow", "registration/matching/dense_flow.py", "frame_flow",
+     "frame_flow_matches"),
+    ("write the frame's record", "registration/run/writer.py", "write_frame", "_write_outputs"),
     ("adjustment: links between frames", "registration/adjustment/sequence.py", "links"),
     ("... of which decoding frames again", "registration/run/adjust.py", "grey"),
     ("adjustment: window solves", "registration/adjustment/solve.py", "adjust_models"),
@@ -51,18 +54,23 @@ STABILO = (
 )  # fmt: skip
 
 
-def _cumulative(stats: pstats.Stats, file_suffix: str, name: str) -> float:
+def _cumulative(stats: pstats.Stats, file_suffix: str, name: str, caller: str = "") -> float:
+    """Cumulative CPU seconds of a function (of its calls from ``caller`` when given)."""
     total = 0.0
-    for (file, _, func), (_, _, _, cum, _) in stats.stats.items():
-        if func == name and (file_suffix == "~" or file.endswith(file_suffix)):
+    for (file, _, func), (_, _, _, cum, callers) in stats.stats.items():
+        if func != name or not (file_suffix == "~" or file.endswith(file_suffix)):
+            continue
+        if not caller:
             total += cum
+        else:
+            total += sum(c[3] for (_, _, f), c in callers.items() if f == caller)
     return total
 
 
 def _table(title: str, stats: pstats.Stats, rows, n: int, whole: float) -> list[str]:
     out = [f"| {title} | CPU s per frame | share |", "|---|---:|---:|"]
-    for label, file_suffix, name in rows:
-        s = _cumulative(stats, file_suffix, name) / n
+    for label, *function in rows:
+        s = _cumulative(stats, *function) / n
         out.append(f"| {label} | {s:.4f} | {s / whole:.0%} |")
     out.append(f"| **all (profiled run, per frame)** | **{whole:.4f}** | 100% |")
     return out
@@ -98,7 +106,8 @@ def main() -> None:
     )  # fmt: skip
     prof.disable()
     ours = pstats.Stats(prof)
-    intra = _cumulative(ours, "registration/run/intra_frames.py", "_chunk_frames")
+    # The intra-sensor frames: registered and written (the reference frame is its own step).
+    intra = _cumulative(ours, "registration/run/pipeline.py", "_write_outputs")
     adjust = _cumulative(ours, "registration/run/adjust.py", "adjust_result")
     whole = (intra + adjust) / n_intra
 
