@@ -117,7 +117,8 @@ def test_plain_base_disables_map_formats_asks_before_overwriting_and_downloads(
     # Map formats are disabled, and the panel says why in one line.
     disabled = {f for f, box in panel.formats.items() if box.disabled}
     # (.points of a plain base are in its own pixel grid, as the Seed view and the CLI write.)
-    assert disabled == {"geotiff", "cog", "mosaic", "geojson", "gpkg"}
+    # (and the traffic files: the Traffic view has not run)
+    assert disabled == {"geotiff", "cog", "mosaic", "geojson", "gpkg", "traffic"}
     assert "has no georeference" in panel.georef_md.content
     assert not panel.btn_export.disabled
     # Video + transforms: written into exports/, progress reported up to its total.
@@ -179,7 +180,8 @@ def test_georeferenced_base_exports_geotiff_points_geojson_and_cancels(open_regi
     assert georef is not None and georef.epsg == 32643
     seq = app.views["Sequence"]
     ex = seq.exporter
-    assert not any(box.disabled for box in ex.panel.formats.values())
+    assert not any(box.disabled for f, box in ex.panel.formats.items() if f != "traffic")
+    assert ex.panel.formats["traffic"].disabled  # no traffic run
     assert "EPSG:32643" in ex.panel.georef_md.content
     assert run_export(app, ["geotiff", "points", "geojson"])
     out = app.project.folder / "exports"

@@ -179,7 +179,7 @@ def test_the_library_never_imports_the_app_or_viser():
 # ------------------------------------------------------------------------------------------
 # The app: the command line and the browser app apart, views behind the context protocol.
 
-SHARED_VIEW_PARTS = ("base", "widgets", "cptable")
+SHARED_VIEW_PARTS = ("base", "widgets", "cptable", "frames")
 """Modules of ``app.gui.views`` every view may use (not views themselves)."""
 PANEL_MODULES = ("panel", "export_panel", "widgets")
 """Modules of ``app.gui.views`` that own viser widgets (the only ones that read their values)."""
@@ -284,7 +284,7 @@ def test_views_touch_widgets_only_through_their_panels():
 def test_app_rules_find_planted_breaches():
     graph = {
         "app.gui.server": {"app.gui.views.seed.view", "app.cli.common"},
-        "app.gui.views.seed.view": {"app.gui.server", "app.gui.views.sequence.frames"},
+        "app.gui.views.seed.view": {"app.gui.server", "app.gui.views.sequence.scene"},
         "app.gui.views.seed.panel": {"app.gui.views.cptable.panel", "app.gui.views.widgets"},
         "app.cli.commands.app": {"app.gui"},
         "app.cli.commands.register": {"app.gui.project"},
@@ -299,7 +299,7 @@ def test_app_rules_find_planted_breaches():
         "app.gui.views.evaluate.view imports app.gui"
     ]
     assert _views_importing_views(graph) == [
-        "app.gui.views.seed.view imports app.gui.views.sequence.frames"
+        "app.gui.views.seed.view imports app.gui.views.sequence.scene"
     ]
     assert _widget_values(
         "x = panel.gamma_slider.value\npanel.md.content = 'a'\ny = panel.gamma\n"

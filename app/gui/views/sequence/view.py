@@ -31,9 +31,9 @@ from app.gui.messages import result_started_afresh
 from app.gui.security import escape_md
 from app.gui.views.base import PLAY_SIDE_FRACTION, PlayClock, View
 from app.gui.views.cptable.table import ControlPointTableView
+from app.gui.views.frames import RegisteredFrames, excursion_flags, frame_preview_side
 from app.gui.views.sequence.earlier import EarlierResults
 from app.gui.views.sequence.export import Exporter
-from app.gui.views.sequence.frames import RegisteredFrames, excursion_flags, frame_preview_side
 from app.gui.views.sequence.map_points import MapPointsTool
 from app.gui.views.sequence.panel import DisplayOptions, SequencePanel
 from app.gui.views.sequence.scene import RESIDUAL_OK, RESIDUAL_REMOVED, SequenceScene

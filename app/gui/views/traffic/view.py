@@ -25,7 +25,7 @@ from app.gui import scene2d
 from app.gui.context import Client
 from app.gui.messages import browser_message
 from app.gui.views.base import PLAY_SIDE_FRACTION, PlayClock, View
-from app.gui.views.sequence.frames import RegisteredFrames, frame_preview_side
+from app.gui.views.frames import RegisteredFrames, frame_preview_side
 from app.gui.views.traffic.panel import TrafficPanel
 from app.gui.views.traffic.scene import TrafficScene, speed_colours
 

@@ -1,6 +1,6 @@
-"""What the Sequence view shows of a registration result, computed and kept for reuse: each frame
-warped into the map over its footprint (at scrubbing or full resolution), each frame's
-control-point table, the per-frame residual RMS and its sudden excursions.
+"""What the Sequence and Traffic views show of a registration result, computed and kept for
+reuse: each frame warped into the map over its footprint (at scrubbing or full resolution), each
+frame's control-point table, the per-frame residual RMS and its sudden excursions.
 
 Scrubbing is fast because the frame is warped at display resolution from a preview of the frame
 (decoded ahead by :meth:`app.gui.inputs.Inputs.prefetch`) and only its footprint is rendered.
