@@ -9,7 +9,9 @@
   frames; a click on the per-frame chart to that frame shown.
 * Browser side (Debian chromium, software WebGL on this machine: an upper bound, a GPU browser
   is far faster): page load to the frame on the canvas; frame rate while panning the Seed view
-  with its review overlays; JS heap and chromium's resident memory.
+  with its review overlays; playback in the Sequence view (frames handed to viser per second,
+  and frames the browser shows, counted as WebGL texture uploads: :data:`JS_TEXTURES`); JS
+  heap and chromium's resident memory.
 
 Figures of the previous app (commit 40ed87e, measured the same way on this machine) are in
 ``BEFORE``, printed beside today's.
