@@ -9,7 +9,7 @@ profiler).
 
 Usage::
 
-    python tools/cpu_by_stage.py --size 1280x960 --frames 10
+    python tools/cpu_by_stage.py --size 1280x960 --frames 10 [--stats ours.prof]
 """
 
 from __future__ import annotations
@@ -81,6 +81,7 @@ def main() -> None:
     parser.add_argument("--size", default="1280x960")
     parser.add_argument("--frames", type=int, default=10)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--stats", help="also write our run's profile here (pstats format)")
     args = parser.parse_args()
     w, h = (int(v) for v in args.size.split("x"))
 
@@ -106,6 +107,8 @@ def main() -> None:
     )  # fmt: skip
     prof.disable()
     ours = pstats.Stats(prof)
+    if args.stats:
+        ours.dump_stats(args.stats)
     # The intra-sensor frames: registered and written (the reference frame is its own step).
     intra = _cumulative(ours, "registration/run/pipeline.py", "_write_outputs")
     adjust = _cumulative(ours, "registration/run/adjust.py", "adjust_result")
