@@ -23,7 +23,15 @@ points kept over those found, mean and lowest over our registered frames.
 Times per intra-sensor frame: the stages as each frame's record gives them (``read`` = waiting
 for the decoded frame), and the marginal wall time per frame (the time between the progress
 reports of the first and the last intra-sensor frame, over their number: decoding, writing and
-anything the stages do not count included, threads overlapping included)."""
+anything the stages do not count included, threads overlapping included).
+
+CPU per frame (issue 37's measure), for every row: the process's CPU seconds over all its threads
+(``time.process_time``) per frame after the first, decoding and lens correction included for
+ours and for the baselines (theirs stamped before each frame is decoded), and a video's ffmpeg
+decoder process's CPU too; ours split into the registration (between the progress reports of the
+first and the last intra-sensor frame) and the sequence adjustment with the result's last writes
+(after the last report, spread over all frames). Where that CPU goes by stage:
+``tools/cpu_by_stage.py``."""
 
 from __future__ import annotations
 

@@ -46,6 +46,11 @@ def test_register_bench_on_a_hard_flight_reports_each_method_over_the_flight(cap
                 atol=1e-4,
             )
         assert row["times"]["total"] > 0
+        # CPU per frame, decoding included: positive for every method, ours split in two.
+        cpu = row["cpu"]
+        assert cpu["total"] > 0 and cpu["registration"] > 0, (key, cpu)
+        assert cpu["total"] == pytest.approx(cpu["registration"] + cpu["adjustment"])
+    assert rows["default"]["cpu"]["adjustment"] > 0 and rows["fast"]["cpu"]["adjustment"] < 0.05
     ours = rows["default"]
     assert ours["failed_frames"] == 0 and ours["local"]["frames_off"] == 0
     kept = ours["reqcon_kept"]
