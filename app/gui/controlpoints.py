@@ -264,20 +264,19 @@ def read_qgis_points(path, frame_size, base_size, georef=None) -> tuple[NDArray,
     name = Path(path).name
     data = read_points_file(path)
     crs = data["crs"]
-    if georef is not None:
-        if crs and georef.crs is not None and not parse_crs(crs).equals(georef.crs):
-            raise ValueError(
-                f"{name}: its map coordinates are in {parse_crs(crs).name}, the base map's in "
-                f"{georef.crs.name}"
-            )
-        base = georef.base_from_map(data["map"]) if len(data["map"]) else data["map"]
-    elif crs:
+    if georef is None and crs:
         raise ValueError(
             f"{name}: its map coordinates are in {parse_crs(crs).name}, and the base map has no "
             "georeference"
         )
-    else:
-        base = PIXEL_GRID.base_from_map(data["map"]) if len(data["map"]) else data["map"]
+    if georef is not None and crs and georef.crs is not None:
+        if not parse_crs(crs).equals(georef.crs):
+            raise ValueError(
+                f"{name}: its map coordinates are in {parse_crs(crs).name}, the base map's in "
+                f"{georef.crs.name}"
+            )
+    grid = PIXEL_GRID if georef is None else georef  # a plain base: its own pixel grid
+    base = grid.base_from_map(data["map"]) if len(data["map"]) else data["map"]
     src = data["source"]
     if not len(src):
         raise ValueError(f"{name}: no control points")

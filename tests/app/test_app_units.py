@@ -132,6 +132,9 @@ def test_qgis_points_plain_and_georeferenced(known, tmp_path):
     with pytest.raises(ValueError, match=r"geo.points: its map coordinates are in WGS 84 / UTM "
                        r"zone 12N, the base map's in WGS 84 / UTM zone 13N"):  # fmt: skip
         controlpoints.read_qgis_points(tmp_path / "geo.points", (640, 480), (2000, 2000), other)
+    with pytest.raises(ValueError, match=r"geo.points: its map coordinates are in WGS 84 / UTM "
+                       r"zone 12N, and the base map has no georeference"):  # fmt: skip
+        controlpoints.read_qgis_points(tmp_path / "geo.points", (640, 480), (2000, 2000), None)
 
 
 def test_clip_segments_known_cases():

@@ -70,10 +70,10 @@ class TrafficView(View):
         p.on_show_frame_changed(
             lambda on, client: self.submit("traffic-vehicles", self.draw_vehicles)
         )
-        self.frames = RegisteredFrames(self.ctx, self._result)
         p.on_track_changed(lambda tid, client: self.select_track(tid))
         p.on_download(self.download)
         p.on_sections(draw=self.start_section, remove_last=self.remove_last_section)
+        self.frames = RegisteredFrames(self.ctx, self._result)
         self.selected = -1
         self._drawing = False
         self._section_start: tuple[float, float] | None = None
