@@ -40,6 +40,8 @@ OURS = (
     ("... of which DIS flow", "registration/matching/dense_flow.py", "frame_flow",
      "frame_flow_matches"),
     ("write the frame's record", "registration/run/writer.py", "write_frame", "_write_outputs"),
+    ("links to the frames before (for the adjustment)", "registration/run/chunk_links.py",
+     "add"),
     ("adjustment: links between frames", "registration/adjustment/sequence.py", "links"),
     ("... of which decoding frames again", "registration/run/adjust.py", "grey"),
     ("adjustment: window solves", "registration/adjustment/solve.py", "adjust_models"),

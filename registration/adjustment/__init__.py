@@ -10,7 +10,12 @@ from registration.adjustment.fields import (
     refined_grid,
     solve_corrections,
 )
-from registration.adjustment.links import measure_links
+from registration.adjustment.links import (
+    link_key,
+    links_from_arrays,
+    links_to_arrays,
+    measure_links,
+)
 from registration.adjustment.map_points import (
     FrameMapPoints,
     MapPoint,
@@ -57,6 +62,9 @@ __all__ = [
     "moved_onto",
     "similarity_onto",
     "as_polyprojective",
+    "link_key",
+    "links_from_arrays",
+    "links_to_arrays",
     "measure_links",
     "predicted_error",
     "refined_grid",

@@ -11,6 +11,9 @@ enough to matter (roofs seen from two places).
 
 from __future__ import annotations
 
+import hashlib
+import json
+
 import cv2
 import numpy as np
 from numpy.typing import NDArray
@@ -61,6 +64,41 @@ def measure_links(
         # registration went wrong) or the patches changed: the search by correlation then.
         src_k, src_l = _robust_links(grey_k, grey_l, p, q, lens, cfg, "ncc")
     return FrameLinks(k, l, src_k, src_l)
+
+
+def link_key(model_k, model_l, lens, config: ProbeConfig, matcher: str) -> NDArray[np.uint8]:
+    """``(20,)`` uint8: what :func:`measure_links` measures a pair through (the two models, the
+    lens, the probes' settings and the matcher), as a SHA-1 digest. Links stored with their
+    key stand for a measurement again exactly when the key is the same: the frames themselves
+    are the run's (a result folder checks its frames' identity)."""
+    text = json.dumps(
+        [model_k.to_dict(), model_l.to_dict(), repr(lens), repr(config), matcher], sort_keys=True
+    )
+    return np.frombuffer(hashlib.sha1(text.encode()).digest(), np.uint8).copy()
+
+
+# Arrays of stored links in a frame's ``.npz``: ``links_{k}_{l}_{src_k|src_l|key}``.
+LINKS_PREFIX = "links_"
+
+
+def links_to_arrays(links: FrameLinks, key: NDArray[np.uint8]) -> dict[str, NDArray]:
+    """The arrays that store ``links`` (measured through ``key``, :func:`link_key`)."""
+    name = f"{LINKS_PREFIX}{links.k}_{links.l}_"
+    return {name + "src_k": links.src_k, name + "src_l": links.src_l, name + "key": key}
+
+
+def links_from_arrays(arrays) -> dict[tuple[int, int], tuple[FrameLinks, NDArray[np.uint8]]]:
+    """The links stored in ``arrays`` (a name -> array mapping, :func:`links_to_arrays`) by
+    frame pair ``(k, l)``, each with its key."""
+    out = {}
+    for name in arrays:
+        if name.startswith(LINKS_PREFIX) and name.endswith("_key"):
+            k, l = (int(v) for v in name[len(LINKS_PREFIX) : -len("_key")].split("_"))  # noqa: E741
+            stem = f"{LINKS_PREFIX}{k}_{l}_"
+            src_k = np.asarray(arrays[stem + "src_k"], np.float64).reshape(-1, 2)
+            src_l = np.asarray(arrays[stem + "src_l"], np.float64).reshape(-1, 2)
+            out[(k, l)] = FrameLinks(k, l, src_k, src_l), np.asarray(arrays[name], np.uint8)
+    return out
 
 
 def _robust_links(grey_k, grey_l, p, q, lens, cfg: ProbeConfig, matcher: str):

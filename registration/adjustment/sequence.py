@@ -23,7 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from registration.adjustment.fields import FieldSolveConfig
-from registration.adjustment.links import measure_links
+from registration.adjustment.links import link_key, measure_links
 from registration.adjustment.map_points import FrameMapPoints
 from registration.adjustment.solve import (
     AdjustmentConfig,
@@ -232,6 +232,10 @@ class SequenceEvidence:
             other frame's control points were measured on is made of it).
         map_points: the analyst's map points of a frame, and what they made of its evidence
             (``models`` and ``controls`` already say it: :func:`apply_map_points`).
+        stored_links: ``(k, l) -> (links, key)`` measured earlier (as the frames were
+            registered), or None; used where the key says they were measured through the
+            models, lens and settings a measurement now would use (:func:`link_key`), so the
+            frames need not be read again.
     """
 
     models: list[PolyProjective | None]
@@ -241,6 +245,7 @@ class SequenceEvidence:
     outline: NDArray[np.float64]
     fixed: frozenset[int] = frozenset()
     map_points: Mapping[int, FrameMapPoints] = field(default_factory=dict)
+    stored_links: Callable[[int, int], tuple[FrameLinks, NDArray] | None] | None = None
     _links: dict = field(default_factory=dict, repr=False)
     _probes: dict = field(default_factory=dict, repr=False)
 
@@ -253,6 +258,12 @@ class SequenceEvidence:
     ) -> FrameLinks:
         """Links between frames ``k`` and ``l``, measured once through their own models."""
         if (k, l) not in self._links:
+            stored = self.stored_links(k, l) if self.stored_links is not None else None
+            if stored is not None and np.array_equal(
+                stored[1], link_key(self.models[k], self.models[l], self.lens, probes, matcher)
+            ):
+                self._links[(k, l)] = stored[0]
+                return stored[0]
             if k not in self._probes:
                 self._probes[k] = textured_probes(self.grey(k), probes_for(self.grey(k), probes))
             self._links[(k, l)] = measure_links(

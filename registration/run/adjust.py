@@ -27,6 +27,7 @@ from registration.adjustment import (
     adjust_sequence,
     apply_map_points,
     as_polyprojective,
+    links_from_arrays,
     measure_links,
     refined_grid,
     solve_corrections,
@@ -41,6 +42,8 @@ from registration.run.writer import ResultWriter
 
 # Frames kept decoded: a window's links reach this far back at most.
 _GREY_CACHE = 64
+# Frames whose stored links are kept read (a pair's are with one of its two frames).
+_LINKS_CACHE = 16
 
 
 def adjust_folder(
@@ -240,8 +243,26 @@ def _evidence(result: RegistrationResult, frames, config: SequenceAdjustConfig) 
         models[k], controls[k], map_points[k] = mp.start, mp.controls, mp
     return SequenceEvidence(
         models, controls, grey, result.lens, _outline(result),
-        frozenset({result.reference_frame}), map_points,
+        frozenset({result.reference_frame}), map_points, _stored_links(result),
     )  # fmt: skip
+
+
+def _stored_links(result: RegistrationResult) -> Callable:
+    """``(k, l) -> (links, key)`` or None: the links the run measured as it registered the later
+    of the two frames (:mod:`registration.run.chunk_links`), read from that frame's arrays."""
+    read: OrderedDict[int, dict] = OrderedDict()
+
+    def stored(k: int, l: int):  # noqa: E741 (the second frame)
+        for holder in (l, k):
+            if holder not in read:
+                read[holder] = links_from_arrays(result.stored_links(holder))
+                while len(read) > _LINKS_CACHE:
+                    read.popitem(last=False)
+            if (k, l) in read[holder]:
+                return read[holder][(k, l)]
+        return None
+
+    return stored
 
 
 def _links_through(k: int, models, grey, lens, config: SequenceAdjustConfig, model) -> float:

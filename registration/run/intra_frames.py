@@ -38,6 +38,7 @@ from registration.io import FrameSource
 from registration.lens import Camera
 from registration.local import LocalConfig, frame_field
 from registration.run.anchoring import Anchoring, render_anchor
+from registration.run.chunk_links import ChunkLinks, linked_done_frames
 from registration.run.chunks import (
     Chunk,
     ChunkContext,
@@ -85,8 +86,29 @@ def run_chunk(context: ChunkContext, job: ChunkJob) -> Iterator[FrameOutput]:
     the joint base (an anchor) waits for the local stages in flight, so the result is the
     serial one to the bit (:func:`_overlapping`)."""
     todo = [k for k in job.chunk.frames if k not in job.done]
+    links = _chunk_links(context, job)
     with _overlapping(context, todo) as (frames, local):
-        yield from _chunk_frames(context, job, frames, local)
+        for k, record, arrays, frame in _chunk_frames(context, job, frames, local):
+            if links is not None and record.ok:
+                arrays = {**(arrays or {}), **links.add(k, frame, record.model)}
+            yield k, record, arrays
+
+
+def _chunk_links(ctx: ChunkContext, job: ChunkJob) -> ChunkLinks | None:
+    """The links the chunk's frames measure as they are registered, for the sequence
+    adjustment (None without it), with the frames they link to that the chunk does not
+    register (the reference frame for a chunk that follows it; those a resumed chunk has) read
+    again (:mod:`registration.run.chunk_links`)."""
+    adjust = ctx.config.adjust
+    if adjust is None:
+        return None
+    links = ChunkLinks(adjust, ctx.camera.lens, tuple(ctx.frames.size))
+    ref = ctx.reference_frame
+    if job.chunk.follows_reference and any(abs(k - ref) in adjust.link_steps for k in job.todo):
+        links.remember(ref, ctx.frames.get(ref), ctx.reference_model)
+    for k in linked_done_frames(job.chunk.frames, job.done, adjust.link_steps):
+        links.remember(k, ctx.frames.get(k), job.done[k].model)
+    return links
 
 
 @contextmanager
@@ -118,9 +140,10 @@ def _overlapping(ctx: ChunkContext, todo: list[int]):
             cv2.setNumThreads(cv_threads)
 
 
-def _chunk_frames(ctx: ChunkContext, job: ChunkJob, frames, local) -> Iterator[FrameOutput]:
-    """The frames of ``job`` registered in order (:func:`run_chunk`): read from ``frames``, their
-    local stages run by ``local``; done frames replayed from their records."""
+def _chunk_frames(ctx: ChunkContext, job: ChunkJob, frames, local) -> Iterator[tuple]:
+    """The frames of ``job`` registered in order (:func:`run_chunk`), as ``(k, record, arrays,
+    frame)`` (``frame``: the raw image, None where it could not be read): read from
+    ``frames``, their local stages run by ``local``; done frames replayed from their records."""
     cfg = ctx.config
     local_cfg = _local_config(cfg)
     joint = ctx.joint_base()
@@ -133,7 +156,7 @@ def _chunk_frames(ctx: ChunkContext, job: ChunkJob, frames, local) -> Iterator[F
         """Yield the pending frames in order: those done, then more until ``keep`` are left."""
         while pending and (len(pending) > keep or local.done(pending[0][0])):
             k, glob, frame = pending.pop(0)
-            yield k, *glob.finish(*local.result(k))[:2]
+            yield k, *glob.finish(*local.result(k))[:2], frame
 
     for k in job.chunk.frames:
         done = job.done.get(k)
@@ -155,7 +178,7 @@ def _chunk_frames(ctx: ChunkContext, job: ChunkJob, frames, local) -> Iterator[F
             # frame takes the last good one as its previous frame).
             models[k] = None
             yield from finish_pending()
-            yield k, FrameRecord.failed(problem), None
+            yield k, FrameRecord.failed(problem), None, None
             continue
         prev = _predecessor(k, job.chunk, models, ctx.reference_frame)
         _set_previous(joint, ctx, prev, models)
@@ -186,7 +209,7 @@ def _chunk_frames(ctx: ChunkContext, job: ChunkJob, frames, local) -> Iterator[F
         times = record.stats.get("time_s")
         if times is not None and "read" not in times:
             record = record.with_stats(time_s={**times, "read": round(t_read, 4)})
-        yield k, record, arrays
+        yield k, record, arrays, frame
     yield from finish_pending()
 
 

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from registration.adjustment.links import LINKS_PREFIX
 from registration.coords import as_points
 from registration.errors import NotGeoreferenced
 from registration.gis import GeoReference
@@ -200,7 +201,9 @@ class RegistrationResult:
             if self.records[k].may_have_arrays(path):
                 try:
                     with np.load(path) as z:
-                        arrays = {name: z[name] for name in z.files}
+                        # Links between frames are read only by the sequence adjustment,
+                        # a few frames at a time (:meth:`stored_links`).
+                        arrays = {n: z[n] for n in z.files if not n.startswith(LINKS_PREFIX)}
                 except Exception as exc:  # BadZipFile, EOFError, OSError, ValueError, zlib.error
                     self._damage(k, f"damaged arrays {path.name}: {_first_line(exc)}")
                     return {}
@@ -230,8 +233,24 @@ class RegistrationResult:
         return self.is_ok(k)
 
     def arrays(self, k: int) -> dict[str, NDArray]:
-        """Every array of the frame's ``.npz`` by name (a copy of the dict; empty without)."""
-        return dict(self._npz(k))
+        """Every array of the frame's ``.npz`` by name, its stored links included (a new dict;
+        empty without)."""
+        return {**self._npz(k), **self.stored_links(k)}
+
+    def stored_links(self, k: int) -> dict[str, NDArray]:
+        """The links between frames the run measured as frame ``k`` was registered (arrays
+        :func:`registration.adjustment.links_to_arrays` names; read from the file each time,
+        not kept)."""
+        k = self._check_k(k)
+        path = frame_record_path(self.out_dir, k, ".npz")
+        if not self._npz(k):
+            return {}
+        try:
+            with np.load(path) as z:
+                return {n: z[n] for n in z.files if n.startswith(LINKS_PREFIX)}
+        except Exception as exc:  # as _npz: a file damaged since it was read
+            self._damage(k, f"damaged arrays {path.name}: {_first_line(exc)}")
+            return {}
 
     def control_points(self, k: int):
         """``(src, dst, kept, residuals)`` of the frame's fine step, or None."""

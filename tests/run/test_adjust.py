@@ -147,6 +147,39 @@ def test_interrupted_adjustment_resumes_to_the_same_bits(sim_seq, adjusted, tmp_
         assert a[k]["stats"] == b[k]["stats"], k
 
 
+def test_links_stored_while_registering_give_the_adjustment_to_the_bit(
+    sim_seq, tmp_path, monkeypatch
+):
+    """The links measured as the frames are registered (:mod:`registration.run.chunk_links`)
+    are stored with the frames' arrays, every pair at the adjustment's steps, and spare the
+    adjustment reading the frames again; an adjustment that measures every link itself from the
+    frames ends with the same records and arrays, bit for bit."""
+    import registration.run.adjust as adjust_module
+    from registration.adjustment import links_from_arrays
+
+    decoded = []
+    to_grey = adjust_module.to_grey
+    monkeypatch.setattr(adjust_module, "to_grey", lambda f: (decoded.append(1), to_grey(f))[1])
+    stored = run(sim_seq, tmp_path / "stored", config=_config())
+    pairs = {}
+    for k in range(N_FRAMES):
+        pairs.update(links_from_arrays(stored.stored_links(k)))
+    assert set(pairs) == {(k, k + s) for s in (1, 2) for k in range(N_FRAMES - s)}
+    assert all(len(links.src_k) > 100 for links, _ in pairs.values())
+    assert decoded == []
+
+    monkeypatch.setattr(adjust_module, "_stored_links", lambda result: None)
+    measured = run(sim_seq, tmp_path / "measured", config=_config())
+    assert len(decoded) == N_FRAMES  # the patch took: this adjustment read every frame
+    a, b = _records(stored.out_dir), _records(measured.out_dir)
+    for k in range(N_FRAMES):
+        assert a[k]["adjusted_model"] == b[k]["adjusted_model"], k
+        assert a[k]["stats"]["adjustment"] == b[k]["stats"]["adjustment"], k
+        xa, xb = stored.arrays(k), measured.arrays(k)
+        for name in xa:
+            assert np.array_equal(xa[name], xb[name], equal_nan=xa[name].dtype.kind == "f"), name
+
+
 def test_register_adjust_reports_on_the_command_line(sim_seq, tmp_path, capsys):
     out = tmp_path / "out"
     truth = load_truth(sim_seq)

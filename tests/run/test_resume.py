@@ -124,6 +124,11 @@ def test_killed_and_resumed_run_equals_the_uninterrupted_one(sim, uninterrupted,
             assert np.array_equal(np.isnan(pa), np.isnan(pb))
             gap = np.nanmax(np.hypot(*(pa - pb).T))
             assert gap <= 0.05, f"frame {k} {stage}: {gap:.3f} px from the uninterrupted run"
+        # The links measured as frames were registered: the resumed chunk read again the frames
+        # it had that its next frames link to (registration.run.chunk_links).
+        la, lb = a.stored_links(k), b.stored_links(k)
+        assert la.keys() == lb.keys() and (la or k == REF), (k, sorted(la), sorted(lb))
+        assert all(np.array_equal(la[n], lb[n]) for n in la), k
 
 
 @pytest.fixture(scope="module")
