@@ -60,6 +60,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -283,11 +284,15 @@ def solve_corrections(
 def _smoothness(shapes: Sequence[tuple[int, int]], weights: Sequence[float]) -> sp.csr_matrix:
     """``DᵀWD`` for the differences between 4-neighbouring nodes of each frame's grid, each
     frame's with its weight."""
-    blocks = []
-    for (gy, gx), w in zip(shapes, weights, strict=True):
-        lap = sp.kron(sp.identity(gy), _path(gx)) + sp.kron(_path(gy), sp.identity(gx))
-        blocks.append(w * lap)
+    blocks = [w * _grid_laplacian(gy, gx) for (gy, gx), w in zip(shapes, weights, strict=True)]
     return sp.block_diag(blocks, format="csr")
+
+
+@lru_cache(maxsize=16)
+def _grid_laplacian(gy: int, gx: int) -> sp.csr_matrix:
+    """The graph Laplacian of a ``gy`` x ``gx`` grid of 4-neighbours (the frames of a flight
+    share a few grid shapes: built once each, it was a third of the fields' solve)."""
+    return (sp.kron(sp.identity(gy), _path(gx)) + sp.kron(_path(gy), sp.identity(gx))).tocsr()
 
 
 def _path(n: int) -> sp.csr_matrix:

@@ -308,7 +308,10 @@ def adjust_window(
     controls = [evidence.controls[k] for k in solving if evidence.controls[k] is not None]
     controls += [evidence.map_points[k].points for k in solving if k in evidence.map_points]
     priors = [_prior(k, models[k], evidence.outline, config.prior_sigma_px) for k in solving]
-    out = adjust_models(models, links, controls, config.solver, fixed=held, priors=priors)
+    out = adjust_models(
+        models, links, controls, config.solver, fixed=held, priors=priors,
+        report=range(window.start, window.final_end),
+    )  # fmt: skip
     n_links = np.zeros(window.end, int)
     for lk in links:
         n_links[[lk.k, lk.l]] += len(lk.src_k)

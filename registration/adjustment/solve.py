@@ -193,19 +193,24 @@ class _Problem:
         one)."""
         models = {k: self.model(x, k) for k in (*self.offset, *self.fixed)}
         for lk, (dk, dl) in zip(self.links, self.link_design, strict=True):
+            if not with_jacobian:
+                vk, vl = models[lk.k].apply_design(dk), models[lk.l].apply_design(dl)
+                yield (lk.k, lk.l), (vk - vl) * self.link_w, None
+                continue
             vk, jk = models[lk.k].param_jacobian(lk.src_k, dk)
             vl, jl = models[lk.l].param_jacobian(lk.src_l, dl)
-            jac = None
-            if with_jacobian:
-                w = self.link_w
-                jac = (
-                    jk * w if lk.k in self.offset else None,
-                    -jl * w if lk.l in self.offset else None,
-                )
+            w = self.link_w
+            jac = (
+                jk * w if lk.k in self.offset else None,
+                -jl * w if lk.l in self.offset else None,
+            )
             yield (lk.k, lk.l), (vk - vl) * self.link_w, jac
         for c, w, d in zip(self.controls, self.control_w, self.control_design, strict=True):
+            if not with_jacobian:
+                yield (c.k,), (models[c.k].apply_design(d) - c.dst) * w, None
+                continue
             v, j = models[c.k].param_jacobian(c.src, d)
-            yield (c.k,), (v - c.dst) * w, ((j * w,) if with_jacobian else None)
+            yield (c.k,), (v - c.dst) * w, (j * w,)
 
     def _evaluate(self, x: NDArray) -> NDArray:
         """The weighted residuals at ``x``, flat."""
@@ -358,6 +363,7 @@ def adjust_models(
     config: AdjustmentConfig | None = None,
     fixed: Collection[int] = (),
     priors: Sequence[ControlPointSet] = (),
+    report: Collection[int] | None = None,
 ) -> AdjustmentResult:
     """Estimate the frames' global models together (module docstring).
 
@@ -371,6 +377,8 @@ def adjust_models(
         priors: weak control points that hold a frame where its evidence does not reach (as
             control points, but no part of its ``control_rms_px`` nor of where its
             ``position_sigma_px`` is taken).
+        report: frames whose ``position_sigma_px`` is wanted (None: all; the others NaN): a
+            sliding window needs it only for the frames it makes final.
 
     Returns:
         The adjusted models (recorded to the project's quantum, as every stage's models are) and
@@ -392,17 +400,19 @@ def adjust_models(
             break
     out = [quantized(problem.model(x, k)) if k in problem.offset else models[k] for k in range(n)]
     link_rms, control_rms = problem.per_frame_rms(x, n)
-    sigma, factor = _position_sigma(problem, x, cfg, n)
+    sigma, factor = _position_sigma(problem, x, cfg, n, report)
     message = f"converged in {steps} steps" if converged else f"stopped after {steps} steps"
     return AdjustmentResult(
         tuple(out), link_rms, control_rms, sigma, factor, converged, message, steps
     )
 
 
-def _position_sigma(problem: _Problem, x: NDArray, cfg: AdjustmentConfig, n: int):
-    """Per frame, the RMS positional standard deviation (base px) of its points under the
-    solution's covariance, ``s0² (Jᵀ W J)⁻¹`` with the robust weights ``W`` at the solution;
-    and ``s0²``, the weighted squared residuals per degree of freedom."""
+def _position_sigma(
+    problem: _Problem, x: NDArray, cfg: AdjustmentConfig, n: int, report: Collection[int] | None
+):
+    """Per frame (of ``report``; None: all), the RMS positional standard deviation (base px) of
+    its points under the solution's covariance, ``s0² (Jᵀ W J)⁻¹`` with the robust weights
+    ``W`` at the solution; and ``s0²``, the weighted squared residuals per degree of freedom."""
     normal, _, r = problem.normal_equations(x, cfg.f_scale)
     w = _robust_weights(r, cfg.f_scale)
     dof = max(problem.n_rows - problem.size, 1)
@@ -423,6 +433,8 @@ def _position_sigma(problem: _Problem, x: NDArray, cfg: AdjustmentConfig, n: int
             if k in points and k not in with_controls:
                 points[k].append(src)
     for k, o in problem.offset.items():
+        if report is not None and k not in report:
+            continue
         size = problem.n_params[k]
         unit = np.zeros((problem.size, size))
         unit[o : o + size] = np.eye(size)

@@ -543,10 +543,8 @@ class PolyProjective(_RationalModel):
         ``design``: :meth:`design` of ``xy``, when the caller keeps it (the same points over
         many parameter values)."""
         phi = self.design(xy) if design is None else design
-        a, b, c = _split(self.params, self.degree)
-        den = phi @ c
+        xn, yn, den = self._normalised_values(phi)
         with np.errstate(divide="ignore", invalid="ignore"):
-            xn, yn = phi @ a / den, phi @ b / den
             g = phi / den[:, None] / self.dst_norm.scale
             j = phi.shape[1]
             jac = np.zeros((len(phi), 2, 3 * j - 1))
@@ -555,6 +553,18 @@ class PolyProjective(_RationalModel):
             jac[:, 0, 2 * j :] = -(xn / den / self.dst_norm.scale)[:, None] * phi[:, :-1]
             jac[:, 1, 2 * j :] = -(yn / den / self.dst_norm.scale)[:, None] * phi[:, :-1]
         return self.dst_norm.backward(np.stack([xn, yn], axis=1)), jac
+
+    def apply_design(self, design: Array) -> Array:
+        """Destination px of the points whose :meth:`design` is ``design``: the first part of
+        :meth:`param_jacobian` to the bit, without the derivatives."""
+        xn, yn, _ = self._normalised_values(design)
+        return self.dst_norm.backward(np.stack([xn, yn], axis=1))
+
+    def _normalised_values(self, phi: Array) -> tuple[Array, Array, Array]:
+        a, b, c = _split(self.params, self.degree)
+        den = phi @ c
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return phi @ a / den, phi @ b / den, den
 
     def projective_part(self) -> Projective:
         """The degree-1 terms alone as a Projective (the start of the numerical inverse)."""

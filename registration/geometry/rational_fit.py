@@ -56,10 +56,13 @@ def _design(un: Array, degree: int) -> Array:
     return np.stack([pu[i] * pv[j] for i, j in _exponents(degree)], axis=1)
 
 
+_ONE = np.ones(1)
+
+
 def _split(params: Array, degree: int) -> tuple[Array, Array, Array]:
     """Rows ``a``, ``b``, ``c`` (the last with its constant 1 appended), each (J,)."""
     j = (degree + 1) * (degree + 2) // 2
-    return params[:j], params[j : 2 * j], np.append(params[2 * j :], 1.0)
+    return params[:j], params[j : 2 * j], np.concatenate((params[2 * j :], _ONE))
 
 
 def _forward_n(params: Array, degree: int, un: Array) -> tuple[Array, Array, Array]:

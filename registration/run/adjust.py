@@ -42,8 +42,9 @@ from registration.run.writer import ResultWriter
 
 # Frames kept decoded: a window's links reach this far back at most.
 _GREY_CACHE = 64
-# Frames whose stored links are kept read (a pair's are with one of its two frames).
-_LINKS_CACHE = 16
+# Frames whose stored links are kept read (a pair's are with one of its two frames): a window
+# and the frames before it it links to, so that each frame's file is read about once.
+_LINKS_CACHE = 64
 
 
 def adjust_folder(
