@@ -14,6 +14,8 @@ from __future__ import annotations
 import hashlib
 import json
 
+from collections.abc import Sequence
+
 import cv2
 import numpy as np
 from numpy.typing import NDArray
@@ -77,27 +79,45 @@ def link_key(model_k, model_l, lens, config: ProbeConfig, matcher: str) -> NDArr
     return np.frombuffer(hashlib.sha1(text.encode()).digest(), np.uint8).copy()
 
 
-# Arrays of stored links in a frame's ``.npz``: ``links_{k}_{l}_{src_k|src_l|key}``.
+# Arrays of stored links in a frame's ``.npz`` (:func:`links_to_arrays`), three however many
+# pairs (reading an array member costs more than its bytes here).
 LINKS_PREFIX = "links_"
 
 
-def links_to_arrays(links: FrameLinks, key: NDArray[np.uint8]) -> dict[str, NDArray]:
-    """The arrays that store ``links`` (measured through ``key``, :func:`link_key`)."""
-    name = f"{LINKS_PREFIX}{links.k}_{links.l}_"
-    return {name + "src_k": links.src_k, name + "src_l": links.src_l, name + "key": key}
+def links_to_arrays(
+    pairs: Sequence[tuple[FrameLinks, NDArray[np.uint8]]],
+) -> dict[str, NDArray]:
+    """The arrays that store ``pairs`` of links, each with its key (:func:`link_key`):
+    ``links_pairs`` ``(n, 4)`` int64 (k, l, first row, end row), ``links_points`` ``(M, 4)``
+    float64 (``src_k``, ``src_l``, corrected px) and ``links_keys`` ``(n, 20)`` uint8; none
+    without pairs."""
+    if not pairs:
+        return {}
+    rows, points, keys, n = [], [], [], 0
+    for links, key in pairs:
+        m = len(links.src_k)
+        rows.append((links.k, links.l, n, n + m))
+        points.append(np.c_[links.src_k, links.src_l].reshape(m, 4))
+        keys.append(np.asarray(key, np.uint8).reshape(20))
+        n += m
+    return {
+        LINKS_PREFIX + "pairs": np.array(rows, np.int64),
+        LINKS_PREFIX + "points": np.concatenate(points).astype(np.float64),
+        LINKS_PREFIX + "keys": np.stack(keys),
+    }
 
 
 def links_from_arrays(arrays) -> dict[tuple[int, int], tuple[FrameLinks, NDArray[np.uint8]]]:
     """The links stored in ``arrays`` (a name -> array mapping, :func:`links_to_arrays`) by
     frame pair ``(k, l)``, each with its key."""
+    if LINKS_PREFIX + "pairs" not in arrays:
+        return {}
+    points = np.asarray(arrays[LINKS_PREFIX + "points"], np.float64).reshape(-1, 4)
+    keys = np.asarray(arrays[LINKS_PREFIX + "keys"], np.uint8)
     out = {}
-    for name in arrays:
-        if name.startswith(LINKS_PREFIX) and name.endswith("_key"):
-            k, l = (int(v) for v in name[len(LINKS_PREFIX) : -len("_key")].split("_"))  # noqa: E741
-            stem = f"{LINKS_PREFIX}{k}_{l}_"
-            src_k = np.asarray(arrays[stem + "src_k"], np.float64).reshape(-1, 2)
-            src_l = np.asarray(arrays[stem + "src_l"], np.float64).reshape(-1, 2)
-            out[(k, l)] = FrameLinks(k, l, src_k, src_l), np.asarray(arrays[name], np.uint8)
+    for (k, l, a, b), key in zip(arrays[LINKS_PREFIX + "pairs"], keys, strict=True):  # noqa: E741
+        links = FrameLinks(int(k), int(l), points[a:b, :2].copy(), points[a:b, 2:].copy())
+        out[(int(k), int(l))] = links, key
     return out
 
 

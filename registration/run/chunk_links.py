@@ -60,7 +60,7 @@ class ChunkLinks:
         for the frames after it."""
         self.remember(k, frame, model)
         cfg = self.config
-        arrays: dict[str, NDArray] = {}
+        pairs = []
         for s in cfg.link_steps:
             for j in (k - s, k + s):
                 if j == k or j not in self._seen:
@@ -73,8 +73,8 @@ class ChunkLinks:
                     self._probes(a), cfg.link_matcher,
                 )  # fmt: skip
                 key = link_key(model_a, model_b, self.lens, cfg.probes, cfg.link_matcher)
-                arrays.update(links_to_arrays(links, key))
-        return arrays
+                pairs.append((links, key))
+        return links_to_arrays(pairs)
 
     def _probes(self, k: int) -> NDArray:
         seen = self._seen[k]
