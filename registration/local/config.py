@@ -122,6 +122,14 @@ class LocalConfig:
             more samples each); scaled down they were not better: paper-hard at half the
             resolution 0.830 -> 0.782 px, the 120-frame long flight 0.566 -> 0.600. None =
             never (the paper).
+        support_folds: beyond the paper; the reference frame's and anchors' field from their
+            control points to the map (:func:`registration.local.reference_field`) only. The
+            field is fitted again ``support_folds`` times, each time without one fold of the
+            points, and scaled by how much of it the points left out confirm (the least-squares
+            factor between what the field predicts for them and their displacement, in [0, 1])
+            where that is under 0.8 (``registration.local.refine.SUPPORT_KEEP``): against a map
+            of another date the points can disagree among themselves by more than a field
+            fitted to all of them shows. 0 = the field as fitted.
     """
 
     method: str = "sift"
@@ -154,6 +162,7 @@ class LocalConfig:
     fit: str = "cells"
     spline_smoothness: float = 0.1
     base_scale_above: float | None = None
+    support_folds: int = 0
 
     def __post_init__(self) -> None:
         if self.cell_px <= 0 or self.spacing_px <= 0:
@@ -195,6 +204,8 @@ class LocalConfig:
             raise ValueError(f"fit must be 'cells' or 'spline', got {self.fit!r}")
         if not self.spline_smoothness > 0:
             raise ValueError(f"spline_smoothness must be positive, got {self.spline_smoothness}")
+        if self.support_folds == 1 or self.support_folds < 0:
+            raise ValueError(f"support_folds must be 0 or at least 2, got {self.support_folds}")
         if self.base_scale_above is not None and not self.base_scale_above >= 1:
             raise ValueError(f"base_scale_above must be None or >= 1, got {self.base_scale_above}")
 
@@ -276,6 +287,9 @@ class FieldStats:
         cell_residual_px: mean residual of the kept matches (NaN where no consensus).
         n_keypoints_registered, n_keypoints_reference: SIFT keypoints found in each image's crop.
         time_detect_s, time_match_s, time_total_s: wall time by step.
+        support_scale: how much of the field points left out of its fit confirm
+            (``LocalConfig.support_folds``; the field is scaled by it where it is under 0.8),
+            None where it was not measured.
     """
 
     cell_status: NDArray[np.int8]
@@ -287,6 +301,7 @@ class FieldStats:
     time_detect_s: float = 0.0
     time_match_s: float = 0.0
     time_total_s: float = 0.0
+    support_scale: float | None = None
 
     @property
     def n_cells(self) -> int:
@@ -315,7 +330,7 @@ class FieldStats:
             "time_detect_s": self.time_detect_s,
             "time_match_s": self.time_match_s,
             "time_total_s": self.time_total_s,
-        }
+        } | ({} if self.support_scale is None else {"support_scale": self.support_scale})
 
     def to_arrays(self) -> dict[str, NDArray]:
         return {

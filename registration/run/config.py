@@ -170,6 +170,7 @@ REFERENCE_LOCAL = LocalConfig(
     spline_smoothness=0.1,
     min_matches=6,
     base_scale_above=LOCAL_FLOW["base_scale_above"],
+    support_folds=5,
 )
 # Template spacing of the reference frame (a one-off): every 25 px instead of the paper's 50, so
 # that the field above has matches in the frame's stretched corners (~7200 templates, 3.7 s at

@@ -749,6 +749,49 @@ def test_the_reference_field_follows_a_map_finer_than_the_frames_too():
     assert _at_base_resolution(paper, camera, big) is paper
 
 
+def _fine_of(pos, disp):
+    """A fine step's control points whose displacement under its (identity) model is ``disp``
+    at base px ``pos``: what :func:`registration.local.reference_field` reads."""
+    from types import SimpleNamespace
+
+    from registration.geometry import Projective
+
+    return SimpleNamespace(src=pos + disp, dst=pos, base_from_corrected=Projective())
+
+
+def test_the_reference_field_is_kept_where_points_left_out_confirm_it(rng):
+    """``support_folds``: a bending field sampled every 25 px with 0.15 px noise is confirmed by
+    the points left out of each fold (measured 0.95) and kept to the bit; 160 control points
+    whose displacements are noise alone (2.5 px, no field, as template matches against a map of
+    another date can be) make a spline that follows the noise (measured 1.6 px RMS), which
+    the points left out do not confirm (measured 0.006): scaled down by that factor, so its
+    error against the true (zero) field falls by as much."""
+    cfg = LocalConfig(fit="spline", spacing_px=100, min_matches=6)
+    gx, gy = np.meshgrid(np.arange(12.5, W, 25.0), np.arange(12.5, H, 25.0))
+    pos = np.c_[gx.ravel(), gy.ravel()]
+    fine = _fine_of(pos, _corner_field(pos) + rng.normal(0, 0.15, pos.shape))
+    plain, plain_stats = local.reference_field(fine, (W, H), cfg)
+    kept, stats = local.reference_field(fine, (W, H), replace(cfg, support_folds=5))
+    assert plain_stats.support_scale is None and stats.support_scale >= 0.9
+    assert np.array_equal(kept.vectors, plain.vectors) and np.array_equal(kept.valid, plain.valid)
+
+    pos = np.c_[rng.uniform(0, W, 160), rng.uniform(0, H, 160)]
+    fine = _fine_of(pos, rng.normal(0, 2.5, pos.shape))
+    plain, _ = local.reference_field(fine, (W, H), cfg)
+    scaled, stats = local.reference_field(fine, (W, H), replace(cfg, support_folds=5))
+    rms = float(np.sqrt(np.mean(np.sum(plain.vectors[plain.valid] ** 2, axis=-1))))
+    assert rms > 0.5  # the spline followed the noise
+    assert stats.support_scale < 0.2
+    # (the record keeps the factor to 4 decimals)
+    assert np.allclose(scaled.vectors, plain.vectors * stats.support_scale, rtol=0, atol=2e-4)
+    assert "support_scale" in stats.to_dict()
+
+
+def test_support_folds_must_be_zero_or_two_and_more():
+    with pytest.raises(ValueError, match="support_folds must be 0 or at least 2, got 1"):
+        LocalConfig(support_folds=1)
+
+
 def test_flow_correspondences_are_read_through_the_warps_lattice():
     """A raw frame taken through a γ = 0.6 Harris lens, the mid base image its exact source: the
     mid base image is warped into the frame through a lattice (nodes 8 px apart) that follows
