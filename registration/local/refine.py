@@ -214,19 +214,21 @@ def reference_field(fine, base_size: tuple[int, int], config: LocalConfig, footp
     field, stats = estimate_field_from_matches(dst, disp, *size, config, origin=origin)
     if field is None or not config.support_folds:
         return field, stats
-    support = field_support(dst, disp, size, origin, config)
-    stats = replace(stats, support_scale=round(support, 4))
-    return (field if support >= SUPPORT_KEEP else None), stats
+    scale = field_support(dst, disp, size, origin, config)
+    if scale < SUPPORT_KEEP:
+        field = DisplacementField(
+            field.origin, field.spacing, (field.vectors * np.float32(scale)), field.valid
+        )
+    return field, replace(stats, support_scale=round(scale, 4))
 
 
 # Held-out points whose displacement is largest are left out of the support's factor: template
 # mismatches, which any field leaves as they are.
 SUPPORT_TRIM = 0.2
-# A factor of at least this keeps the field, a smaller one drops it. A field the points support
-# loses some of its amplitude to the held-out points' noise: 0.93 on a simulated reference frame
-# whose field is right (it takes the frame from 0.71 to 0.09 px; scaled by 0.93, 0.10 px). On the
-# real flyover's reference frame and those registered to the map again: 0.96-1.00, one small
-# field 0.48.
+# A factor of at least this keeps the field whole: a field the points support loses some of its
+# amplitude to the held-out points' noise (0.93 on a simulated reference frame whose field is
+# right and takes it from 0.71 to 0.09 px; scaled by it, 0.10 px). On the real flyover's
+# reference frame and those registered to the map again, 0.96-1.00 (one small field, 0.48).
 SUPPORT_KEEP = 0.8
 
 
@@ -240,10 +242,10 @@ def field_support(
     displacement over the held-out samples (the ``SUPPORT_TRIM`` largest displacements left
     out), clipped to [0, 1]. 1 where too few samples to say.
 
-    Measured on the real OrthoLoC photo (1024x768) against the official orthophoto: 0.67
-    against the one of another date, where the field took the frame from 1.12 to 2.75 px mean
-    off the reference registration (scaled by the factor instead of dropped: 2.02); 1.00
-    against the one of the same date, where it helps (1.00 -> 0.93)."""
+    Measured on the real OrthoLoC photo (1024x768) against the official orthophoto: 0.59-0.67
+    against the one of another date (0.67 with 5 folds), where the field took the frame from
+    1.12 to 2.75 px mean off the reference registration (scaled by the factor: 2.02); 1.01-1.04
+    against the one of the same date, where it helps (1.00 -> 0.93, scaled by 1)."""
     k = config.support_folds
     if len(dst) < 2 * k * config.min_matches:
         return 1.0
