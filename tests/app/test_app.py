@@ -706,12 +706,13 @@ def test_sequence_adjusted_together_shows_predicted_errors(fitted):
     app.worker.wait_idle()
     # The frame's line gives its own record's figures, not just their names.
     adj = r.records[1].stats["adjustment"]
-    from app.gui.views.sequence.view import MAP_STAGES
-
-    on = "the map" if r.records[1].stage in MAP_STAGES else "the mid base image"
+    # Frame 1 is an intra-sensor frame: its control points are on the mid base image and the
+    # previous frame, not on the map.
+    assert r.records[1].stage == "intra-sensor"
     assert (
         f"predicted error {adj['predicted_error_px']:.2f} base px, {adj['n_links']} link points, "
-        f"{adj['n_controls']} control points on {on}" in seq.panel.frame_md.content
+        f"{adj['n_controls']} control points on the mid base image and the previous frame"
+        in seq.panel.frame_md.content
     )
     assert "flagged" not in seq.panel.frame_md.content
 

@@ -180,6 +180,31 @@ def test_links_stored_while_registering_give_the_adjustment_to_the_bit(
             assert np.array_equal(xa[name], xb[name], equal_nan=xa[name].dtype.kind == "f"), name
 
 
+def test_a_stored_link_stands_only_under_the_key_of_what_it_was_measured_through(sim_seq, adjusted):
+    """The adjustment takes a stored pair of links only when its key is that of the models,
+    lens and settings it would measure them through now (a frame whose start model the
+    analyst's map points moved measures them again): a planted pair under the right key is
+    used as it is, the same pair under another key is measured again from the frames."""
+    from dataclasses import replace as dc_replace
+
+    from registration.adjustment import FrameLinks, link_key
+    from registration.io import open_frames
+    from registration.run.adjust import _evidence
+
+    evidence = _evidence(adjusted, open_frames(sim_seq / "frames"), SMALL)
+    probes, matcher = SMALL.probes, SMALL.link_matcher
+    measured = evidence.links(1, 2, probes, matcher)
+    assert len(measured.src_k) > 100
+    planted = FrameLinks(1, 2, measured.src_k[:10] + 5.0, measured.src_l[:10])
+    key = link_key(evidence.models[1], evidence.models[2], evidence.lens, probes, matcher)
+    for stored_key, expected in ((key, planted), (key[::-1].copy(), measured)):
+        stored = lambda k, j, sk=stored_key: (planted, sk)  # noqa: E731
+        ev = dc_replace(evidence, stored_links=stored, _links={}, _probes={})  # a fresh cache
+        got = ev.links(1, 2, probes, matcher)
+        assert np.array_equal(got.src_k, expected.src_k)
+        assert np.array_equal(got.src_l, expected.src_l)
+
+
 def test_register_adjust_reports_on_the_command_line(sim_seq, tmp_path, capsys):
     out = tmp_path / "out"
     truth = load_truth(sim_seq)
