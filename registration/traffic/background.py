@@ -96,9 +96,29 @@ def footprint_box(result, k: int, grid: WorkGrid) -> Box | None:
     return x0, y0, x1, y1
 
 
-def warp_frame(result, k: int, frame: NDArray, grid: WorkGrid, exclude=None) -> WarpedFrame | None:
+def frame_keep_mask(result) -> NDArray[np.uint8] | None:
+    """``(h, w)`` uint8 over the raw frame: 0 in the boxes the registration was told hold no
+    ground (a burnt-in logo or on-screen display: the sequence adjustment's ``probes.exclude``,
+    raw px ``(x0, y0, x1, y1)``), 255 elsewhere; None when there are none. Fixed in the frame,
+    such an overlay moves over the map with the camera and would be taken for traffic."""
+    config = getattr(result, "config", None) or {}
+    boxes = ((config.get("adjust") or {}).get("probes") or {}).get("exclude") or []
+    if not boxes:
+        return None
+    w, h = result.frame_size
+    keep = np.full((h, w), 255, np.uint8)
+    for x0, y0, x1, y1 in boxes:
+        x0, y0 = max(int(np.floor(x0)), 0), max(int(np.floor(y0)), 0)
+        keep[y0 : max(int(np.ceil(y1)), y0), x0 : max(int(np.ceil(x1)), x0)] = 0
+    return keep
+
+
+def warp_frame(
+    result, k: int, frame: NDArray, grid: WorkGrid, exclude=None, frame_keep=None
+) -> WarpedFrame | None:
     """Frame ``k`` (raw, BGR) resampled once onto ``grid`` through its local stage.
-    ``exclude``: an ``(H, W)`` bool mask on the whole working grid of places never to use."""
+    ``exclude``: an ``(H, W)`` bool mask on the whole working grid of places never to use;
+    ``frame_keep``: :func:`frame_keep_mask` (raw frame px) or None."""
     box = footprint_box(result, k, grid)
     if box is None:
         return None
@@ -107,15 +127,20 @@ def warp_frame(result, k: int, frame: NDArray, grid: WorkGrid, exclude=None) -> 
     def raw_from_work(wxy):
         return result.base_to_frame(k, grid.base_from_work(wxy), "local")
 
+    if frame.ndim == 2:
+        frame = cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR)
+    if frame_keep is not None:
+        # Warped with the frame as a fourth channel: one remap for both.
+        frame = np.dstack([frame[..., :3], frame_keep])
     image, mask = render_registered(
         frame, raw_from_work, (x1 - x0, y1 - y0), (x0, y0), return_mask=True
     )
+    if frame_keep is not None:
+        mask &= image[..., 3] > 127
     # One pixel of margin: a bilinear sample straddling the frame's edge is half black.
     mask = cv2.erode(mask.view(np.uint8), np.ones((3, 3), np.uint8)).view(np.bool_)
     if exclude is not None:
         mask &= ~exclude[y0:y1, x0:x1]
-    if image.ndim == 2:
-        image = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
     return WarpedFrame(k, np.ascontiguousarray(image[..., :3]), mask, box)
 
 

@@ -43,7 +43,13 @@ class TrafficConfig:
             bus's 40).
         max_length_m: longer blobs are not one vehicle.
         min_width_m: narrower blobs are edges (relief, registration), not vehicles.
-        gate_m: a detection further than this (metres) from a track's prediction is not its.
+        max_width_m: wider blobs are vehicles side by side that blur joined: they are cut at
+            higher thresholds (:func:`~registration.traffic.detect.vehicle_pieces`).
+        gate_m: a detection further than this (metres) from a track's prediction is not its ...
+        gate_speed_mps: ... unless the track is new (one detection, no velocity yet) and a
+            vehicle at this speed (m/s; 72 km/h) could have come further since: at the paper's
+            5 frames/s its next detection may be 4 m on. Either way it must also lie within the
+            prediction's own 99 % ellipse.
         max_gap_s: a track not seen for longer than this ends.
         min_hits: detections before a track counts (fewer = noise).
         min_travel_m: a track whose smoothed path ends less than this far from where it began
@@ -77,7 +83,9 @@ class TrafficConfig:
     max_area_m2: float = 40.0
     max_length_m: float = 14.0
     min_width_m: float = 1.0
+    max_width_m: float = 5.0
     gate_m: float = 3.0
+    gate_speed_mps: float = 20.0
     max_gap_s: float = 1.0
     min_hits: int = 3
     min_travel_m: float = 4.0

@@ -82,6 +82,8 @@ def shadow_mask(image: NDArray[np.uint8], background: NDArray[np.uint8]) -> NDAr
 # A shadow keeps 15-80 % of the light on the ground and its colour within 15 %.
 SHADOW_RATIO = (0.15, 0.8)
 SHADOW_CHROMA = 0.15
+# Least share of shadow-coloured pixels in a blob taken for a dark car.
+DARK_SHARE = 0.5
 
 
 def foreground(
@@ -114,15 +116,27 @@ def foreground(
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
     core = cv2.morphologyEx((moving & ~shadow).view(np.uint8), cv2.MORPH_CLOSE, kernel)
     core &= valid.view(np.uint8)
-    dark = cv2.morphologyEx(shadow.view(np.uint8), cv2.MORPH_CLOSE, kernel) & valid.view(np.uint8)
-    n_core, labels = cv2.connectedComponents(core, connectivity=8, ltype=cv2.CV_32S)
+    n_core, labels, stats, _ = cv2.connectedComponentsWithStats(core, None, 8, cv2.CV_32S)
+    # Coloured pieces too small to be a vehicle's body are the few pixels of a dark car that
+    # its blur, a road marking or a windscreen lifts out of the shadow's colours: they belong
+    # with the dark pixels around them, and do not make those a shadow.
+    small = stats[:, cv2.CC_STAT_AREA] < config.min_area_m2 / cell_m**2
+    small[0] = False
+    piece = small[labels]
+    body = core.view(np.bool_) & ~piece
+    dark = (shadow | piece).view(np.uint8)
+    dark = cv2.morphologyEx(dark, cv2.MORPH_CLOSE, kernel) & valid.view(np.uint8)
     n_dark, dark_labels = cv2.connectedComponents(dark, connectivity=8, ltype=cv2.CV_32S)
     if n_dark > 1:
-        # Dark blobs that touch a coloured one are its shadow; the others are dark cars.
-        near = cv2.dilate(core, cv2.getStructuringElement(cv2.MORPH_RECT, (3, 3))) > 0
+        # Dark blobs that touch a vehicle's body are its shadow; the others are dark cars.
+        near = cv2.dilate(body.view(np.uint8), cv2.getStructuringElement(cv2.MORPH_RECT, (3, 3)))
         attached = np.zeros(n_dark, np.bool_)
-        attached[np.unique(dark_labels[near])] = True
-        own = (dark_labels > 0) & ~attached[dark_labels] & (labels == 0)
+        attached[np.unique(dark_labels[near > 0])] = True
+        # A dark car is mostly dark: coloured speckle that the closing joined is not one.
+        total = np.bincount(dark_labels.ravel(), minlength=n_dark)
+        darkest = np.bincount(dark_labels[shadow], minlength=n_dark)
+        keep = ~attached & (darkest >= DARK_SHARE * total)
+        own = (dark_labels > 0) & keep[dark_labels] & ~body
         labels[own] = dark_labels[own] + (n_core - 1)
         n_core += n_dark - 1
     return labels, n_core, ratio
@@ -142,46 +156,88 @@ def detect_vehicles(
     labels, n, ratio = foreground(frame, background, valid, config, cell_m)
     if n <= 1:
         return []
-    index = np.arange(1, n)
+    # Blobs too small or too faint to hold a vehicle are passed over at once (most of them).
     fg = labels > 0
     peak = np.zeros(n, np.float32)
     np.maximum.at(peak, labels[fg], ratio[fg])
-    peak = peak[1:]
-    area_px = np.bincount(labels[fg], minlength=n)[1:]
-    min_px = config.min_area_m2 / cell_m**2
-    max_px = config.max_area_m2 / cell_m**2
-    keep = (peak >= config.seed_factor) & (area_px >= min_px) & (area_px <= max_px)
-    if not keep.any():
-        return []
-    objects = ndimage.find_objects(labels)
+    area_px = np.bincount(labels[fg], minlength=n)
+    worth = (peak >= config.seed_factor) & (area_px >= config.min_area_m2 / cell_m**2)
     out = []
     x0, y0 = frame.box[:2]
-    for lab in index[keep]:
-        sl = objects[lab - 1]
-        ys, xs = np.nonzero(labels[sl] == lab)
-        xs = xs + sl[1].start
-        ys = ys + sl[0].start
-        pts = np.column_stack([xs, ys]).astype(np.float32)
-        (_, _), (a, b), ang = cv2.minAreaRect(pts)
-        # Pixel centres span one pixel less than the blob covers.
-        a, b = a + 1.0, b + 1.0
-        length, width = max(a, b) * cell_m, min(a, b) * cell_m
-        if length > config.max_length_m or width < config.min_width_m:
+    for lab, sl in enumerate(ndimage.find_objects(labels), start=1):
+        if sl is None or not worth[lab]:
             continue
-        axis = ang if a >= b else ang + 90.0
-        centre_work = np.array([[xs.mean() + x0, ys.mean() + y0]])
-        cx, cy = grid.base_from_work(centre_work)[0]
-        out.append(
-            Detection(
-                frame.k,
-                float(cx),
-                float(cy),
-                float(length),
-                float(width),
-                float(math.fmod(axis + 360.0, 180.0)),
-                float(len(xs) * cell_m**2),
-                float(peak[lab - 1]),
+        for ys, xs, shape in vehicle_pieces(labels[sl] == lab, ratio[sl], config, cell_m):
+            length, width, axis = shape
+            contrast = ratio[sl][ys, xs]
+            centre_work = np.array([[xs.mean() + sl[1].start + x0, ys.mean() + sl[0].start + y0]])
+            cx, cy = grid.base_from_work(centre_work)[0]
+            out.append(
+                Detection(
+                    frame.k,
+                    float(cx),
+                    float(cy),
+                    float(length),
+                    float(width),
+                    float(math.fmod(axis + 360.0, 180.0)),
+                    float(len(xs) * cell_m**2),
+                    float(contrast.max()),
+                )
             )
-        )
     out.sort(key=lambda d: (d.y, d.x))
     return out
+
+
+def blob_shape(ys: NDArray, xs: NDArray, cell_m: float) -> tuple[float, float, float]:
+    """``(length m, width m, axis deg)`` of the smallest rotated rectangle around the pixels."""
+    pts = np.column_stack([xs, ys]).astype(np.float32)
+    (_, _), (a, b), ang = cv2.minAreaRect(pts)
+    # Pixel centres span one pixel less than the blob covers.
+    a, b = a + 1.0, b + 1.0
+    return max(a, b) * cell_m, min(a, b) * cell_m, (ang if a >= b else ang + 90.0)
+
+
+# Thresholds (x the foreground's) at which a blob too large or wide for one vehicle is cut
+# again: the gaps between cars that blur joined differ less than the cars themselves.
+SPLIT_LEVELS = (1.5, 2.25, 3.4, 5.0, 7.5)
+
+
+def vehicle_pieces(
+    blob: NDArray[np.bool_],
+    ratio: NDArray[np.float32],
+    config: TrafficConfig,
+    cell_m: float,
+    levels: tuple[float, ...] = SPLIT_LEVELS,
+) -> list[tuple[NDArray, NDArray, tuple[float, float, float]]]:
+    """The vehicles in one blob (``blob`` and ``ratio`` over its bounding box) as ``(ys, xs,
+    (length m, width m, axis deg))``. A blob the size and shape of a vehicle is one; a larger
+    or wider one is thresholded at the next of ``levels`` and, where that parts it into
+    pieces each large enough to be a vehicle, every piece takes back the blob's pixels nearest
+    to it and is judged again."""
+    ys, xs = np.nonzero(blob)
+    area = len(xs) * cell_m**2
+    peak = float(ratio[ys, xs].max())
+    if area < config.min_area_m2 or peak < config.seed_factor:
+        return []
+    shape = blob_shape(ys, xs, cell_m)
+    length, width, _ = shape
+    if width < config.min_width_m:
+        return []
+    if area <= config.max_area_m2 and length <= config.max_length_m and width <= config.max_width_m:
+        return [(ys, xs, shape)]
+    min_px = config.min_area_m2 / cell_m**2
+    for i, level in enumerate(levels):
+        cores, n = ndimage.label(blob & (ratio > level), structure=np.ones((3, 3), bool))
+        sizes = np.bincount(cores.ravel(), minlength=n + 1)
+        big = np.nonzero(sizes[1:] >= min_px)[0] + 1
+        if len(big) < 2:
+            continue
+        seeds = np.where(np.isin(cores, big), cores, 0)
+        # Each blob pixel goes to its nearest piece.
+        _, (iy, ix) = ndimage.distance_transform_edt(seeds == 0, return_indices=True)
+        owner = np.where(blob, seeds[iy, ix], 0)
+        out = []
+        for lab in big:
+            out += vehicle_pieces(owner == lab, ratio, config, cell_m, levels[i + 1 :])
+        return out
+    return []

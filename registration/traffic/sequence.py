@@ -20,6 +20,7 @@ from registration.io import write_bytes_atomic
 from registration.traffic.background import (
     WarpedFrame,
     WorkGrid,
+    frame_keep_mask,
     median_background,
     union_box,
     warp_frame,
@@ -123,6 +124,7 @@ def detect_sequence(
     mpp = metric.metres_per_base_px()
     blocks = background_blocks(use, times, config)
     warped: dict[int, WarpedFrame | None] = {}
+    keep = frame_keep_mask(result)
     done = 0
     for block in blocks:
         if cancel is not None and cancel():
@@ -132,7 +134,7 @@ def detect_sequence(
         if todo:
             for k in sorted(set(block.samples) | set(todo)):
                 if k not in warped:
-                    warped[k] = warp_frame(result, k, frames.get(k), grid, exclude)
+                    warped[k] = warp_frame(result, k, frames.get(k), grid, exclude, keep)
             # Only what later blocks can still sample stays.
             t_keep = times[block.frames[0]] - config.background_span_s - BLOCK_S
             for k in [k for k in warped if times[k] < t_keep]:

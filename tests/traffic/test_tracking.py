@@ -203,6 +203,27 @@ def test_gate_follows_the_time_step(rng):
         assert [len(r.frames) for r in raw] == ([6] if joined else [5]), fps
 
 
+def test_a_fast_car_at_five_frames_per_second_is_one_track():
+    # 18 m/s at 5 frames/s: 3.6 m between detections, beyond the fixed 3 m gate. A new track
+    # reaches as far as a vehicle at 20 m/s goes in the frame interval (4 m), so the car is
+    # followed from its first detection.
+    times = np.arange(10) / 5.0
+    dets = {k: np.array([[18.0 * t, 0.0]]) for k, t in enumerate(times)}
+    raw = track_detections(list(range(10)), times, dets, TrafficConfig())
+    assert [len(r.frames) for r in raw] == [10]
+
+
+def test_a_new_track_not_seen_in_the_next_frame_ends():
+    # A lone detection in frame 0, nothing in frame 1, then a car 7 m away from frame 2 on. At
+    # 20 m/s the car could have come from the lone detection in 0.4 s, but a new track that
+    # the next frame does not confirm is noise: the car's track starts at frame 2.
+    times = np.arange(8) / 5.0
+    dets = {0: np.array([[0.0, 0.0]]), 1: np.zeros((0, 2))}
+    dets.update({k: np.array([[7.0 + 2.0 * (k - 2), 0.0]]) for k in range(2, 8)})
+    raw = track_detections(list(range(8)), times, dets, TrafficConfig())
+    assert [r.frames.tolist() for r in raw] == [list(range(2, 8))]
+
+
 def test_tracks_that_are_not_moving_traffic_are_dropped(rng):
     from registration.traffic.detect import Detection
     from registration.traffic.sequence import tracks_from_detections

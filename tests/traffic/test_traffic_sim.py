@@ -65,12 +65,13 @@ def test_traffic_matches_the_true_trajectories(traffic_sim, tmp_path):
     times = np.arange(result.n_frames) / truth.config["fps"]
     tracks, _ = tracks_from_detections(dets, use, times, truth_metric_frame(truth), TrafficConfig())
     score = score_traffic(tracks, truth, use)
-    # Limits from this flight (measured 2026-11-29, docs/traffic.md) with margin: a broken
-    # background, metric frame or smoother fails them by far.
-    assert score.precision > 0.85, score
-    assert score.mota > 0.25, score
+    # Limits from this flight with margin (measured 2026-11-30: MOTA 0.38, precision 0.85,
+    # position 0.91 m, speed 1.75 m/s; docs/traffic.md): a broken background, metric frame or
+    # smoother fails them by far.
+    assert score.precision > 0.78, score
+    assert score.mota > 0.3, score
     assert score.speed_rmse_mps < 2.2, score
-    assert score.position_rmse_m < 1.0, score
+    assert score.position_rmse_m < 1.1, score
     speeds = np.concatenate([t.speed for t in tracks])
     assert 8.0 < np.median(speeds) < 16.0  # the simulator's lanes flow at 8-16 m/s
 

@@ -1,0 +1,101 @@
+"""The vehicle detector on planted frames of known content: a dark car with a few coloured
+pixels, two cars that blur joins, and a burnt-in logo that moves over the map with the camera."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from registration.traffic import TrafficConfig
+from registration.traffic.background import (
+    Background,
+    WarpedFrame,
+    WorkGrid,
+    frame_keep_mask,
+    warp_frame,
+)
+from registration.traffic.detect import detect_vehicles
+
+CELL_M = 0.3  # metres per working pixel (one base px per working px)
+ASPHALT = 80
+
+
+def _detect(image, still):
+    """Detections of ``image`` against the still road ``still`` on a 1:1 grid at CELL_M."""
+    h, w = image.shape[:2]
+    frame = WarpedFrame(0, image, np.ones((h, w), bool), (0, 0, w, h))
+    count = np.full((h, w), 12, np.int32)
+    background = Background(still, count, np.full((h, w), 2.0, np.float32), (0, 0, w, h))
+    return detect_vehicles(frame, background, WorkGrid(1.0, (w, h)), CELL_M, TrafficConfig())
+
+
+def _road(rng, h=60, w=80):
+    still = np.full((h, w, 3), ASPHALT, np.uint8)
+    noisy = np.clip(still + rng.normal(0, 2, still.shape), 0, 255).astype(np.uint8)
+    return still, noisy
+
+
+def test_a_dark_car_with_a_few_coloured_pixels_is_one_vehicle(rng):
+    # A black car, 4.5 x 1.8 m (15 x 6 px), with a 2 x 3 px stripe that is not shadow-coloured
+    # (a reflection on its roof): the stripe is too small to be a car, and the dark pixels
+    # around it are the car, not its shadow.
+    still, image = _road(rng)
+    image[27:33, 30:45] = (25, 25, 28)
+    image[29:31, 36:39] = (40, 140, 160)
+    dets = _detect(image, still)
+    assert len(dets) == 1, dets
+    # Centre of the 15 x 6 px body: (37, 29.5) px.
+    assert np.hypot(dets[0].x - 37.0, dets[0].y - 29.5) * CELL_M < 0.3, dets[0]
+    assert 3.6 < dets[0].length_m < 5.4 and 1.2 < dets[0].width_m < 2.4, dets[0]
+
+
+def test_a_small_coloured_piece_beside_a_cars_shadow_stays_a_shadow_of_nothing(rng):
+    # A white car with its shadow is one vehicle at the car's centre: the shadow does not pull
+    # it (the rule above must not turn a real car's shadow into a second vehicle).
+    still, image = _road(rng)
+    image[27:33, 30:45] = (235, 235, 235)
+    image[33:36, 32:47] = (28, 28, 32)  # its shadow, cast down and right
+    dets = _detect(image, still)
+    assert len(dets) == 1, dets
+    assert np.hypot(dets[0].x - 37.0, dets[0].y - 29.5) * CELL_M < 0.3, dets[0]
+
+
+def test_cars_side_by_side_that_blur_joins_are_cut_apart(rng):
+    # Two white cars in neighbouring lanes, 1.2 m (4 px) apart, blurred (sigma 1.5 px) so the
+    # gap between them differs from the road by more than the threshold: one blob ~6 m wide.
+    still, sharp = _road(rng)
+    image = still.copy()
+    image[20:26, 30:45] = 235
+    image[30:36, 31:46] = 235
+    image = cv2.GaussianBlur(image, (0, 0), 1.5)
+    image = np.clip(image + rng.normal(0, 2, image.shape), 0, 255).astype(np.uint8)
+    dets = sorted(_detect(image, still), key=lambda d: d.y)
+    assert len(dets) == 2, dets
+    for d, (cx, cy) in zip(dets, [(37.0, 22.5), (38.0, 32.5)], strict=True):
+        assert np.hypot(d.x - cx, d.y - cy) * CELL_M < 0.4, d
+        assert d.width_m < 3.5, d
+
+
+class _Identity:
+    """A result whose frames lie on the base pixel for pixel, with a logo box in its config."""
+
+    def __init__(self, size, boxes):
+        self.frame_size = self.base_size = size
+        self.config = {"adjust": {"probes": {"exclude": boxes}}}
+
+    def frame_to_base(self, k, xy, stage="local"):
+        return np.asarray(xy, np.float64).reshape(-1, 2)
+
+    base_to_frame = frame_to_base
+
+
+def test_a_burnt_in_logo_is_not_looked_at(rng):
+    result = _Identity((80, 60), [[10.0, 5.0, 30.0, 20.0]])
+    keep = frame_keep_mask(result)
+    assert keep[5:20, 10:30].max() == 0 and keep[25:, 35:].min() == 255
+    frame = rng.integers(0, 255, (60, 80, 3), dtype=np.uint8)
+    w = warp_frame(result, 0, frame, WorkGrid(1.0, (80, 60)), frame_keep=keep)
+    assert not w.mask[6:19, 11:29].any()
+    assert w.mask[25:55, 35:75].all()
+    # Without the box nothing inside is left out.
+    assert frame_keep_mask(_Identity((80, 60), [])) is None
