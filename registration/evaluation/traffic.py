@@ -80,6 +80,7 @@ def score_traffic(
             by_frame.setdefault(k, []).append((tr.track_id, tr.xy[i], tr.velocity[i]))
     acc = mm.MOTAccumulator(auto_id=True)
     pos_err, speed_err, vel_err = [], [], []
+    seen: dict[int, tuple[dict, list]] = {}
     for k in frames:
         sel = np.nonzero(v["frame"] == k)[0]
         hyp = by_frame.get(k, [])
@@ -89,13 +90,19 @@ def score_traffic(
         hyp_xy = np.array([h[1] for h in hyp]).reshape(-1, 2)
         dist = mm.distances.norm2squared_matrix(gt_xy, hyp_xy, max_d2=max_distance_m**2)
         frame_id = acc.update(v["track_id"][sel].tolist(), [h[0] for h in hyp], dist)
-        events = acc.mot_events.loc[frame_id]
-        for _, ev in events[events.Type.isin(["MATCH", "SWITCH"])].iterrows():
-            gi = sel[list(v["track_id"][sel]).index(ev.OId)]
-            hv = next(h for h in hyp if h[0] == ev.HId)
-            pos_err.append(np.linalg.norm(hv[1] - true_xy[gi]))
-            speed_err.append(np.linalg.norm(hv[2]) - v["speed_mps"][gi])
-            vel_err.append(np.linalg.norm(hv[2] - true_vel[gi]))
+        seen[frame_id] = (dict(zip(v["track_id"][sel].tolist(), sel.tolist(), strict=True)), hyp)
+    # The pairs, read once from the events table (building it per frame is quadratic).
+    events = acc.mot_events
+    paired = events[events.Type.isin(["MATCH", "SWITCH"])]
+    for frame_id, oid, hid in zip(
+        paired.index.get_level_values(0), paired.OId, paired.HId, strict=True
+    ):
+        truth_index, hyp = seen[frame_id]
+        gi = truth_index[oid]
+        hv = next(h for h in hyp if h[0] == hid)
+        pos_err.append(np.linalg.norm(hv[1] - true_xy[gi]))
+        speed_err.append(np.linalg.norm(hv[2]) - v["speed_mps"][gi])
+        vel_err.append(np.linalg.norm(hv[2] - true_vel[gi]))
     mh = mm.metrics.create()
     names = ["mota", "motp", "precision", "recall", "num_switches", "num_false_positives"]
     names += ["num_misses", "num_objects", "num_unique_objects"]
