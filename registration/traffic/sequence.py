@@ -28,7 +28,7 @@ from registration.traffic.background import (
 from registration.traffic.config import TrafficConfig
 from registration.traffic.detect import Detection, detect_vehicles
 from registration.traffic.timing import MetricFrame
-from registration.traffic.track import SmoothTrack, smooth_track, track_detections
+from registration.traffic.track import RawTrack, SmoothTrack, smooth_track, track_detections
 
 # Frames sharing one background: their median is computed once (at 30 frames/s a block is 12
 # frames; a car moves 4 m in it, far less than the ±2.4 s the samples span).
@@ -178,10 +178,12 @@ def tracks_from_detections(
         s = smooth_track(r, use, times, config)
         if not _moving_vehicle(s, config):
             continue
-        s.track_id = len(tracks) + 1
         dets = [
             detections[k][i] for k, i in zip(r.frames.tolist(), r.det_index.tolist(), strict=True)
         ]
+        if sideways(s, r, dets, metric, config):
+            continue
+        s.track_id = len(tracks) + 1
         sizes[s.track_id] = (
             float(np.median([d.width_m for d in dets])),
             float(np.median([d.length_m for d in dets])),
@@ -190,15 +192,43 @@ def tracks_from_detections(
     return tracks, sizes
 
 
+def sideways(
+    track: SmoothTrack, raw: RawTrack, dets: list[Detection], metric: MetricFrame, config
+) -> bool:
+    """Whether the track moves across its blobs' long axis rather than along it: vehicles drive
+    lengthwise, while the edge of a roof whose relief shifts as the camera flies on slides
+    sideways (the real flyover: 54-75 degrees off). Judged on the detections at least
+    ``ELONGATED`` times longer than wide, when there are ``min_hits`` of them."""
+    long = [i for i, d in enumerate(dets) if d.length_m >= ELONGATED * d.width_m]
+    if len(long) < config.min_hits:
+        return False
+    at = np.searchsorted(track.frames, raw.frames[long])
+    # The direction of travel on the base (its pixels' y runs down; the map's may not).
+    here = metric.base_from_metres(track.xy[at])
+    ahead = metric.base_from_metres(track.xy[at] + track.velocity[at] * 0.1)
+    travel = np.degrees(np.arctan2(*(ahead - here)[:, ::-1].T))
+    axis = np.array([dets[i].axis_deg for i in long])
+    off = np.abs((travel - axis + 90.0) % 180.0 - 90.0)
+    return bool(np.median(off) > SIDEWAYS_DEG)
+
+
+# A blob this many times longer than wide has an axis to judge its travel by, and a track whose
+# median angle between its travel and its blobs' axes exceeds SIDEWAYS_DEG is not a vehicle.
+ELONGATED = 1.4
+SIDEWAYS_DEG = 45.0
+
+
 def _moving_vehicle(track: SmoothTrack, config: TrafficConfig) -> bool:
     """Whether a smoothed track is moving traffic: long enough in time and space, on average
-    faster than roof relief and pedestrians, never faster than town traffic."""
+    faster than roof relief and pedestrians, never faster than town traffic, and seen in most
+    of the frames it spans."""
     speed = track.speed
     return (
         track.times[-1] - track.times[0] >= config.min_duration_s
         and track.travel_m >= config.min_travel_m
         and speed.mean() >= config.min_speed_mps
         and speed.max() <= config.max_speed_mps
+        and track.observed.mean() >= config.min_observed
     )
 
 

@@ -96,6 +96,7 @@ def track_detections(
     live: list[_Live] = []
     done: list[_Live] = []
     next_id = 0
+    t_prev = -np.inf
     for k in frames:
         t = float(times[k])
         dets = np.asarray(detections.get(k, np.zeros((0, 2))), np.float64).reshape(-1, 2)
@@ -119,12 +120,12 @@ def track_detections(
             # is ~1.9 m, not the 3 m (90 m/s) of the fixed gate.
             s_inv = np.linalg.inv(np.array([p[1][:2, :2] for p in preds]) + r_meas)
             d2 = np.einsum("tdi,tij,tdj->td", resid, s_inv, resid)
-            # A new track's velocity is unknown: its next detection may be as far on as a
-            # vehicle at gate_speed goes in the time between (at the paper's 5 frames/s, 4 m
-            # at 72 km/h). A track with a velocity keeps the fixed gate.
-            fresh = np.array([len(tr.frames) == 1 for tr in live])
-            since = t - np.array([tr.t_last for tr in live])
-            reach = np.where(fresh, np.maximum(gate, config.gate_speed_mps * since), gate)
+            # A new track's velocity is unknown: in the next frame it may be as far on as a
+            # vehicle at gate_speed goes in one frame interval (at the paper's 5 frames/s, 4 m
+            # at 72 km/h). Not further after a missed frame: over a gap that reach would chain
+            # noise. A track with a velocity keeps the fixed gate.
+            fresh = np.array([len(tr.frames) == 1 and tr.t_last == t_prev for tr in live])
+            reach = np.where(fresh, max(gate, config.gate_speed_mps * (t - t_prev)), gate)
             cost = np.where((dist <= reach[:, None]) & (d2 <= GATE_CHI2), dist, _FAR)
         rows, cols = linear_sum_assignment(cost) if cost.size else ([], [])
         used = set()
@@ -141,12 +142,6 @@ def track_detections(
             tr.xy.append(dets[c].copy())
             tr.det_index.append(int(c))
             used.add(int(c))
-        # A new track not seen again in the next frame was noise (a tentative track, as in
-        # SORT): it ends, so it cannot chain far-off noise over a gap at the wide reach above.
-        still = []
-        for tr in live:
-            (done if len(tr.frames) == 1 and tr.t_last < t else still).append(tr)
-        live = still
         for c in range(len(dets)):
             if c in used:
                 continue
@@ -157,6 +152,7 @@ def track_detections(
             tr.xy.append(dets[c].copy())
             tr.det_index.append(c)
             live.append(tr)
+        t_prev = t
     done.extend(live)
     kept = [tr for tr in done if len(tr.frames) >= config.min_hits]
     kept.sort(key=lambda tr: (tr.frames[0], tr.xy[0][1], tr.xy[0][0]))
