@@ -267,15 +267,14 @@ def difference_image(
 ) -> NDArray[np.float32]:
     """``(h, w)`` float32: how far each pixel's colour lies outside the background's range over
     ``tolerance_px`` (max over channels, 8-bit levels; 0 inside the range)."""
-    img = image.astype(np.int16)
     if tolerance_px > 0:
         k = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * tolerance_px + 1, 2 * tolerance_px + 1))
-        lo = cv2.erode(background, k).astype(np.int16)
-        hi = cv2.dilate(background, k).astype(np.int16)
+        lo, hi = cv2.erode(background, k), cv2.dilate(background, k)
     else:
-        lo = hi = background.astype(np.int16)
-    over = np.maximum(img - hi, lo - img)
-    return np.maximum(channel_max(over), 0).astype(np.float32)
+        lo = hi = background
+    # Saturating uint8 differences: above the range, below it, 0 inside.
+    over = cv2.max(cv2.subtract(image, hi), cv2.subtract(lo, image))
+    return channel_max(over).astype(np.float32)
 
 
 def channel_max(a: NDArray) -> NDArray:

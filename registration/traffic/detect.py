@@ -74,7 +74,7 @@ def shadow_mask(image: NDArray[np.uint8], background: NDArray[np.uint8]) -> NDAr
     ratio = img / bg
     # numpy's mean over the channels, summed in the same order, without its slow reduction.
     bright = (ratio[..., 0] + ratio[..., 1] + ratio[..., 2]) / np.float32(3)
-    spread = channel_max(np.abs(ratio - bright[..., None])) / np.maximum(bright, 1e-3)
+    spread = channel_max(np.abs(ratio - bright[..., None])) / np.maximum(bright, np.float32(1e-3))
     lo, hi = SHADOW_RATIO
     return (bright > lo) & (bright < hi) & (spread < SHADOW_CHROMA)
 
@@ -109,9 +109,12 @@ def foreground(
     sigma = noise_sigma(frame.image, still, valid)
     floor = np.float32(max(config.min_threshold_dn, config.threshold_sigma * sigma))
     threshold = np.maximum(floor, np.float32(config.spread_factor) * background.spread)
-    ratio = np.where(valid, diff / threshold, 0).astype(np.float32)
-    moving = (ratio > 1.0) & valid
-    shadow = shadow_mask(frame.image, still) & moving
+    ratio = np.divide(diff, threshold, out=diff)
+    ratio[~valid] = 0
+    moving = ratio > 1.0
+    # The shadow test on the moving pixels only (a few per cent of the frame).
+    shadow = np.zeros_like(moving)
+    shadow[moving] = shadow_mask(frame.image[moving], still[moving])
     r = max(1, int(round(config.close_m / cell_m / 2.0)))
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
     core = cv2.morphologyEx((moving & ~shadow).view(np.uint8), cv2.MORPH_CLOSE, kernel)
@@ -126,14 +129,14 @@ def foreground(
     body = core.view(np.bool_) & ~piece
     dark = (shadow | piece).view(np.uint8)
     dark = cv2.morphologyEx(dark, cv2.MORPH_CLOSE, kernel) & valid.view(np.uint8)
-    n_dark, dark_labels = cv2.connectedComponents(dark, connectivity=8, ltype=cv2.CV_32S)
+    n_dark, dark_labels, dark_stats, _ = cv2.connectedComponentsWithStats(dark, None, 8, cv2.CV_32S)
     if n_dark > 1:
         # Dark blobs that touch a vehicle's body are its shadow; the others are dark cars.
         near = cv2.dilate(body.view(np.uint8), cv2.getStructuringElement(cv2.MORPH_RECT, (3, 3)))
         attached = np.zeros(n_dark, np.bool_)
         attached[np.unique(dark_labels[near > 0])] = True
         # A dark car is mostly dark: coloured speckle that the closing joined is not one.
-        total = np.bincount(dark_labels.ravel(), minlength=n_dark)
+        total = dark_stats[:, cv2.CC_STAT_AREA]
         darkest = np.bincount(dark_labels[shadow], minlength=n_dark)
         keep = ~attached & (darkest >= DARK_SHARE * total)
         own = (dark_labels > 0) & keep[dark_labels] & ~body
