@@ -162,6 +162,20 @@ class Background:
         return Background(self.image[sy, sx], self.count[sy, sx], self.spread[sy, sx], box)
 
 
+def needed_pixels(targets: list[WarpedFrame], box: Box, tolerance_px: int) -> NDArray[np.bool_]:
+    """``(h, w)`` bool over ``box``: where the targets have data, grown by ``tolerance_px`` (the
+    background's local range there reads its neighbours): all of the background detection
+    uses."""
+    x0, y0, x1, y1 = box
+    need = np.zeros((y1 - y0, x1 - x0), np.uint8)
+    for t in targets:
+        tx0, ty0, tx1, ty1 = t.box
+        need[ty0 - y0 : ty1 - y0, tx0 - x0 : tx1 - x0] |= t.mask.view(np.uint8)
+    if tolerance_px > 0:
+        need = cv2.dilate(need, np.ones((2 * tolerance_px + 1,) * 2, np.uint8))
+    return need.view(np.bool_)
+
+
 def union_box(boxes: list[Box]) -> Box:
     x0 = min(b[0] for b in boxes)
     y0 = min(b[1] for b in boxes)
@@ -195,14 +209,22 @@ def _sorting_network(n: int) -> list[tuple[int, int]]:
     return pairs
 
 
-def median_background(samples: list[WarpedFrame], box: Box) -> Background:
+def median_background(
+    samples: list[WarpedFrame], box: Box, need: NDArray[np.bool_] | None = None
+) -> Background:
     """The per-pixel median (the lower one for an even count) of ``samples`` over ``box``, the
     number of samples that had data there and their quartile spread (:class:`Background`).
 
     Where a sample has no data its place is filled with 0 or 255, as many of each as keep the
     median of all ``n`` on the median of the samples present, so one sorting network serves
     every pixel (cv2.min/max over whole images: ~8x faster than numpy's per-pixel sort).
+
+    ``need``: ``(h, w)`` bool over ``box``, where the background is wanted; it is then computed
+    strip by strip over each strip's span of ``need`` only (elsewhere image, count and spread
+    are 0). Each pixel's values are those of the whole box's: a pixel's median is its own.
     """
+    if need is not None:
+        return _median_where(samples, box, need)
     x0, y0, x1, y1 = box
     h, w = y1 - y0, x1 - x0
     n = len(samples)
@@ -242,6 +264,30 @@ def median_background(samples: list[WarpedFrame], box: Box) -> Background:
         planes[a], planes[b] = cv2.min(pa, pb), cv2.max(pa, pb)
     median = planes[(n - 1) // 2].reshape(h, w, 3)
     return Background(median, count, _quartile_spread(planes, low, count), box)
+
+
+# Rows per strip of :func:`median_background`'s ``need``: a γ 0.7 frame's footprint fills about
+# half its bounding box, narrowest at its top and bottom.
+NEED_STRIP = 64
+
+
+def _median_where(samples: list[WarpedFrame], box: Box, need: NDArray[np.bool_]) -> Background:
+    x0, y0, x1, y1 = box
+    h, w = y1 - y0, x1 - x0
+    image = np.zeros((h, w, 3), np.uint8)
+    count = np.zeros((h, w), np.int32)
+    spread = np.zeros((h, w), np.float32)
+    for r0 in range(0, h, NEED_STRIP):
+        r1 = min(r0 + NEED_STRIP, h)
+        cols = np.flatnonzero(need[r0:r1].any(axis=0))
+        if not len(cols):
+            continue
+        c0, c1 = int(cols[0]), int(cols[-1]) + 1
+        part = median_background(samples, (x0 + c0, y0 + r0, x0 + c1, y0 + r1))
+        image[r0:r1, c0:c1] = part.image
+        count[r0:r1, c0:c1] = part.count
+        spread[r0:r1, c0:c1] = part.spread
+    return Background(image, count, spread, box)
 
 
 def _quartile_spread(planes, low, count) -> NDArray[np.float32]:

@@ -22,6 +22,7 @@ from registration.traffic.background import (
     WorkGrid,
     frame_keep_mask,
     median_background,
+    needed_pixels,
     union_box,
     warp_frame,
 )
@@ -142,7 +143,9 @@ def detect_sequence(
             targets = [warped[k] for k in todo if warped[k] is not None]
             samples = [warped[k] for k in block.samples if warped[k] is not None]
             if targets:
-                background = median_background(samples, union_box([w.box for w in targets]))
+                box = union_box([w.box for w in targets])
+                need = needed_pixels(targets, box, config.tolerance_px)
+                background = median_background(samples, box, need)
             for k in todo:
                 w = warped[k]
                 found = []

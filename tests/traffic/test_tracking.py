@@ -57,6 +57,30 @@ def test_median_background_is_the_median_of_the_samples_present(rng):
                 np.testing.assert_array_equal(med[y, x], lower)
 
 
+def test_median_background_where_needed_is_the_whole_boxs_there(rng, monkeypatch):
+    import registration.traffic.background as bg_mod
+
+    monkeypatch.setattr(bg_mod, "NEED_STRIP", 7)  # several strips on a small box
+    samples = []
+    for i in range(7):
+        x0, y0 = (int(v) for v in rng.integers(0, 12, 2))
+        image = rng.integers(1, 255, (30, 40, 3), dtype=np.uint8)
+        samples.append(
+            WarpedFrame(i, image, rng.random((30, 40)) < 0.8, (x0, y0, x0 + 40, y0 + 30))
+        )
+    box = (3, 4, 50, 44)
+    need = np.zeros((40, 47), bool)
+    need[5:30, 10:20] = need[12:38, 25:44] = True
+    whole = median_background(samples, box)
+    part = median_background(samples, box, need)
+    np.testing.assert_array_equal(part.image[need], whole.image[need])
+    np.testing.assert_array_equal(part.count[need], whole.count[need])
+    np.testing.assert_array_equal(part.spread[need], whole.spread[need])
+    # The first strip (rows 0-6) needs columns 10-19 only: the rest of it is left alone.
+    assert part.count[:7, :10].max() == 0 and part.count[:7, 20:].max() == 0
+    assert whole.count[:7, 20:].max() > 0
+
+
 def _planted(rng, n_frames=40, fps=5.0, sigma=0.15):
     """Three vehicles at constant velocity (m, m/s) seen at ``fps`` with position noise; the
     second is missed in frames 10-11 and a false detection sits far from all in frame 20."""
