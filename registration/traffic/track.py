@@ -154,8 +154,7 @@ def track_detections(
             live.append(tr)
         t_prev = t
     done.extend(live)
-    kept = [tr for tr in done if len(tr.frames) >= config.min_hits]
-    kept.sort(key=lambda tr: (tr.frames[0], tr.xy[0][1], tr.xy[0][0]))
+    kept = [tr for tr in merge_parallel(done) if len(tr.frames) >= config.min_hits]
     return [
         RawTrack(
             i + 1,
@@ -166,6 +165,56 @@ def track_detections(
         )
         for i, tr in enumerate(kept)
     ]
+
+
+# Two tracks that share frames and stay this close (m) in every one of them follow one vehicle.
+PARALLEL_M = 3.5
+
+
+def merge_parallel(tracks: list[_Live]) -> list[_Live]:
+    """``tracks`` in order of their first detection (ties by position), each merged with the
+    later ones that share at least two frames with it and stay within :data:`PARALLEL_M` of it
+    in all of them (their positions averaged where both were seen).
+
+    A vehicle split into two blobs (its body and a piece that blur, a windscreen or its shadow
+    cut off) starts a second track beside its own; the two then take its detections in turn
+    and both may end too short. Merging them on the simulated flights: MOTA +0.017 to +0.036,
+    precision +0.02 to +0.07, recall unchanged (docs/traffic.md)."""
+    tracks = sorted(tracks, key=lambda tr: (tr.frames[0], tr.xy[0][1], tr.xy[0][0]))
+    merged = [False] * len(tracks)
+    out = []
+    for i, a in enumerate(tracks):
+        if merged[i]:
+            continue
+        j = i + 1
+        while j < len(tracks) and tracks[j].frames[0] <= a.frames[-1]:
+            if not merged[j] and _parallel(a, tracks[j]):
+                _absorb(a, tracks[j])
+                merged[j] = True
+            j += 1
+        out.append(a)
+    return out
+
+
+def _parallel(a: _Live, b: _Live) -> bool:
+    at = {k: i for i, k in enumerate(a.frames)}
+    shared = [(at[k], i) for i, k in enumerate(b.frames) if k in at]
+    return len(shared) >= 2 and all(
+        np.linalg.norm(a.xy[i] - b.xy[j]) <= PARALLEL_M for i, j in shared
+    )
+
+
+def _absorb(a: _Live, b: _Live) -> None:
+    """Merge ``b``'s detections into ``a`` (in frame order; shared frames averaged)."""
+    rows = {k: (t, xy, d) for k, t, xy, d in zip(a.frames, a.times, a.xy, a.det_index, strict=True)}
+    for k, t, xy, d in zip(b.frames, b.times, b.xy, b.det_index, strict=True):
+        rows[k] = (t, (rows[k][1] + xy) / 2, rows[k][2]) if k in rows else (t, xy, d)
+    order = sorted(rows)
+    a.frames = order
+    a.times = [rows[k][0] for k in order]
+    a.xy = [rows[k][1] for k in order]
+    a.det_index = [rows[k][2] for k in order]
+    a.t_last = a.times[-1]
 
 
 @dataclass

@@ -295,6 +295,26 @@ def test_a_track_seen_in_too_few_of_its_frames_is_dropped():
             assert tracks[0].observed.mean() == pytest.approx(0.5, abs=0.03)
 
 
+def test_a_vehicle_split_in_two_blobs_is_one_track_and_two_cars_in_a_row_two():
+    # From frame 5 on, the car at 10 m/s is also seen as a second blob 2 m behind its centre
+    # (a piece its shadow cut off): that starts a second track beside its own, merged back.
+    # Two cars 6 m apart in one lane stay two tracks.
+    times = np.arange(20) / 10.0
+    for gap, tracks in ((2.0, 1), (6.0, 2)):
+        dets = {}
+        for k, t in enumerate(times):
+            xy = [[10.0 * t, 0.0]]
+            if k >= 5 or gap > 3:
+                xy.append([10.0 * t - gap, 0.0])
+            dets[k] = np.array(xy)
+        raw = track_detections(list(range(20)), times, dets, TrafficConfig())
+        assert len(raw) == tracks, gap
+        if tracks == 1:
+            assert len(raw[0].frames) == 20
+            # Averaged where both were seen: 1 m behind the car's centre.
+            np.testing.assert_allclose(raw[0].xy[10], [10.0 - 1.0, 0.0], atol=1e-9)
+
+
 def test_tracks_that_are_not_moving_traffic_are_dropped(rng):
     from registration.traffic.detect import Detection
     from registration.traffic.sequence import tracks_from_detections
