@@ -74,7 +74,7 @@ def shadow_mask(image: NDArray[np.uint8], background: NDArray[np.uint8]) -> NDAr
     ratio = img / bg
     # numpy's mean over the channels, summed in the same order, without its slow reduction.
     bright = (ratio[..., 0] + ratio[..., 1] + ratio[..., 2]) / np.float32(3)
-    spread = channel_max(np.abs(ratio - bright[..., None])) / np.maximum(bright, np.float32(1e-3))
+    spread = channel_max(np.abs(ratio - bright[..., None])) / np.maximum(bright, 1e-3)
     lo, hi = SHADOW_RATIO
     return (bright > lo) & (bright < hi) & (spread < SHADOW_CHROMA)
 

@@ -49,7 +49,7 @@ def test_a_dark_car_with_a_few_coloured_pixels_is_one_vehicle(rng):
     assert 3.6 < dets[0].length_m < 5.4 and 1.2 < dets[0].width_m < 2.4, dets[0]
 
 
-def test_a_small_coloured_piece_beside_a_cars_shadow_stays_a_shadow_of_nothing(rng):
+def test_a_white_car_with_its_shadow_is_one_vehicle_at_the_cars_centre(rng):
     # A white car with its shadow is one vehicle at the car's centre: the shadow does not pull
     # it (the rule above must not turn a real car's shadow into a second vehicle).
     still, image = _road(rng)
