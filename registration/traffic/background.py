@@ -96,6 +96,33 @@ def footprint_box(result, k: int, grid: WorkGrid) -> Box | None:
     return x0, y0, x1, y1
 
 
+# Cells (working px) of the map of where a frame's footprint may reach, and its margin in cells:
+# 48 px beyond the outline's straight segments, well past where the curved footprint edge
+# between them (a few px for γ 0.7), the local stage's displacement (a few px) and
+# render_registered's lattice (8 px) and exact band (16 px) reach.
+NEAR_CELL = 16
+NEAR_MARGIN = 3
+
+
+def _near_footprint(result, k: int, grid: WorkGrid, box: Box) -> NDArray[np.bool_]:
+    """``(ceil(h / NEAR_CELL), ceil(w / NEAR_CELL))`` bool over ``box``: the cells within
+    ``NEAR_MARGIN`` cells of frame ``k``'s footprint (its outline through the local stage)."""
+    x0, y0, x1, y1 = box
+    shape = (-(-(y1 - y0) // NEAR_CELL), -(-(x1 - x0) // NEAR_CELL))
+    w, h = result.frame_size
+    pts = result.frame_to_base(k, frame_outline(w, h, per_edge=128), "local")
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    if len(pts) < 3:
+        return np.ones(shape, np.bool_)
+    cells = (grid.work_from_base(pts) - (x0, y0)) / NEAR_CELL
+    near = np.zeros(shape, np.uint8)
+    # Cell centres at integer + 0.5: a cell is filled when the polygon covers its centre.
+    cv2.fillPoly(near, [np.round((cells - 0.5) * 16).astype(np.int32)], 1, cv2.LINE_8, 4)
+    size = 2 * NEAR_MARGIN + 1
+    near = cv2.dilate(near, np.ones((size, size), np.uint8))
+    return near.view(np.bool_)
+
+
 def frame_keep_mask(result) -> NDArray[np.uint8] | None:
     """``(h, w)`` uint8 over the raw frame: 0 in the boxes the registration was told hold no
     ground (a burnt-in logo or on-screen display: the sequence adjustment's ``probes.exclude``,
@@ -123,9 +150,20 @@ def warp_frame(
     if box is None:
         return None
     x0, y0, x1, y1 = box
+    near = _near_footprint(result, k, grid, box)
 
     def raw_from_work(wxy):
-        return result.base_to_frame(k, grid.base_from_work(wxy), "local")
+        # Only points near the footprint are inverted: the others (about half of a γ 0.7
+        # frame's box) map outside the frame, and the inverse costs as much there as inside.
+        out = np.full(np.shape(wxy), np.nan)
+        cell = np.floor((wxy - (x0, y0)) / NEAR_CELL).astype(np.int64)
+        inside = (
+            (cell >= 0).all(axis=1) & (cell[:, 0] < near.shape[1]) & (cell[:, 1] < near.shape[0])
+        )
+        sel = np.flatnonzero(inside)
+        sel = sel[near[cell[sel, 1], cell[sel, 0]]]
+        out[sel] = result.base_to_frame(k, grid.base_from_work(wxy[sel]), "local")
+        return out
 
     if frame.ndim == 2:
         frame = cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR)

@@ -64,10 +64,15 @@ class TrafficConfig:
         min_observed: least share of the frames a track spans that it was detected in; a
             track seen less is mostly the filter coasting between detections chained by chance
             (the real flyover: one at 32 m/s seen in 8 of 32 frames).
-        measurement_sigma_m: a detection's position noise, metres (Kalman filter).
-        accel_sigma_mps2: how fast a vehicle's velocity changes, m/s² per √s (the tracker's
-            constant-velocity model; the smoother's constant-acceleration model uses it as the
-            jerk's scale).
+        measurement_sigma_m: a detection's position noise, metres (tracker and smoother): the
+            scatter of detected centres about the true ones on the simulator, 0.37 m per axis
+            (blur, a shadow's side, a windscreen cut off).
+        accel_sigma_mps2: how fast a vehicle's velocity may change while it is followed, m/s²
+            per √s (the tracker's constant-velocity model: generous, so that a braking or
+            turning vehicle stays within its gate).
+        smooth_accel_sigma_mps2: how fast a vehicle's velocity wanders in the forward-backward
+            smoother (m/s² per √s; constant-velocity model): town traffic's typical 1 m/s².
+            Lower holds speeds steadier between noisy detections, most at a track's ends.
         field_cell_m: cell of the velocity field, metres.
         field_min_count: cells with fewer track points are left empty in the field.
     """
@@ -96,8 +101,9 @@ class TrafficConfig:
     min_speed_mps: float = 2.0
     max_speed_mps: float = 45.0
     min_observed: float = 0.5
-    measurement_sigma_m: float = 0.25
+    measurement_sigma_m: float = 0.35
     accel_sigma_mps2: float = 2.0
+    smooth_accel_sigma_mps2: float = 1.0
     field_cell_m: float = 5.0
     field_min_count: int = 3
 

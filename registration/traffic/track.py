@@ -1,6 +1,6 @@
 """Detections into trajectories: a constant-velocity Kalman filter per vehicle, Hungarian
 assignment between predictions and detections, then a forward-backward (Rauch-Tung-Striebel)
-constant-acceleration smoother over each trajectory.
+constant-velocity smoother over each trajectory.
 
 The filter and smoother are filterpy's (``filterpy.kalman``), the assignment scipy's
 ``linear_sum_assignment``: the tracker the issue names rather than a home-made one. Norfair pins
@@ -186,22 +186,32 @@ def merge_parallel(tracks: list[_Live]) -> list[_Live]:
     for i, a in enumerate(tracks):
         if merged[i]:
             continue
+        at = {k: xy for k, xy in zip(a.frames, a.xy, strict=True)}
         j = i + 1
         while j < len(tracks) and tracks[j].frames[0] <= a.frames[-1]:
-            if not merged[j] and _parallel(a, tracks[j]):
+            if not merged[j] and _parallel(at, tracks[j]):
                 _absorb(a, tracks[j])
+                at = {k: xy for k, xy in zip(a.frames, a.xy, strict=True)}
                 merged[j] = True
             j += 1
         out.append(a)
     return out
 
 
-def _parallel(a: _Live, b: _Live) -> bool:
-    at = {k: i for i, k in enumerate(a.frames)}
-    shared = [(at[k], i) for i, k in enumerate(b.frames) if k in at]
-    return len(shared) >= 2 and all(
-        np.linalg.norm(a.xy[i] - b.xy[j]) <= PARALLEL_M for i, j in shared
-    )
+def _parallel(at: dict[int, NDArray], b: _Live) -> bool:
+    """Whether ``b`` shares at least two frames with the track whose positions by frame are
+    ``at`` and stays within :data:`PARALLEL_M` of it in every one (the first far pair ends the
+    look: most pairs are other vehicles)."""
+    shared = 0
+    for k, xy in zip(b.frames, b.xy, strict=True):
+        other = at.get(k)
+        if other is None:
+            continue
+        d = other - xy
+        if d[0] * d[0] + d[1] * d[1] > PARALLEL_M * PARALLEL_M:
+            return False
+        shared += 1
+    return shared >= 2
 
 
 def _absorb(a: _Live, b: _Live) -> None:
@@ -246,46 +256,22 @@ class SmoothTrack:
         return float(np.linalg.norm(self.xy[-1] - self.xy[0]))
 
 
-def _ca_matrices(dt: float, q: float) -> tuple[NDArray, NDArray]:
-    """Constant-acceleration transition and process noise (white jerk of spectral density
-    ``q``) for state ``[x, y, vx, vy, ax, ay]``."""
-    f1 = np.array([[1.0, dt, dt * dt / 2], [0, 1.0, dt], [0, 0, 1.0]])
-    q1 = q * np.array(
-        [
-            [dt**5 / 20, dt**4 / 8, dt**3 / 6],
-            [dt**4 / 8, dt**3 / 3, dt**2 / 2],
-            [dt**3 / 6, dt**2 / 2, dt],
-        ]
-    )
-    order = [0, 2, 4], [1, 3, 5]
-    f, qm = np.zeros((6, 6)), np.zeros((6, 6))
-    for idx in order:
-        f[np.ix_(idx, idx)] = f1
-        qm[np.ix_(idx, idx)] = q1
-    return f, qm
-
-
 def smooth_track(
     raw: RawTrack, frames: list[int], times: NDArray[np.float64], config: TrafficConfig
 ) -> SmoothTrack:
     """Forward Kalman filter and Rauch-Tung-Striebel smoother (filterpy) over ``raw``'s span of
-    ``frames`` (the usable frames, ascending) with a constant-acceleration model."""
+    ``frames`` (the usable frames, ascending) with a constant-velocity model whose velocity
+    wanders by ``config.smooth_accel_sigma_mps2``; the acceleration is the smoothed velocity's
+    derivative over time (central differences)."""
     first, last = int(raw.frames[0]), int(raw.frames[-1])
     span = [k for k in frames if first <= k <= last]
     seen = dict(zip(raw.frames.tolist(), raw.xy, strict=True))
-    q = config.accel_sigma_mps2**2
-    kf = KalmanFilter(dim_x=6, dim_z=2)
-    kf.x = np.array([raw.xy[0][0], raw.xy[0][1], 0, 0, 0, 0], np.float64)
-    h = np.zeros((2, 6))
-    h[0, 0] = h[1, 1] = 1.0
-    kf.H = h
-    kf.R = np.eye(2) * config.measurement_sigma_m**2
-    # State [x, y, vx, vy, ax, ay]; unknown velocity and acceleration at the start.
-    kf.P = np.diag([config.measurement_sigma_m**2] * 2 + [15.0**2] * 2 + [3.0**2] * 2)
+    q = config.smooth_accel_sigma_mps2**2
+    kf = _new_filter(raw.xy[0], config)
     xs, ps, fs, qs = [], [], [], []
     t_prev = float(times[span[0]])
     for k in span:
-        f, qm = _ca_matrices(float(times[k]) - t_prev, q)
+        f, qm = _cv_matrices(float(times[k]) - t_prev, q)
         if k != span[0]:
             kf.predict(F=f, Q=qm)
         if k in seen:
@@ -298,13 +284,18 @@ def smooth_track(
     # filterpy's smoother steps from k to k + 1 with Fs[k + 1], Qs[k + 1]: the transition into
     # k + 1, as built here.
     sx, sp, _, _ = kf.rts_smoother(np.array(xs), np.array(ps), fs, qs)
+    t_span = np.asarray([times[k] for k in span], np.float64)
+    if len(span) > 1:
+        accel = np.gradient(sx[:, 2:4], t_span, axis=0)
+    else:
+        accel = np.zeros((1, 2))
     return SmoothTrack(
         raw.track_id,
         np.asarray(span, np.int64),
-        np.asarray([times[k] for k in span], np.float64),
+        t_span,
         sx[:, 0:2].copy(),
         sx[:, 2:4].copy(),
-        sx[:, 4:6].copy(),
+        accel,
         np.sqrt(0.5 * (sp[:, 0, 0] + sp[:, 1, 1])),
         np.array([k in seen for k in span]),
     )

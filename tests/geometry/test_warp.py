@@ -107,9 +107,14 @@ def test_bicubic_remap_matches_keys_cubic_convolution():
 
 def test_outside_and_nan_get_the_border_value():
     img = smooth_image() + 10
-    smap = np.array([[[-5.0, 10.0], [np.nan, 3.0], [100.0, 20.0], [10.0, 1e9]]], np.float32)
+    smap = np.array(
+        [[[-5.0, 10.0], [np.nan, 3.0], [100.0, 20.0], [10.0, 1e9], [4.0, np.nan], [np.inf, 5.0],
+          [6.0, -np.inf], [np.nan, np.nan], [np.nan, -np.inf]]], np.float32,
+    )  # fmt: skip
     got = warp.remap(img, smap, border_value=-7)
-    np.testing.assert_array_equal(got, [[-7, -7, -7, -7]])
+    np.testing.assert_array_equal(got, [[-7] * 9])
+    # The map given is not changed.
+    assert np.isnan(smap[0, 1, 0]) and np.isinf(smap[0, 5, 0])
     # Half a pixel beyond the outer pixel centre: half image, half border (constant extension).
     edge = warp.remap(img, np.array([[[-0.5, 10.0]]], np.float32), border_value=0)
     assert edge[0, 0] == pytest.approx(img[10, 0] / 2, abs=0.05 * float(img[10, 0]))
