@@ -156,29 +156,47 @@ class _Pair:
     excess_ms: float
 
 
-def _pairs(frames: Mapping[int, FieldFrame], links: Sequence[FrameLinks], solved) -> list[_Pair]:
+def _pairs(
+    frames: Mapping[int, FieldFrame], links: Sequence[FrameLinks], solved, cache=None
+) -> list[_Pair]:
     out = []
     for lk in links:
         fk, fl = frames.get(lk.k), frames.get(lk.l)
         if fk is None or fl is None or (lk.k not in solved and lk.l not in solved):
             continue
-        xk, xl = fk.to_base(lk.src_k), fl.to_base(lk.src_l)
-        ok = np.isfinite(xk).all(axis=1) & np.isfinite(xl).all(axis=1)
-        if ok.sum() < 8:
+        key = (lk.k, lk.l)
+        if cache is None or key not in cache:
+            through = _through_own(fk, fl, lk)
+            if cache is not None:
+                cache[key] = through
+        else:
+            through = cache[key]
+        if through is None:
             continue
-        xk, xl, src_k, src_l = xk[ok], xl[ok], lk.src_k[ok], lk.src_l[ok]
+        xk, xl, floor = through
         at = 0.5 * (xk + xl)
         t = xl - xk  # e_k(at) - e_l(at) = xl - xk
         for f, sign, j in ((fk, 1.0, lk.k), (fl, -1.0, lk.l)):
             if j not in solved and f.grid is not None:
                 # A held frame's correction moves its side of the link: e = -δ.
                 t = t + sign * f.grid.sample(at, outside="clamp")
-        floor = _floor_ms(src_k, src_l, xl)
         # What the local stages' disagreement exceeds the floor by, beyond what two mean
         # squares read from medians of n points differ by anyway (about 1.5/√n each).
         excess = _robust_ms(t) - floor * (1.0 + 3.0 / np.sqrt(len(t)))
         out.append(_Pair(lk.k, lk.l, at, t, floor, max(excess, 0.0)))
     return out
+
+
+def _through_own(fk: FieldFrame, fl: FieldFrame, lk: FrameLinks):
+    """``(xk, xl, floor)``: the link's points through each frame's own local stage (base px,
+    where both map) and the links' own noise there (:func:`_floor_ms`), or None with fewer than
+    8 such points. Neither depends on the window: a caller may keep them for the next."""
+    xk, xl = fk.to_base(lk.src_k), fl.to_base(lk.src_l)
+    ok = np.isfinite(xk).all(axis=1) & np.isfinite(xl).all(axis=1)
+    if ok.sum() < 8:
+        return None
+    xk, xl = xk[ok], xl[ok]
+    return xk, xl, _floor_ms(lk.src_k[ok], lk.src_l[ok], xl)
 
 
 def _robust_ms(r: NDArray) -> float:
@@ -211,13 +229,19 @@ def solve_corrections(
     frames: Mapping[int, FieldFrame],
     links: Sequence[FrameLinks],
     config: FieldSolveConfig | None = None,
+    cache: dict | None = None,
 ) -> dict[int, DisplacementField]:
     """Each solved frame's correction field ``δ = -e`` (module docstring) on its grid, with
     ``valid`` where links reached a node; frames without any link keep a zero field.
 
     The noise model is read from the links (module docstring): frames that agree to within
     their links' noise are held where they are, frames that disagree are moved as far as their
-    links show."""
+    links show.
+
+    ``cache``: a dict the caller keeps from one window to the next, holding each link pair's
+    points through the frames' own local stages and the links' noise (neither depends on the
+    window; a sliding window meets most pairs twice). Only for frames whose ``to_base`` stays
+    the same while it is kept."""
     cfg = config or FieldSolveConfig()
     solved = sorted(k for k, f in frames.items() if not f.held and f.grid is not None)
     offset, n_unknowns = {}, 0
@@ -227,7 +251,7 @@ def solve_corrections(
     if n_unknowns == 0:
         return {}
     touched = np.zeros(n_unknowns, bool)
-    pairs = [p for p in _pairs(frames, links, offset) if np.isfinite(p.floor_ms)]
+    pairs = [p for p in _pairs(frames, links, offset, cache) if np.isfinite(p.floor_ms)]
     if not pairs:
         e = np.zeros((n_unknowns, 2))
         return {k: _as_field(frames[k].grid, e, touched, offset[k]) for k in solved}

@@ -554,6 +554,22 @@ class PolyProjective(_RationalModel):
             jac[:, 1, 2 * j :] = -(yn / den / self.dst_norm.scale)[:, None] * phi[:, :-1]
         return self.dst_norm.backward(np.stack([xn, yn], axis=1)), jac
 
+    def param_jacobian_by_row(self, design: Array) -> tuple[Array, Array, Array, Array, Array]:
+        """:meth:`param_jacobian` (to the bit) by row, from :meth:`design` of the points:
+        ``(values (N, 2), ix, iy, jx (N, 2J - 1), jy (N, 2J - 1))``. The x row depends on the
+        numerator ``a`` and the denominator ``c`` only (parameters ``ix``), the y row on ``b``
+        and ``c`` (``iy``); the Jacobian's other entries are 0 by the model's form."""
+        xn, yn, den = self._normalised_values(design)
+        j = design.shape[1]
+        ix, iy = np.r_[0:j, 2 * j : 3 * j - 1], np.r_[j : 2 * j, 2 * j : 3 * j - 1]
+        s = self.dst_norm.scale
+        with np.errstate(divide="ignore", invalid="ignore"):
+            g = design / den[:, None] / s
+            jx = np.hstack([g, -(xn / den / s)[:, None] * design[:, :-1]])
+            jy = np.hstack([g, -(yn / den / s)[:, None] * design[:, :-1]])
+        values = self.dst_norm.backward(np.stack([xn, yn], axis=1))
+        return values, ix, iy, jx, jy
+
     def apply_design(self, design: Array) -> Array:
         """Destination px of the points whose :meth:`design` is ``design``: the first part of
         :meth:`param_jacobian` to the bit, without the derivatives."""

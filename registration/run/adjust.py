@@ -139,6 +139,8 @@ class _Fields:
         self._solved: dict[int, DisplacementField] = {}
         self._written: dict[int, DisplacementField | None] = {}
         self._to_base: dict[int, Callable] = {}
+        # Each link pair's points through the two frames' own local stages (static: _own_local).
+        self._pairs: dict[tuple[int, int], tuple | None] = {}
 
     def consistent(self, k: int, window: tuple[int, int]) -> DisplacementField | None:
         """Frame k's correction field, from the window ``(start, end)`` that made it final;
@@ -162,6 +164,8 @@ class _Fields:
             self.result.release(j)
         for j in [j for j in self._written if j < first]:
             del self._written[j]
+        for pair in [pair for pair in self._pairs if pair[0] < first]:
+            del self._pairs[pair]
         frames = {}
         for j in range(first, end):
             if models[j] is None:
@@ -180,7 +184,7 @@ class _Fields:
             for j in range(first, end - s)
             if j + s >= start and models[j] is not None and models[j + s] is not None
         ]
-        self._solved = solve_corrections(frames, links, self.config.fields)
+        self._solved = solve_corrections(frames, links, self.config.fields, self._pairs)
         self._window = (start, end)
 
     def _held_correction(self, j: int) -> DisplacementField | None:

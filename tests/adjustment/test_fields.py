@@ -200,3 +200,18 @@ def test_a_frame_without_links_keeps_its_own_local_stage():
 def test_the_noise_model_refuses_what_is_not_a_noise(name):
     with pytest.raises(ValueError, match=name):
         FieldSolveConfig(**{name: 0.0})
+
+
+def test_a_kept_cache_of_link_pairs_gives_the_same_fields():
+    """The caller's cache of each pair's points through the frames' own local stages (a
+    sliding window meets most pairs twice) changes nothing: cold, warm and without it alike."""
+    _, frames, links = _flight(8)
+    plain = solve_corrections(frames, links)
+    cache: dict = {}
+    cold = solve_corrections(frames, links, cache=cache)
+    assert set(cache) == {(lk.k, lk.l) for lk in links}
+    warm = solve_corrections(frames, links, cache=cache)
+    for k in plain:
+        for other in (cold, warm):
+            np.testing.assert_array_equal(other[k].vectors, plain[k].vectors)
+            np.testing.assert_array_equal(other[k].valid, plain[k].valid)

@@ -163,3 +163,50 @@ def test_a_frame_nothing_constrains_keeps_its_model(scene):
     res = adjust_models(fits, no_links_to_5, alone)
     assert res.success and np.array_equal(res.models[5].params, fits[5].params)
     assert np.isnan(res.link_rms_px[5]) and np.isnan(res.control_rms_px[5])
+
+
+@pytest.mark.parametrize("degree", [2, 3])
+def test_jacobian_by_row_is_the_models_parameter_jacobian(degree):
+    """The normal equations take a polyprojective's Jacobian by row (the x row on the
+    numerator a and the denominator c, the y row on b and c): the same numbers, and the rest
+    is 0."""
+    rng = np.random.default_rng(degree)
+    model = PolyProjective.from_projective(
+        _truth(1).projective_part(), degree, Normalisation.for_extent(W, H),
+        _truth(1).dst_norm,
+    )  # fmt: skip
+    model = model.with_params(model.params + rng.normal(0, 1e-3, model.params.shape))
+    pts = rng.uniform(0, [W, H], (50, 2))
+    values, jac = model.param_jacobian(pts)
+    got, ix, iy, jx, jy = model.param_jacobian_by_row(model.design(pts))
+    np.testing.assert_array_equal(got, values)
+    np.testing.assert_array_equal(jx, jac[:, 0, ix])
+    np.testing.assert_array_equal(jy, jac[:, 1, iy])
+    others_x = np.setdiff1d(np.arange(jac.shape[2]), ix)
+    others_y = np.setdiff1d(np.arange(jac.shape[2]), iy)
+    assert not jac[:, 0, others_x].any() and not jac[:, 1, others_y].any()
+    assert len(others_x) == len(others_y) == (degree + 1) * (degree + 2) // 2
+
+
+def test_covariance_blocks_are_the_inverses_blocks_dense_or_sparse(monkeypatch):
+    """A window's predicted errors take diagonal blocks of the normal matrix's inverse: by a
+    dense Cholesky inverse up to DENSE_COVARIANCE unknowns, by sparse solves beyond; both are
+    numpy's inverse, and a singular matrix gives None either way."""
+    import scipy.sparse as sp
+
+    from registration.adjustment import solve
+
+    rng = np.random.default_rng(5)
+    n, p = 6, 7  # frames, parameters each: a block band (each frame linked to the next)
+    a = rng.normal(size=(n * p, n * p)) * (
+        np.abs(np.subtract.outer(np.arange(n * p) // p, np.arange(n * p) // p)) <= 1
+    )
+    normal = sp.csc_matrix(a @ a.T + 0.1 * np.eye(n * p))
+    expected = np.linalg.inv(normal.toarray())
+    singular = sp.csc_matrix(np.outer(np.arange(1.0, 8), np.arange(1.0, 8)))
+    for dense_limit in (solve.DENSE_COVARIANCE, 0):
+        monkeypatch.setattr(solve, "DENSE_COVARIANCE", dense_limit)
+        cov = solve._block_inverse(normal)
+        for o in range(0, n * p, p):
+            np.testing.assert_allclose(cov(o, p), expected[o : o + p, o : o + p], rtol=1e-9)
+        assert solve._block_inverse(singular) is None
