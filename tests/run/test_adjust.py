@@ -321,3 +321,23 @@ def test_a_blank_frame_fails_and_the_others_are_adjusted_around_it(
         assert result.records[k].stats["adjustment"]["flagged"] == ""
         own = _map_error(default_result.unadjusted(), truth, k)
         assert _map_error(result, truth, k) < own + 0.05, k
+
+
+def test_the_adjustment_runs_blas_on_one_thread(monkeypatch, tmp_path):
+    """The adjustment's products are small: OpenBLAS's threads cost more CPU than they save
+    (the real flyover: 0.031 -> 0.0275 s per frame), so it runs them on one thread, and the
+    threads the caller had are back afterwards."""
+    from threadpoolctl import threadpool_info
+
+    from registration.run import adjust
+
+    seen = []
+    monkeypatch.setattr(
+        adjust, "_adjust_result",
+        lambda *a: seen.append([p["num_threads"] for p in threadpool_info()
+                                if p["user_api"] == "blas"]) or 0,
+    )  # fmt: skip
+    before = [p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"]
+    assert adjust.adjust_result(None, None, None) == 0
+    assert seen and seen[0] and all(n == 1 for n in seen[0])
+    assert [p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"] == before
