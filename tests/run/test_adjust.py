@@ -323,7 +323,7 @@ def test_a_blank_frame_fails_and_the_others_are_adjusted_around_it(
         assert _map_error(result, truth, k) < own + 0.05, k
 
 
-def test_the_adjustment_runs_blas_on_one_thread(monkeypatch, tmp_path):
+def test_the_adjustment_runs_blas_on_one_thread(monkeypatch):
     """The adjustment's products are small: OpenBLAS's threads cost more CPU than they save
     (the real flyover: 0.031 -> 0.0275 s per frame), so it runs them on one thread, and the
     threads the caller had are back afterwards."""
