@@ -184,33 +184,29 @@ class _Problem:
         self._normal_index = None
 
     def _stack_points(self) -> None:
-        """Each unknown frame's points of every block, stacked (``stack[k] = (src, design)``),
+        """Each unknown frame's points of every block, stacked (``stack[k]``: their monomials),
         and per block where its points lie there (``sides``: ``(k, lo, hi)`` per frame of the
         block, or a held frame's values, which never change): the normal equations then take
         one Jacobian per frame, not one per block and frame."""
         parts: dict[int, list] = {k: [] for k in self.offset}
         count = dict.fromkeys(self.offset, 0)
 
-        def place(k, src, design):
+        def place(k, design):
             if k not in self.offset:
                 return self.models[k].apply_design(design)
             lo = count[k]
-            count[k] += len(src)
-            parts[k].append((src, design))
+            count[k] += len(design)
+            parts[k].append(design)
             return k, lo, count[k]
 
         self.sides = [
-            (place(lk.k, lk.src_k, dk), place(lk.l, lk.src_l, dl))
+            (place(lk.k, dk), place(lk.l, dl))
             for lk, (dk, dl) in zip(self.links, self.link_design, strict=True)
         ]
         self.sides += [
-            (place(c.k, c.src, d),) for c, d in zip(self.controls, self.control_design, strict=True)
+            (place(c.k, d),) for c, d in zip(self.controls, self.control_design, strict=True)
         ]
-        self.stack = {
-            k: (np.concatenate([a for a, _ in p]), np.concatenate([d for _, d in p]))
-            for k, p in parts.items()
-            if p
-        }
+        self.stack = {k: np.concatenate(p) for k, p in parts.items() if p}
 
     def model(self, x: NDArray, k: int) -> PolyProjective:
         m = self.models[k]
@@ -235,7 +231,7 @@ class _Problem:
 
     def _evaluate(self, x: NDArray) -> NDArray:
         """The weighted residuals at ``x``, flat."""
-        vals = {k: self.model(x, k).apply_design(d) for k, (_, d) in self.stack.items()}
+        vals = {k: self.model(x, k).apply_design(d) for k, d in self.stack.items()}
         res = [r.ravel() for _, _, r in self._block_residuals(vals)]
         return np.concatenate(res or [np.zeros(0)])
 
@@ -245,7 +241,7 @@ class _Problem:
         block sums all its points (one product over its stacked Jacobian), a pair of linked
         frames' block their links' points."""
         vals, jacs = {}, {}
-        for k, (_, design) in self.stack.items():
+        for k, design in self.stack.items():
             vals[k], *row = self.model(x, k).param_jacobian_by_row(design)
             jacs[k] = tuple(row)
         # Per stacked point: its weight in JᵀWJ (block weight² x robust weight) and its

@@ -116,8 +116,9 @@ def _near_footprint(result, k: int, grid: WorkGrid, box: Box) -> NDArray[np.bool
         return np.ones(shape, np.bool_)
     cells = (grid.work_from_base(pts) - (x0, y0)) / NEAR_CELL
     near = np.zeros(shape, np.uint8)
-    # Cell centres at integer + 0.5: a cell is filled when the polygon covers its centre.
-    cv2.fillPoly(near, [np.round((cells - 0.5) * 16).astype(np.int32)], 1, cv2.LINE_8, 4)
+    # Cell centres at integer + 0.5: a cell is filled when the polygon covers its centre
+    # (vertices in fixed point with 4 fractional bits).
+    cv2.fillPoly(near, [np.round((cells - 0.5) * (1 << 4)).astype(np.int32)], 1, cv2.LINE_8, 4)
     size = 2 * NEAR_MARGIN + 1
     near = cv2.dilate(near, np.ones((size, size), np.uint8))
     return near.view(np.bool_)
