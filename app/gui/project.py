@@ -273,6 +273,7 @@ def reference_to_bytes(key: dict, coarse, fine) -> bytes:
                     "model": model_json(fine.base_from_corrected),
                     "model_kind": fine.model_kind,
                     "model_reason": fine.model_reason,
+                    "click_note": fine.click_note,
                 }
             )
         )
@@ -343,6 +344,7 @@ def reference_from_file(path: Path):
                 source=a.get("f_source"),
                 model_kind=fm.get("model_kind", "polyprojective"),
                 model_reason=fm.get("model_reason", ""),
+                click_note=fm.get("click_note", ""),
             )
     except (OSError, ValueError, KeyError, TypeError, json.JSONDecodeError):
         return None

@@ -256,6 +256,8 @@ def frame_stats(coarse, fine, times: dict[str, float], field_stats=None) -> dict
         # Rounded: REQCON's unquantized final fit varies in its last bits between processes.
         "residual_sigma_px": _finite_or_none(round(getattr(fine, "sigma_px", float("nan")), 9)),
     }
+    if getattr(fine, "click_note", ""):
+        stats["click"] = fine.click_note
     if getattr(coarse, "path", ""):
         stats["coarse_path"] = coarse.path
         if coarse.fast_reason:

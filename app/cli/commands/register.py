@@ -335,6 +335,7 @@ def report(args: argparse.Namespace, result, base_map, config, elapsed: float, w
         "gamma": result.gamma,
         "lens_k2": result.camera.k2,
         "lens": result.records[result.reference_frame].stats.get("lens"),
+        "click": result.records[result.reference_frame].stats.get("click"),
         "time_s": round(elapsed, 3),
         "written": written,
         "base_georeferenced": base_map.georef is not None,
@@ -352,6 +353,8 @@ def report(args: argparse.Namespace, result, base_map, config, elapsed: float, w
         )
         if summary["lens"]:
             sys.stdout.write(f"  lens: {summary['lens']['reason']}\n")
+        if summary["click"]:
+            sys.stdout.write(f"  click: {summary['click']}\n")
         for f in failed:
             sys.stdout.write(f"  frame {f['frame']} failed: {f['reason']}\n")
         if summary["n_adjusted"]:
