@@ -140,7 +140,8 @@ class FrameAdjustment:
         link_rms_px, control_rms_px: RMS residuals (base px) of its links and control points
             (its map points among them) after the adjustment (None where it has none).
         position_sigma_px: standard deviation of its points' positions (base px) from the
-            solution's covariance (None where it was held fixed).
+            solution's covariance; for the frame held fixed (the reference frame), what its own
+            fit to its control points leaves unknown (:func:`_own_fit`).
         predicted_error_px: what the evidence says about its error (base px):
             :func:`predicted_error`.
         flagged: why the frame is likely worse than ``flag_px`` (``""``: it is not).
@@ -324,6 +325,8 @@ def adjust_window(
         control_rms = _finite(out.control_rms_px[k])
         link_rms = _finite(out.link_rms_px[k])
         position = _finite(out.position_sigma_px[k])
+        if k in evidence.fixed and c is not None and len(c.src):
+            control_rms, position = _own_fit(models[k], c)
         predicted = predicted_error(position, link_rms, sigma_link)
         mp = evidence.map_points.get(k)
         mp_rms = None if mp is None else _rms(out.models[k].apply(mp.points.src) - mp.points.dst)
@@ -380,6 +383,22 @@ def _prior(k: int, model: PolyProjective, outline: NDArray, sigma_px: float) -> 
     dst = model.apply(outline)
     ok = np.isfinite(dst).all(axis=1)
     return ControlPointSet(k, outline[ok], dst[ok], sigma_px)
+
+
+# A homography's parameters: the fewest of any model a frame registered to the map keeps.
+_HOMOGRAPHY_PARAMS = 8
+
+
+def _own_fit(model: PolyProjective, c: ControlPointSet) -> tuple[float | None, float | None]:
+    """``(control_rms_px, position_sigma_px)`` of a frame the adjustment holds (the reference
+    frame): the RMS residual of its control points under its own model, and what that fit
+    leaves unknown, the spread of a least-squares prediction at ``n`` points, RMS residual x
+    sqrt(parameters / n), with a homography's 8 parameters (a richer model's is larger). Every
+    frame hangs from it, so a reference frame whose own fit went wrong (28 control points 12.5
+    px off their model, measured on a click-dragged fit) is flagged rather than held as
+    exact."""
+    rms = _rms(model.apply(c.src) - c.dst)
+    return _finite(rms), _finite(rms * np.sqrt(min(_HOMOGRAPHY_PARAMS / len(c.src), 1.0)))
 
 
 def _has_neighbour(models, k: int, steps) -> bool:

@@ -176,3 +176,22 @@ def test_resumed_adjustment_equals_the_uninterrupted_one(flight):
 def test_config_refuses_bad_values(changes):
     with pytest.raises(ValueError, match=next(iter(changes)).split("_")[0]):
         SequenceAdjustConfig(**changes)
+
+
+def test_a_reference_frame_whose_own_fit_went_wrong_is_flagged(flight):
+    """The held reference frame (frame 0) is no unknown of the adjustment, but every frame
+    hangs from it: its predicted error is what its own fit to the map leaves. With the
+    flight's 165 control points at 0.3 px it is small; kept on 28 points 12 px off its model
+    (a click-dragged fit: measured 28 points, RMS 12.5 px), it is flagged."""
+    truth, models, controls = flight
+    out, _ = _run(flight)
+    assert out[0].control_rms_px < 0.5 and not out[0].flagged
+    assert 0.05 < out[0].predicted_error_px < 0.1  # 0.42 px x sqrt(8 / 165)
+    rng = np.random.default_rng(8)
+    src = controls[0].src[:28]
+    dst = models[0].apply(src) + rng.normal(0, 12.0 / np.sqrt(2), (28, 2))
+    dragged = [ControlPointSet(0, src, dst, 1.9), *controls[1:]]
+    out = {a.k: a for a, _ in adjust_sequence(_Evidence(models, dragged, truth, 1), CONFIG)}
+    assert out[0].control_rms_px > 10
+    assert out[0].predicted_error_px > CONFIG.flag_px
+    assert out[0].flagged.startswith("predicted error"), out[0].flagged
