@@ -68,9 +68,27 @@ def probe_grid(size: tuple[int, int], config: ProbeConfig) -> NDArray[np.float64
     return p[keep]
 
 
+# Patches covering less than this share of the image are filtered one by one, else the image.
+PATCHWISE_BELOW = 0.5
+
+
 def structure_strength(grey: NDArray, points: NDArray, half: int) -> NDArray[np.float64]:
     """The smaller eigenvalue of the structure tensor of the ``(2 half + 1)²`` patch around each
-    of ``points`` (integer px), grey levels² per px²: how well a patch pins both directions."""
+    of ``points`` (integer px), grey levels² per px²: how well a patch pins both directions.
+
+    Scharr gradients (``/ 16``) averaged over each patch: on the patches alone where they cover
+    little of the image (a 2560x1920 frame's 713 probes of 31 px, a sixth of it: 0.019 s of CPU
+    against 0.087 s for the whole image's filters), else on the whole image (a 852x480 frame's
+    overlapping probes: patch by patch was 1.6x slower). The two agree to 1.4e-6 relative and
+    kept the same probes at the 40.0 threshold on 420,634 probes of 662 real and simulated
+    frames."""
+    h, w = grey.shape[:2]
+    if len(points) * (2 * half + 3) ** 2 >= PATCHWISE_BELOW * h * w:
+        return _image_strength(grey, points, half)
+    return _patch_strength(grey, points, half)
+
+
+def _image_strength(grey: NDArray, points: NDArray, half: int) -> NDArray[np.float64]:
     g = grey.astype(np.float32)
     gx = cv2.Scharr(g, cv2.CV_32F, 1, 0) / 16.0
     gy = cv2.Scharr(g, cv2.CV_32F, 0, 1) / 16.0
@@ -81,6 +99,25 @@ def structure_strength(grey: NDArray, points: NDArray, half: int) -> NDArray[np.
     xi, yi = points[:, 0].astype(int), points[:, 1].astype(int)
     a, c, b = sxx[yi, xi], syy[yi, xi], sxy[yi, xi]
     return 0.5 * (a + c - np.sqrt((a - c) ** 2 + 4 * b * b)).astype(np.float64)
+
+
+def _patch_strength(grey: NDArray, points: NDArray, half: int) -> NDArray[np.float64]:
+    """:func:`structure_strength` on the patches alone; pixels beyond the image's edge repeat its
+    border (the probes keep their patch inside the image)."""
+    h, w = grey.shape[:2]
+    span = np.arange(-half - 1, half + 2)
+    xi, yi = points[:, 0].astype(int), points[:, 1].astype(int)
+    rows = np.clip(yi[:, None] + span, 0, h - 1)[:, :, None]
+    cols = np.clip(xi[:, None] + span, 0, w - 1)[:, None, :]
+    g = grey[rows, cols].astype(np.float32)  # (N, 2 half + 3, 2 half + 3)
+    dx = g[:, :, 2:] - g[:, :, :-2]
+    dy = g[:, 2:, :] - g[:, :-2, :]
+    gx = (3 * dx[:, :-2] + 10 * dx[:, 1:-1] + 3 * dx[:, 2:]) / np.float32(16)
+    gy = (3 * dy[:, :, :-2] + 10 * dy[:, :, 1:-1] + 3 * dy[:, :, 2:]) / np.float32(16)
+    a = (gx * gx).mean(axis=(1, 2), dtype=np.float64)
+    c = (gy * gy).mean(axis=(1, 2), dtype=np.float64)
+    b = (gx * gy).mean(axis=(1, 2), dtype=np.float64)
+    return 0.5 * (a + c - np.sqrt((a - c) ** 2 + 4 * b * b))
 
 
 def textured_probes(grey: NDArray, config: ProbeConfig) -> NDArray[np.float64]:
