@@ -286,13 +286,15 @@ def test_srif_click_where_sift_votes_mislead_is_rescued_by_image_correlation():
 
 @pytest.mark.slow
 def test_srif_click_on_the_ground_wins_over_the_roofs():
-    """SRIF pairs 19 and 145, whose texture mostly follows roofs displaced by parallax between
-    the two dates (README, "Half of the misses followed the roofs"): the first fine fit follows
-    the roofs, 14.1 and 14.8 px off at image 1's corners and 15.2 and 16.2 px from the click.
-    Refitted from the click (``FineConfig.click_refit_px``) it takes the ground: 5.8 and 2.0 px."""
+    """SRIF pairs 19, 26 and 145, whose texture mostly follows roofs displaced by parallax
+    between the two dates (README, "Half of the misses followed the roofs"): the first fine fit
+    follows the roofs, over 10 px off at image 1's corners and 14-17 px from the click.
+    Refitted from the click (``FineConfig.click_refit_px``) it takes the ground (measured 5.5,
+    4.2 and 1.8 px). Pair 26's ground holds 31 control points against the roofs' 198 (0.16):
+    the refit is kept above ``CLICK_REFIT_MIN_SHARE``."""
     folder = shared_data("srif-optical-optical")
     cfg = get_preset("default")
-    for i in (19, 145):
+    for i in (19, 26, 145):
         im1, im2, valid, gt = _srif_pair(folder, i)
         coarse = coarse_register(
             im1, im2, 0.0, _srif_click(i, im1, valid, gt), cfg.coarse, match_in=cfg.match_in,
@@ -305,7 +307,7 @@ def test_srif_click_on_the_ground_wins_over_the_roofs():
                 match_in=cfg.match_in, base_valid=valid,
             )  # fmt: skip
             errors[refit_px] = _corner_error(fine.base_from_corrected, gt, *im1.shape[1::-1])
-        assert errors[0.0] > 12 and errors[cfg.fine.click_refit_px] < 8, (i, errors)
+        assert errors[0.0] > 10 and errors[cfg.fine.click_refit_px] < 8, (i, errors)
 
 
 def test_srif_registration_the_images_do_not_confirm_is_refused_and_two_clicks_find_it():
