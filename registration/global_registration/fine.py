@@ -75,8 +75,9 @@ class FineConfig:
             kept when it passes within this distance of the click, or nearer it than the first
             fit by half this distance (a careless click on the right plane), and when at least
             an eighth as many control points hold it as the first fit
-            (:data:`CLICK_REFIT_MIN_SHARE`). Where the images hold two planes (roofs displaced by parallax between two dates, and the ground), the first
-            fit follows the one with more texture; the analyst's click says which one the
+            (:data:`CLICK_REFIT_MIN_SHARE`). Where the images hold two planes (roofs displaced
+            by parallax between two dates, and the ground), the first fit follows the one with
+            more texture; the analyst's click says which one the
             traffic is on. A fit the images do not support near the click is never kept, so a
             careless click cannot drag a right registration.
     """
