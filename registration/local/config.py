@@ -125,13 +125,15 @@ class LocalConfig:
         support_folds: beyond the paper; the reference frame's and anchors' field from their
             control points to the map (:func:`registration.local.reference_field`) only. The
             field is fitted again ``support_folds`` times, each time without one fold of the
-            points, and not kept (zero vectors on its lattice) where the points left out confirm
-            less than 0.8 of it (the least-squares factor between what the field predicts for
-            them and their displacement, ``registration.local.refine.SUPPORT_KEEP``): against a
-            map of another date the points can disagree among themselves by more than a field
-            fitted to all of them shows (the real OrthoLoC pair: 1.12 px after the global
-            stage, 2.75 with the field, 2.02 scaled by the 0.67 confirmed, 1.12 not kept).
-            0 = the field as fitted.
+            points. Where the points left out confirm less than 0.8 of it (the least-squares
+            factor between what the field predicts for them and their displacement,
+            ``registration.local.refine.SUPPORT_KEEP``) it is kept only at the nodes that the
+            left-out points of their own cell confirm, zero vectors elsewhere on its lattice
+            (:func:`registration.local.refine.node_support`): against a map of another date the
+            points can disagree among themselves by more than a field fitted to all of them
+            shows (the real OrthoLoC pair: 1.12 px after the global stage, 2.75 with the field,
+            2.02 scaled by the 0.67 confirmed, 1.13 kept at 2 of its 108 nodes). 0 = the field
+            as fitted.
     """
 
     method: str = "sift"
@@ -290,8 +292,9 @@ class FieldStats:
         n_keypoints_registered, n_keypoints_reference: SIFT keypoints found in each image's crop.
         time_detect_s, time_match_s, time_total_s: wall time by step.
         support_scale: how much of the field points left out of its fit confirm
-            (``LocalConfig.support_folds``; the field is not kept where it is under 0.8),
-            None where it was not measured.
+            (``LocalConfig.support_folds``; under 0.8 the field is kept only at the nodes
+            whose own factor is 0.8 or more), None where it was not measured.
+        support_nodes: the share of nodes kept when ``support_scale`` is under 0.8, else None.
     """
 
     cell_status: NDArray[np.int8]
@@ -304,6 +307,7 @@ class FieldStats:
     time_match_s: float = 0.0
     time_total_s: float = 0.0
     support_scale: float | None = None
+    support_nodes: float | None = None
 
     @property
     def n_cells(self) -> int:
@@ -332,7 +336,14 @@ class FieldStats:
             "time_detect_s": self.time_detect_s,
             "time_match_s": self.time_match_s,
             "time_total_s": self.time_total_s,
-        } | ({} if self.support_scale is None else {"support_scale": self.support_scale})
+        } | {
+            k: v
+            for k, v in (
+                ("support_scale", self.support_scale),
+                ("support_nodes", self.support_nodes),
+            )
+            if v is not None
+        }
 
     def to_arrays(self) -> dict[str, NDArray]:
         return {

@@ -214,33 +214,36 @@ def reference_field(fine, base_size: tuple[int, int], config: LocalConfig, footp
     field, stats = estimate_field_from_matches(dst, disp, *size, config, origin=origin)
     if field is None or not config.support_folds:
         return field, stats
-    scale = field_support(dst, disp, size, origin, config)
+    scale, held = field_support(dst, disp, size, origin, config)
     if scale < SUPPORT_KEEP:
-        # Not kept: zero vectors on the same lattice, so that the sequence adjustment still
-        # makes the frame's local stage consistent with its neighbours' (a frame without a
-        # field would be held at its global stage there).
-        field = DisplacementField(
-            field.origin, field.spacing, np.zeros_like(field.vectors), field.valid
-        )
+        # Not kept where unconfirmed: zero vectors on the same lattice, so that the sequence
+        # adjustment still makes the frame's local stage consistent with its neighbours' (a
+        # frame without a field would be held at its global stage there).
+        kept = node_support(field, *held) >= SUPPORT_KEEP
+        vectors = np.where(kept[..., None], field.vectors, 0).astype(field.vectors.dtype)
+        field = DisplacementField(field.origin, field.spacing, vectors, field.valid)
+        stats = replace(stats, support_nodes=round(float(kept.mean()), 4))
     return field, replace(stats, support_scale=round(scale, 4))
 
 
 # Held-out points whose displacement is largest are left out of the support's factor: template
 # mismatches, which any field leaves as they are.
 SUPPORT_TRIM = 0.2
-# A factor of at least this keeps the field whole, a smaller one not at all: a field the points
+# A factor of at least this keeps the field whole; under it only the nodes whose own factor
+# reaches it are kept (:func:`node_support`), the others are zero vectors: a field the points
 # support loses some of its amplitude to the held-out points' noise (0.93 on a simulated
 # reference frame whose field is right and takes it from 0.71 to 0.09 px; scaled by it, 0.10
 # px). On the real flyover, 35 of the 66 frames registered to the map confirm 0.80-1.00 and 31
 # confirm 0.00-0.80, all but one from frame 424 on. Scaling an unconfirmed field instead of
 # dropping it left the real OrthoLoC pair at 2.02 px (0.67 confirmed) where its global stage is
-# 1.12.
+# 1.12; dropping the whole of it cost fields that are right but confirmed 0.71-0.80 (the long
+# flight's anchors, below).
 SUPPORT_KEEP = 0.8
 
 
 def field_support(
     dst: NDArray, disp: NDArray, size: tuple[int, int], origin, config: LocalConfig
-) -> float:
+) -> tuple[float, tuple[NDArray, NDArray, NDArray]]:
     """How much of the field fitted to the samples (``dst`` ``(N, 2)`` base px, displacement
     ``disp`` ``(N, 2)``) samples it was not fitted to confirm: ``config.support_folds`` folds
     (a seeded permutation, so the same points give the same factor), each fold's samples
@@ -253,28 +256,60 @@ def field_support(
     1.12 to 2.75 px mean off the reference registration (scaled by the factor: 2.02); 1.01-1.04
     against the one of the same date, where it helps (1.00 -> 0.93, scaled by 1)."""
     k = config.support_folds
+    none = np.empty((0, 2))
     if len(dst) < 2 * k * config.min_matches:
-        return 1.0
+        return 1.0, (none, none, none)
     fold = np.random.default_rng(0).permutation(len(dst)) % k
-    held, predicted = [], []
+    at, held, predicted = [], [], []
     for f in range(k):
         train = fold != f
         part, _ = estimate_field_from_matches(dst[train], disp[train], *size, config, origin=origin)
         if part is not None:
+            at.append(dst[~train])
             held.append(disp[~train])
             predicted.append(part.sample(dst[~train], outside="clamp"))
     if not held:
-        return 1.0
-    d, p = np.concatenate(held), np.concatenate(predicted)
+        return 1.0, (none, none, none)
+    x, d, p = np.concatenate(at), np.concatenate(held), np.concatenate(predicted)
     ok = np.isfinite(p).all(axis=1)
-    d, p = d[ok], p[ok]
+    x, d, p = x[ok], d[ok], p[ok]
     if not len(d):
-        return 1.0
+        return 1.0, (none, none, none)
     keep = np.hypot(*d.T) <= np.quantile(np.hypot(*d.T), 1.0 - SUPPORT_TRIM)
-    denominator = float(np.sum(p[keep] ** 2))
+    x, d, p = x[keep], d[keep], p[keep]
+    denominator = float(np.sum(p**2))
     if denominator <= 0:
-        return 1.0
-    return float(np.clip(np.sum(d[keep] * p[keep]) / denominator, 0.0, 1.0))
+        return 1.0, (x, d, p)
+    return float(np.clip(np.sum(d * p) / denominator, 0.0, 1.0)), (x, d, p)
+
+
+def node_support(field: DisplacementField, at: NDArray, held: NDArray, predicted: NDArray):
+    """``(Gy, Gx)`` the factor of :func:`field_support` node by node: the held-out samples
+    (base px ``at`` ``(N, 2)``, displacement ``held``, the other folds' field there
+    ``predicted``) weighted by a Gaussian of ``NODE_RADIUS`` node spacings about each node. A
+    node with less than ``NODE_MIN_WEIGHT`` samples' weight near it gets 0 (nothing confirms
+    it)."""
+    nodes = field.node_xy.reshape(-1, 2)
+    if not len(at):
+        return np.zeros(field.shape)
+    d2 = np.sum((nodes[:, None, :] - at[None, :, :]) ** 2, axis=2)
+    w = np.exp(-0.5 * d2 / (NODE_RADIUS * field.spacing) ** 2)
+    num = w @ np.sum(held * predicted, axis=1)
+    den = w @ np.sum(predicted**2, axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        factor = np.where((w.sum(axis=1) >= NODE_MIN_WEIGHT) & (den > 0), num / den, 0.0)
+    return np.clip(factor, 0.0, 1.0).reshape(field.shape)
+
+
+# A node is confirmed by the held-out samples of the cell it stands for: Gaussian weights with
+# a standard deviation of half the node spacing, and at least this much weight. Measured: the
+# 120-frame long flight's anchors (whole fields confirmed 0.71-0.80, right) keep their
+# confirmed nodes, 0.382 -> 0.375 px after the local stage, its last tenth 1.14x -> 1.09x the
+# first; the real OrthoLoC pair (0.67 confirmed, the field wrong) keeps 2 % of its nodes,
+# 1.12 -> 1.13 px. Weights over a whole spacing kept more: long flight 0.366 px but 1.11x,
+# OrthoLoC 1.23 px (10 % of its nodes).
+NODE_RADIUS = 0.5
+NODE_MIN_WEIGHT = 8.0
 
 
 def frame_field(frame, camera: Camera, model, joint, config: LocalConfig, flow=None):

@@ -436,9 +436,10 @@ def test_ortholoc_reference_field_is_kept_only_where_left_out_points_confirm_it(
     disagree among themselves (2.4 px from the global model at the median); the spline fitted to
     all of them took the photo from 1.12 to 2.75 px mean off the reference registration, and
     scaled by the 0.67 of it that the points left out of each of 5 folds confirm (measured), to
-    2.02 px. It is not kept: zero vectors on its lattice, the global stage's 1.12 px. Against
-    the same-date orthophoto they confirm all of it (measured 1.00) and it is kept as fitted:
-    1.00 -> 0.93 px."""
+    2.02 px. It is kept only at the nodes whose own cell's left-out points confirm them (2 of
+    108), zero vectors elsewhere on its lattice: 1.13 px, the global stage's 1.12. Against the
+    same-date orthophoto they confirm all of it (measured 1.00) and it is kept as fitted: 1.00
+    -> 0.93 px."""
     from registration.geometry import local_frame_to_base
     from registration.lens import Camera
     from registration.local import reference_field
@@ -476,10 +477,12 @@ def test_ortholoc_reference_field_is_kept_only_where_left_out_points_confirm_it(
 
         errors[name] = (stats.support_scale, mean_error(field), mean_error(whole))
         if name == "other date":
-            assert not field.vectors.any(), "an unconfirmed field is kept as zeros"
+            # measured: 2 of its 108 nodes confirmed by their own cell's points
+            assert stats.support_nodes <= 0.05, stats.support_nodes
+            assert np.count_nonzero(np.abs(field.vectors).sum(axis=-1)) <= 0.05 * field.valid.size
             global_error = float(np.mean(np.hypot(*(model.apply(grid) - _apply(ref, grid)).T)))
     support, dropped, whole = errors["other date"]
-    # measured 0.67, 1.12 px (the whole field 2.75)
-    assert support < 0.8 and dropped == global_error < 0.6 * whole, (errors, global_error)
+    # measured 0.67, 1.126 px (the global stage 1.120, the whole field 2.75)
+    assert support < 0.8 and dropped < 1.03 * global_error < 0.6 * whole, (errors, global_error)
     support, kept, whole = errors["same date"]
     assert support >= 0.8 and kept == whole, errors  # measured 1.00: 0.93 px either way
