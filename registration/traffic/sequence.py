@@ -29,7 +29,13 @@ from registration.traffic.background import (
 from registration.traffic.config import TrafficConfig
 from registration.traffic.detect import Detection, detect_vehicles
 from registration.traffic.timing import MetricFrame
-from registration.traffic.track import RawTrack, SmoothTrack, smooth_track, track_detections
+from registration.traffic.track import (
+    RawTrack,
+    SmoothTrack,
+    blob_noise,
+    smooth_track,
+    track_detections,
+)
 
 # Frames sharing one background: their median is computed once (at 30 frames/s a block is 12
 # frames; a car moves 4 m in it, far less than the ±2.4 s the samples span).
@@ -178,12 +184,15 @@ def tracks_from_detections(
     }
     tracks, sizes = [], {}
     for r in track_detections(use, times, xy, config):
-        s = smooth_track(r, use, times, config)
-        if not _moving_vehicle(s, config):
-            continue
         dets = [
             detections[k][i] for k, i in zip(r.frames.tolist(), r.det_index.tolist(), strict=True)
         ]
+        noise = blob_noise(
+            np.array([d.length_m for d in dets]), _axes_in_metres(dets, metric), config
+        )
+        s = smooth_track(r, use, times, config, noise)
+        if not _moving_vehicle(s, config):
+            continue
         if sideways(s, r, dets, metric, config):
             continue
         s.track_id = len(tracks) + 1
@@ -193,6 +202,15 @@ def tracks_from_detections(
         )
         tracks.append(s)
     return tracks, sizes
+
+
+def _axes_in_metres(dets: list[Detection], metric: MetricFrame) -> NDArray[np.float64]:
+    """``(M, 2)`` unit vectors along the detections' blob axes, in metres (the map's axes may
+    be turned and flipped against its pixels')."""
+    at = np.array([[d.x, d.y] for d in dets], np.float64).reshape(-1, 2)
+    a = np.radians([d.axis_deg for d in dets])
+    step = metric.metres_from_base(at + np.c_[np.cos(a), np.sin(a)]) - metric.metres_from_base(at)
+    return step / np.maximum(np.linalg.norm(step, axis=1, keepdims=True), 1e-12)
 
 
 def sideways(

@@ -256,18 +256,44 @@ class SmoothTrack:
         return float(np.linalg.norm(self.xy[-1] - self.xy[0]))
 
 
+def blob_noise(
+    lengths: NDArray[np.float64], axes: NDArray[np.float64], config: TrafficConfig
+) -> NDArray[np.float64]:
+    """``(M, 2, 2)`` each detection's position noise (m²): ``config.measurement_sigma_m`` all
+    round, plus, along its blob's axis (``axes`` ``(M, 2)`` unit vectors in metres), half the
+    length by which its blob is shorter than the track's median blob (``lengths`` ``(M,)`` m):
+    a blob that lost one end of its vehicle (a dark windscreen or roof taken for background)
+    has its centre that far off along the axis, ahead or behind. Measured on the default
+    flight: blobs 3.5-4.5 m long are 0.96 m off along their axis and 0.62 m across (RMS),
+    those of 5.5-6.5 m 0.40 and 0.46 m. Longer blobs than the median are not trusted less:
+    that gained 0.01 m on the simulated flights and let a roof's relief on the real flyover
+    travel far enough to pass for a vehicle."""
+    off = 0.5 * np.maximum(np.median(lengths) - lengths, 0.0)
+    along = np.einsum("mi,mj->mij", axes, axes) * (off**2)[:, None, None]
+    return np.eye(2)[None] * config.measurement_sigma_m**2 + along
+
+
 def smooth_track(
-    raw: RawTrack, frames: list[int], times: NDArray[np.float64], config: TrafficConfig
+    raw: RawTrack,
+    frames: list[int],
+    times: NDArray[np.float64],
+    config: TrafficConfig,
+    noise: NDArray[np.float64] | None = None,
 ) -> SmoothTrack:
     """Forward Kalman filter and Rauch-Tung-Striebel smoother (filterpy) over ``raw``'s span of
     ``frames`` (the usable frames, ascending) with a constant-velocity model whose velocity
     wanders by ``config.smooth_accel_sigma_mps2``; the acceleration is the smoothed velocity's
-    derivative over time (central differences)."""
+    derivative over time (central differences). ``noise``: ``(M, 2, 2)`` each detection's
+    position noise (:func:`blob_noise`); None = ``config.measurement_sigma_m`` for all."""
     first, last = int(raw.frames[0]), int(raw.frames[-1])
     span = [k for k in frames if first <= k <= last]
     seen = dict(zip(raw.frames.tolist(), raw.xy, strict=True))
+    if noise is None:
+        noise = np.broadcast_to(np.eye(2) * config.measurement_sigma_m**2, (len(raw.frames), 2, 2))
+    noise_at = dict(zip(raw.frames.tolist(), noise, strict=True))
     q = config.smooth_accel_sigma_mps2**2
     kf = _new_filter(raw.xy[0], config)
+    kf.P[:2, :2] = noise_at[first]
     xs, ps, fs, qs = [], [], [], []
     t_prev = float(times[span[0]])
     for k in span:
@@ -275,7 +301,7 @@ def smooth_track(
         if k != span[0]:
             kf.predict(F=f, Q=qm)
         if k in seen:
-            kf.update(seen[k])
+            kf.update(seen[k], R=noise_at[k])
         xs.append(kf.x.copy())
         ps.append(kf.P.copy())
         fs.append(f)

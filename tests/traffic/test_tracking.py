@@ -17,7 +17,7 @@ from registration.traffic.outputs import (
     write_ind_csvs,
     write_trajectory_layers,
 )
-from registration.traffic.track import smooth_track, track_detections
+from registration.traffic.track import blob_noise, smooth_track, track_detections
 
 
 def test_sorting_network_sorts_every_binary_input():
@@ -144,6 +144,48 @@ def test_smoother_follows_a_vehicle_that_brakes_and_pulls_away(rng):
     # Braking (-3 m/s²) and pulling away (2 m/s²) are seen as such in the acceleration.
     assert s.acceleration[(times > 2.8) & (times < 4.2), 0].mean() < -2.3
     assert s.acceleration[(times > 8.8) & (times < 10.8), 0].mean() > 1.5
+
+
+def test_blobs_that_lost_part_of_their_vehicle_count_less_along_their_axis():
+    """A car at 10 m/s seen at 5 frames/s with 0.2 m noise; in a third of the frames (drawn,
+    seeded) its blob lost 1.5 m of one end (a dark windscreen taken for background), so its
+    centre is 0.75 m off along the road, ahead or behind. Told how much each blob's length
+    differs from the track's median (:func:`blob_noise`), the smoother trusts those blobs less
+    along their axis only: over seeds 0-2, position RMSE 0.259 -> 0.135 m and speed RMSE
+    0.382 -> 0.152 m/s (measured)."""
+    cfg = TrafficConfig()
+    fps, n, speed = 5.0, 30, 10.0
+    times = np.arange(n) / fps
+    frames = list(range(n))
+    true = np.c_[speed * times, np.full(n, 2.0)]
+    plain_err, aware_err = [], []
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        partial = np.zeros(n, bool)
+        partial[rng.choice(n, n // 3, replace=False)] = True
+        lengths = np.where(partial, 3.0, 4.5)
+        sign = rng.choice([-1.0, 1.0], n)
+        xy = true + rng.normal(0, 0.2, (n, 2))
+        xy[partial, 0] += sign[partial] * 0.75
+        (raw,) = track_detections(frames, times, {k: xy[k : k + 1] for k in frames}, cfg)
+        noise = blob_noise(lengths[raw.frames], np.tile([1.0, 0.0], (len(raw.frames), 1)), cfg)
+        # Across the axis, and for whole blobs, the noise is the configured one.
+        np.testing.assert_allclose(noise[:, 1, 1], cfg.measurement_sigma_m**2)
+        whole = ~partial[raw.frames]
+        np.testing.assert_allclose(noise[whole, 0, 0], cfg.measurement_sigma_m**2)
+        np.testing.assert_allclose(noise[~whole, 0, 0], cfg.measurement_sigma_m**2 + 0.75**2)
+        # A blob longer than the track's median is not trusted less (a roof's relief on the
+        # real flyover would travel far enough to pass for a vehicle).
+        longer = blob_noise(np.array([4.5, 4.5, 6.0]), np.tile([1.0, 0.0], (3, 1)), cfg)
+        np.testing.assert_allclose(longer[2], np.eye(2) * cfg.measurement_sigma_m**2)
+        for out, s in (
+            (plain_err, smooth_track(raw, frames, times, cfg)),
+            (aware_err, smooth_track(raw, frames, times, cfg, noise)),
+        ):
+            position = np.sqrt(np.mean(np.sum((s.xy - true[s.frames]) ** 2, axis=1)))
+            out.append((position, np.sqrt(np.mean((s.velocity[:, 0] - speed) ** 2))))
+    plain, aware = np.mean(plain_err, axis=0), np.mean(aware_err, axis=0)
+    assert aware[0] < 0.7 * plain[0] and aware[1] < 0.6 * plain[1], (plain, aware)
 
 
 def test_tracks_are_reproducible(rng):
