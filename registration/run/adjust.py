@@ -323,7 +323,8 @@ def _write_adjusted(
         return
     arrays = {n: v for n, v in result.arrays(k).items() if not n.startswith("consistency_field_")}
     arrays.update({f"consistency_field_{n}": v for n, v in field_.to_arrays().items()})
-    writer.write_frame(k, record, arrays)
+    # The frames were checked to be the run's own (adjust_folder) or are (the run itself).
+    writer.write_frame(k, record, arrays, keep_input_hash=True)
 
 
 def _outline(result: RegistrationResult) -> np.ndarray:

@@ -123,15 +123,25 @@ class ResultWriter:
         return self._status[k] == "damaged"
 
     def write_frame(
-        self, k: int, record: FrameRecord, arrays: dict[str, NDArray] | None = None
+        self,
+        k: int,
+        record: FrameRecord,
+        arrays: dict[str, NDArray] | None = None,
+        *,
+        keep_input_hash: bool = False,
     ) -> None:
-        """Write frame ``k``'s arrays (if any), then its record, each atomically."""
+        """Write frame ``k``'s arrays (if any), then its record, each atomically.
+        ``keep_input_hash``: the record already holds its input's hash (a registered frame
+        rewritten by the sequence adjustment): it stays, rather than hashing the input again
+        (0.007 s of CPU per 2560x1920 PNG)."""
         npz_bytes = npz_sha256 = input_sha256 = None
         if arrays:
             data = encode_npz(**arrays)
             write_bytes_atomic(frame_record_path(self.out_dir, k, ".npz"), data)
             npz_bytes, npz_sha256 = len(data), hashlib.sha256(data).hexdigest()
         path = self._frames.path(k) if hasattr(self._frames, "path") else None
+        if keep_input_hash:
+            input_sha256, path = record.input_sha256, None
         if path is not None:
             try:
                 input_sha256 = file_sha256(path)

@@ -17,7 +17,7 @@ import pytest
 import registration
 from registration.adjustment import MapPoint, SequenceAdjustConfig
 from registration.errors import ResultBusy
-from registration.io import open_frames
+from registration.io import file_sha256, open_frames
 from registration.run.adjust import adjust_result
 from registration.run.config import config_to_dict
 from registration.run.map_points import read_map_points, set_map_points
@@ -97,9 +97,11 @@ def test_map_points_put_back_a_frame_its_links_cannot_reach(sim_seq, default_res
 
 
 def test_points_added_later_reach_the_same_bits_and_keep_earlier_windows(
-    sim_seq, default_result, with_points, tmp_path
+    sim_seq, default_result, with_points, tmp_path, monkeypatch
 ):
     out = _folder(sim_seq, default_result, tmp_path / "out")
+    hashed = []  # the adjustment keeps each record's hash of its input image
+    monkeypatch.setattr("registration.run.writer.file_sha256", hashed.append)
     _adjust(sim_seq, out)
     assert registration.load(out).records[PLANTED].stats["adjustment"]["flagged"]
     before = {k: (out / "frames" / f"{k:06d}.json").read_bytes() for k in range(6)}
@@ -117,6 +119,10 @@ def test_points_added_later_reach_the_same_bits_and_keep_earlier_windows(
             a = (out / "frames" / f"{k:06d}{suffix}").read_bytes()
             b = (with_points / "frames" / f"{k:06d}{suffix}").read_bytes()
             assert a == b, (k, suffix)
+    assert not hashed
+    frames = open_frames(sim_seq / "frames")
+    for k, record in enumerate(registration.load(out).records):
+        assert record.input_sha256 == file_sha256(frames.path(k)), k
     # Removing it again: back to the run without it.
     assert set_map_points(out, []) == [2, 3, 4, 5]
     _adjust(sim_seq, out)
