@@ -292,12 +292,16 @@ def node_support(field: DisplacementField, at: NDArray, held: NDArray, predicted
     nodes = field.node_xy.reshape(-1, 2)
     if not len(at):
         return np.zeros(field.shape)
-    d2 = np.sum((nodes[:, None, :] - at[None, :, :]) ** 2, axis=2)
-    w = np.exp(-0.5 * d2 / (NODE_RADIUS * field.spacing) ** 2)
-    num = w @ np.sum(held * predicted, axis=1)
-    den = w @ np.sum(predicted**2, axis=1)
+    agree, power = np.sum(held * predicted, axis=1), np.sum(predicted**2, axis=1)
+    num, den, weight = (np.empty(len(nodes)) for _ in range(3))
+    # Nodes a block at a time: a weight matrix of every node and sample at once can reach
+    # hundreds of MB for a large field.
+    for i in range(0, len(nodes), 256):
+        d2 = np.sum((nodes[i : i + 256, None, :] - at[None, :, :]) ** 2, axis=2)
+        w = np.exp(-0.5 * d2 / (NODE_RADIUS * field.spacing) ** 2)
+        num[i : i + 256], den[i : i + 256], weight[i : i + 256] = w @ agree, w @ power, w.sum(1)
     with np.errstate(invalid="ignore", divide="ignore"):
-        factor = np.where((w.sum(axis=1) >= NODE_MIN_WEIGHT) & (den > 0), num / den, 0.0)
+        factor = np.where((weight >= NODE_MIN_WEIGHT) & (den > 0), num / den, 0.0)
     return np.clip(factor, 0.0, 1.0).reshape(field.shape)
 
 
