@@ -57,3 +57,15 @@ def test_a_ramp_pins_one_direction_only():
         grey = image.astype(np.uint8)
         for strength in (_patch_strength, _image_strength):
             np.testing.assert_allclose(strength(grey, p, 15), 0.0, atol=1e-3)
+
+
+def test_a_bowl_pins_both_directions_by_its_known_amount():
+    """I(x, y) = dx² + dy² about the patch's centre: Scharr/16 gives gx = 4 dx and gy = 4 dy
+    exactly (a central difference of a square), so over the 31 px patch the tensor is
+    16 mean(d²) I = 16 x 80 I: both eigenvalues 1280. A strength that lost either direction, or
+    the patch's extent, would not give it."""
+    ys, xs = np.mgrid[0:100, 0:100].astype(np.float64)
+    p = np.array([[50.0, 50.0]])
+    bowl = (xs - 50) ** 2 + (ys - 50) ** 2
+    for strength in (_patch_strength, _image_strength):
+        np.testing.assert_allclose(strength(bowl, p, 15), 1280.0, rtol=1e-6)
