@@ -38,8 +38,8 @@ class _Homographies:
     def frame_to_base(self, k, xy, stage="local"):
         return self.baseline.frame_to_base(k, xy, stage)
 
-    def base_to_frame(self, k, xy, stage="local"):
-        return self.baseline.base_to_frame(k, xy, stage)
+    def base_to_frame(self, k, xy, stage="local", *, clip=True):
+        return self.baseline.base_to_frame(k, xy, stage, clip=clip)
 
 
 def _score(result, seq, folder: Path, use: list[int]) -> dict:

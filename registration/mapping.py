@@ -26,7 +26,11 @@ class SequenceMapping(Protocol):
 
     def frame_to_base(self, k: int, xy: ArrayLike, stage: str = "local") -> NDArray[np.float64]: ...
 
-    def base_to_frame(self, k: int, xy: ArrayLike, stage: str = "local") -> NDArray[np.float64]: ...
+    def base_to_frame(
+        self, k: int, xy: ArrayLike, stage: str = "local", *, clip: bool = True
+    ) -> NDArray[np.float64]:
+        """``clip=False``: raw px beyond the frame's edge are returned rather than NaN."""
+        ...
 
 
 def _check_stage(stage: str) -> None:

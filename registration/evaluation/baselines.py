@@ -87,13 +87,16 @@ class BaselineResult:
         out[~self._inside(pts)] = np.nan
         return out
 
-    def base_to_frame(self, k: int, xy: ArrayLike, stage: str = "local") -> NDArray[np.float64]:
+    def base_to_frame(
+        self, k: int, xy: ArrayLike, stage: str = "local", *, clip: bool = True
+    ) -> NDArray[np.float64]:
         pts = as_points(xy)
         h = self.homographies[k]
         if h is None:
             return np.full_like(pts, np.nan)
         raw = self.camera.raw_from_corrected(apply_homography(np.linalg.inv(h), pts))
-        raw[~self._inside(raw)] = np.nan
+        if clip:
+            raw[~self._inside(raw)] = np.nan
         return raw
 
 

@@ -201,6 +201,7 @@ def source_map_from_function(
     step: int = 1,
     origin: tuple[float, float] = (0.0, 0.0),
     source_size: tuple[int, int] | None = None,
+    exact_edge_px: float = 0.0,
 ) -> NDArray[np.float32]:
     """Build a source map by evaluating ``source_from_output`` on the output pixel grid.
 
@@ -223,6 +224,10 @@ def source_map_from_function(
             interpolation puts inside it from a lattice cell whose four nodes all lie outside
             it, not all beyond one of its edges, are evaluated exactly
             (:func:`_straddling_cells`).
+        exact_edge_px: with ``source_size``, pixels whose interpolated source lies within this
+            many source px of its edge are evaluated exactly: for a function not clipped at
+            the source's edge, so that a mask of the source's extent follows the exact edge
+            where the lattice curves between nodes (0: none).
 
     Returns:
         ``(height, width, 2)`` float32 source map.
@@ -240,18 +245,68 @@ def source_map_from_function(
         # next (the extra ring of nodes puts every pixel between two).
         cx = np.minimum((np.arange(width) + step + 0.5) / step - 0.5, gx - 2).astype(int)
         cy = np.minimum((np.arange(height) + step + 0.5) / step - 0.5, gy - 2).astype(int)
-        suspect = _straddling_cells(coarse, source_size)[cy[:, None], cx[None, :]]
-        # Only what interpolation put inside can be a ghost: where the mapping is smooth the
-        # interpolated and the exact source agree to a fraction of a px, inside or out.
         w, h = source_size
-        sx, sy = source[..., 0], source[..., 1]
+        ys, xs = _cell_pixels(_straddling_cells(coarse, source_size), cx, cy)
+        sx, sy = source[ys, xs, 0], source[ys, xs, 1]
         with np.errstate(invalid="ignore"):
-            suspect &= (sx >= -0.5) & (sx <= w - 0.5) & (sy >= -0.5) & (sy <= h - 0.5)
-        ys, xs = np.nonzero(suspect)
-        if len(xs):
+            # Only what interpolation put inside can be a ghost: where the mapping is smooth
+            # the interpolated and the exact source agree to a fraction of a px, inside or out.
+            exact = (sx >= -0.5) & (sx <= w - 0.5) & (sy >= -0.5) & (sy <= h - 0.5)
+        if exact_edge_px > 0:
+            ey, ex = _cell_pixels(_edge_cells(coarse, source_size, exact_edge_px), cx, cy)
+            sx, sy = source[ey, ex, 0], source[ey, ex, 1]
+            m = exact_edge_px
+            with np.errstate(invalid="ignore"):
+                near_x = (np.abs(sx + 0.5) <= m) | (np.abs(sx - (w - 0.5)) <= m)
+                near_y = (np.abs(sy + 0.5) <= m) | (np.abs(sy - (h - 0.5)) <= m)
+                along = (
+                    (sx >= -0.5 - m) & (sx <= w - 0.5 + m) & (sy >= -0.5 - m) & (sy <= h - 0.5 + m)
+                )
+            ys, xs = np.r_[ys, ey], np.r_[xs, ex]
+            exact = np.r_[exact, (near_x | near_y) & along]
+        if exact.any():
+            pix = np.unique(ys[exact] * width + xs[exact])  # row-major, each pixel once
+            ys, xs = pix // width, pix % width
             pts = np.c_[xs + float(ox), ys + float(oy)]
             source[ys, xs] = np.asarray(source_from_output(pts), np.float32)
     return source
+
+
+def _cell_pixels(cells: NDArray[np.bool_], cx: NDArray, cy: NDArray) -> tuple[NDArray, NDArray]:
+    """``(ys, xs)`` of every output pixel in the lattice cells marked in ``cells``
+    (``(gy - 1, gx - 1)``), given each pixel column's cell ``cx`` and row's ``cy``
+    (non-decreasing)."""
+    rows, cols = np.nonzero(cells)
+    if not len(rows):
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    y0, y1 = np.searchsorted(cy, rows), np.searchsorted(cy, rows + 1)
+    x0, x1 = np.searchsorted(cx, cols), np.searchsorted(cx, cols + 1)
+    span = int(max((y1 - y0).max(), (x1 - x0).max()))
+    off = np.arange(span)
+    ys = np.broadcast_to((y0[:, None] + off)[:, :, None], (len(rows), span, span))
+    xs = np.broadcast_to((x0[:, None] + off)[:, None, :], (len(rows), span, span))
+    keep = (ys < y1[:, None, None]) & (xs < x1[:, None, None])
+    return ys[keep], xs[keep]
+
+
+def _edge_cells(coarse: NDArray, source_size: tuple[int, int], margin: float) -> NDArray[np.bool_]:
+    """``(gy - 1, gx - 1)``: the lattice cells with all four nodes defined whose interpolated
+    source can come within ``margin`` px of the ``source_size`` image's edge (bilinear
+    interpolation stays within its nodes' range in each coordinate)."""
+    w, h = source_size
+    finite = finite_points(coarse)
+    corners = np.stack(
+        [coarse[:-1, :-1], coarse[1:, :-1], coarse[:-1, 1:], coarse[1:, 1:]]
+    )  # (4, gy - 1, gx - 1, 2)
+    with np.errstate(invalid="ignore"):
+        lo, hi = corners.min(axis=0), corners.max(axis=0)
+        reach_x = (lo[..., 0] <= w - 0.5 + margin) & (hi[..., 0] >= -0.5 - margin)
+        reach_y = (lo[..., 1] <= h - 0.5 + margin) & (hi[..., 1] >= -0.5 - margin)
+        # Not wholly inside the edge's band on the inner side.
+        inner_x = (lo[..., 0] > -0.5 + margin) & (hi[..., 0] < w - 0.5 - margin)
+        inner_y = (lo[..., 1] > -0.5 + margin) & (hi[..., 1] < h - 0.5 - margin)
+    all4 = finite[:-1, :-1] & finite[1:, :-1] & finite[:-1, 1:] & finite[1:, 1:]
+    return all4 & reach_x & reach_y & ~(inner_x & inner_y)
 
 
 def _straddling_cells(coarse: NDArray, source_size: tuple[int, int]) -> NDArray[np.bool_]:

@@ -43,6 +43,11 @@ def render_to_base(
     return warp.warp_image(frame_raw, raw_from_base, x1 - x0, y1 - y0, origin=(x0, y0))
 
 
+# Raw px from the frame's edge within which an unclipped mapping is evaluated exactly: more than
+# the lattice's interpolation error there (render_registered).
+EDGE_EXACT_PX = 0.5
+
+
 def render_registered(
     frame_raw: NDArray,
     base_to_frame_fn: Callable[[NDArray], NDArray],
@@ -52,6 +57,7 @@ def render_registered(
     step: int = 8,
     interpolation: str = "linear",
     return_mask: bool = False,
+    unclipped: bool = False,
 ):
     """A raw frame rendered into base pixels.
 
@@ -64,6 +70,10 @@ def render_registered(
         step: the mapping is evaluated every ``step`` px and interpolated in between
             (:func:`registration.geometry.warp.source_map_from_function`).
         return_mask: also return the ``(height, width)`` bool mask of pixels with data.
+        unclipped: ``base_to_frame_fn`` carries the mapping on beyond the frame's edge (NaN
+            only well beyond it): the pixels whose interpolated raw px lie within
+            ``EDGE_EXACT_PX`` of the frame's edge are evaluated exactly, rather than every pixel
+            next to a NaN node (a band along the whole edge, ``step`` px wide).
 
     Returns:
         The image (``frame_raw``'s dtype and channels; 0 where the frame has no data), or
@@ -73,9 +83,10 @@ def render_registered(
     if w <= 0 or h <= 0:
         raise ValueError(f"output size must be positive, got {w}x{h}")
     source = warp.source_map_from_function(
-        base_to_frame_fn, w, h, step=step, origin=origin, source_size=image_size(frame_raw)
-    )
-    if step > 1:
+        base_to_frame_fn, w, h, step=step, origin=origin, source_size=image_size(frame_raw),
+        exact_edge_px=EDGE_EXACT_PX if unclipped else 0.0,
+    )  # fmt: skip
+    if step > 1 and not unclipped:
         # The coarse map is NaN wherever one of the surrounding nodes falls outside the frame,
         # which would eat up to ``step`` px of every frame border: evaluate that band exactly.
         nan = ~warp.finite_points(source)

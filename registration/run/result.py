@@ -310,9 +310,10 @@ class RegistrationResult:
         out[~self._inside_frame(xy)] = np.nan
         return out
 
-    def _global_base_to_frame(self, k: int, xy: NDArray, model=None) -> NDArray:
+    def _global_base_to_frame(self, k: int, xy: NDArray, model=None, clip: bool = True) -> NDArray:
         raw = self.lens.raw_from_corrected((model or self.model(k)).inverse(xy))
-        raw[~self._inside_frame(raw)] = np.nan
+        if clip:
+            raw[~self._inside_frame(raw)] = np.nan
         return raw
 
     def frame_to_base(self, k: int, xy: ArrayLike, stage: str = "local") -> NDArray[np.float64]:
@@ -334,8 +335,15 @@ class RegistrationResult:
             return own_local(pts)
         return local_frame_to_base(own_local, consistency, pts)
 
-    def base_to_frame(self, k: int, xy: ArrayLike, stage: str = "local") -> NDArray[np.float64]:
-        """``(N, 2)`` base pixels -> ``(N, 2)`` raw pixels of frame ``k`` (NaN where unknown)."""
+    def base_to_frame(
+        self, k: int, xy: ArrayLike, stage: str = "local", *, clip: bool = True
+    ) -> NDArray[np.float64]:
+        """``(N, 2)`` base pixels -> ``(N, 2)`` raw pixels of frame ``k`` (NaN where unknown).
+
+        ``clip=False`` (beyond the fixed interface): points whose raw px fall beyond the frame's
+        edge keep them instead of NaN, the same mapping carried on, for a caller that
+        interpolates between points on both sides of the edge and masks by the raw px itself
+        (:func:`registration.traffic.background.warp_frame`)."""
         pts = as_points(xy, "xy")
         k = self._check_k(k)
         _check_stage(stage)
@@ -343,11 +351,13 @@ class RegistrationResult:
             return np.full_like(pts, np.nan)
         model, field, consistency = self.local_stage(k) if stage == "local" else (None,) * 3
         if field is None:
-            return self._global_base_to_frame(k, pts)
+            return self._global_base_to_frame(k, pts, clip=clip)
         from registration.geometry import local_base_to_frame
 
         def own_local(b):
-            return local_base_to_frame(lambda x: self._global_base_to_frame(k, x, model), field, b)
+            return local_base_to_frame(
+                lambda x: self._global_base_to_frame(k, x, model, clip), field, b
+            )
 
         if consistency is None:
             return own_local(pts)

@@ -398,12 +398,13 @@ class SequenceGeometry:
         out[~(self.in_frame(raw) & self.in_base(out))] = np.nan
         return out
 
-    def raw_from_base(self, k: int, xy: ArrayLike) -> NDArray[np.float64]:
-        """Truth: base pixels -> raw pixels of frame ``k``; NaN outside the base or the frame."""
+    def raw_from_base(self, k: int, xy: ArrayLike, clip: bool = True) -> NDArray[np.float64]:
+        """Truth: base pixels -> raw pixels of frame ``k``; NaN outside the base or (``clip``)
+        the frame."""
         b = as_points(xy)
         scene = apply_homography(np.linalg.inv(self.base_from_scene), b)
         out = self.raw_from_scene(k, scene)
-        out[~(self.in_frame(out) & self.in_base(b))] = np.nan
+        out[~((self.in_frame(out) | (not clip)) & self.in_base(b))] = np.nan
         return out
 
     def border_points(self, per_edge: int = 48) -> NDArray[np.float64]:

@@ -117,10 +117,13 @@ class SimTruth:
         k = self._check(k, stage)
         return self.geometry.base_from_raw(k, as_points(xy))
 
-    def base_to_frame(self, k: int, xy: ArrayLike, stage: str = "local") -> NDArray[np.float64]:
-        """``(N, 2)`` base pixels -> ``(N, 2)`` raw pixels of frame ``k`` (NaN outside)."""
+    def base_to_frame(
+        self, k: int, xy: ArrayLike, stage: str = "local", *, clip: bool = True
+    ) -> NDArray[np.float64]:
+        """``(N, 2)`` base pixels -> ``(N, 2)`` raw pixels of frame ``k`` (NaN outside the base,
+        and outside the frame unless ``clip`` is False)."""
         k = self._check(k, stage)
-        return self.geometry.raw_from_base(k, as_points(xy))
+        return self.geometry.raw_from_base(k, as_points(xy), clip=clip)
 
     def vehicles(self) -> dict[str, NDArray] | None:
         """The moving vehicles' true trajectories (``vehicles.csv``,

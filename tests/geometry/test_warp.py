@@ -249,3 +249,38 @@ def test_ghost_check_evaluates_a_smooth_mappings_straddling_pixels_exactly():
     assert 1 <= changed.sum() <= 10, changed.sum()
     np.testing.assert_array_equal(checked[changed], exact[changed])
     assert np.abs(plain - checked)[changed].max() < 0.1  # measured 0.024
+
+
+def test_an_unclipped_mappings_edge_is_evaluated_exactly():
+    """A mapping not clipped at the frame's edge (its nodes just beyond it carry on) is
+    interpolated across the edge like anywhere else; with ``exact_edge_px`` the pixels whose
+    interpolated source lies that close to the edge are evaluated exactly, so the frame's
+    extent (the mask every caller draws from the source) is the exact one. A γ = 0.7 frame's
+    corrected edge curves between the lattice's nodes: interpolated alone, the extent is off by
+    a few pixels at its corners."""
+    from registration.lens import Camera
+
+    camera = Camera(0.7, 160, 120)
+
+    def raw_from_output(xy):
+        return camera.raw_from_corrected(np.asarray(xy, np.float64) + [-60.0, -50.0])
+
+    def inside(smap):
+        sx, sy = smap[..., 0], smap[..., 1]
+        return (sx >= -0.5) & (sx <= 159.5) & (sy >= -0.5) & (sy <= 119.5)
+
+    exact = warp.source_map_from_function(raw_from_output, 280, 220, step=1)
+    kwargs = dict(step=8, source_size=(160, 120))
+    plain = warp.source_map_from_function(raw_from_output, 280, 220, **kwargs)
+    edged = warp.source_map_from_function(raw_from_output, 280, 220, exact_edge_px=0.5, **kwargs)
+    assert (inside(plain) != inside(exact)).sum() >= 3  # the case is real
+    np.testing.assert_array_equal(inside(edged), inside(exact))
+    # Only pixels near the edge are evaluated exactly: the rest is the lattice's, to the bit.
+    changed = (edged != plain).any(axis=2)
+    assert 0 < changed.sum() < 0.1 * inside(exact).sum()
+    np.testing.assert_array_equal(edged[changed], exact[changed])
+    sx, sy = exact[..., 0], exact[..., 1]
+    to_edge = np.minimum.reduce(
+        [np.abs(sx + 0.5), np.abs(sx - 159.5), np.abs(sy + 0.5), np.abs(sy - 119.5)]
+    )
+    assert to_edge[changed].max() < 0.5 + 0.1

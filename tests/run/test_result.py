@@ -143,6 +143,21 @@ def test_nan_where_nothing_is_known_and_errors_only_for_bad_arguments(tmp_path):
         res.frame_to_base(0, q, "fine")
 
 
+def test_unclipped_base_to_frame_carries_the_mapping_on_beyond_the_frames_edge(tmp_path):
+    """``clip=False`` returns the raw px of base points that fall beyond the frame's edge (the
+    formula's, global and local) instead of NaN; inside the frame both agree to the bit."""
+    res = registration.load(write_folder(tmp_path / "r"))
+    beyond = np.array([[W + 40.0, H / 2], [-20.0, 30.0], [50.0, H + 15.0], [-3.0, -2.0]])
+    q = np.r_[raw_points(), beyond]
+    for k, stage, shift in ((0, "global", 0.0), (2, "global", 0.0), (2, "local", FIELD_D)):
+        b = expected_global(k, q) - shift
+        clipped = res.base_to_frame(k, b, stage)
+        unclipped = res.base_to_frame(k, b, stage, clip=False)
+        assert np.isnan(clipped[-len(beyond) :]).all()
+        np.testing.assert_allclose(unclipped, q, atol=1e-3)
+        np.testing.assert_array_equal(unclipped[: -len(beyond)], clipped[: -len(beyond)])
+
+
 def test_damaged_arrays_make_the_frame_damaged_not_an_exception(tmp_path):
     out = write_folder(tmp_path / "r")
     npz = out / "frames" / "000002.npz"

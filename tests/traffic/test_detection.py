@@ -86,7 +86,8 @@ class _Identity:
     def frame_to_base(self, k, xy, stage="local"):
         return np.asarray(xy, np.float64).reshape(-1, 2)
 
-    base_to_frame = frame_to_base
+    def base_to_frame(self, k, xy, stage="local", *, clip=True):
+        return self.frame_to_base(k, xy, stage)
 
 
 def test_a_burnt_in_logo_is_not_looked_at(rng):
@@ -99,3 +100,22 @@ def test_a_burnt_in_logo_is_not_looked_at(rng):
     assert w.mask[25:55, 35:75].all()
     # Without the box nothing inside is left out.
     assert frame_keep_mask(_Identity((80, 60), [])) is None
+
+
+def test_the_noise_sigma_is_the_median_absolute_grey_difference(rng):
+    """1.4826 x the median of |grey(frame) - grey(background)| over the valid pixels, as numpy's
+    median gives it (the two middle values' mean for an even count), on random images and
+    masks of odd and even size."""
+    from registration.traffic.background import noise_sigma
+
+    sizes = [(1, 1), (1, 2), (3, 5), (40, 31), (64, 64)]
+    for h, w in sizes:
+        for share in (0.1, 0.5, 1.0):
+            a = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+            b = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+            valid = rng.random((h, w)) < share
+            valid.flat[0] = True
+            grey = [cv2.cvtColor(x, cv2.COLOR_BGR2GRAY).astype(float) for x in (a, b)]
+            expected = 1.4826 * np.median(np.abs(grey[0] - grey[1])[valid])
+            assert noise_sigma(a, b, valid) == expected, (h, w, share)
+    assert noise_sigma(a, b, np.zeros((h, w), bool)) == 0.0
