@@ -215,3 +215,48 @@ def test_a_kept_cache_of_link_pairs_gives_the_same_fields():
         for other in (cold, warm):
             np.testing.assert_array_equal(other[k].vectors, plain[k].vectors)
             np.testing.assert_array_equal(other[k].valid, plain[k].valid)
+
+
+def _disagreement(frames, fields, links) -> float:
+    """RMS distance between two linked frames' corrected local stages at their common ground
+    (base px), over ``links``; without ``fields``, their own local stages'."""
+    out = []
+    for lk in links:
+        xs = []
+        for j, src in ((lk.k, lk.src_k), (lk.l, lk.src_l)):
+            x = frames[j].to_base(src)
+            if fields is not None and j in fields:
+                for _ in range(20):  # x' + δ(x') = own_local(q)
+                    x = frames[j].to_base(src) - fields[j].sample(x, outside="clamp")
+            xs.append(x)
+        out.append(np.sum((xs[0] - xs[1]) ** 2, axis=1))
+    return float(np.sqrt(np.mean(np.concatenate(out))))
+
+
+def test_frames_that_agree_only_in_twos_are_not_all_held():
+    """Frames whose own local stages agree in twos (1 with 2, 3 with 4, ...; each two with an
+    error of its own, up to ~1 px) and disagree with every other: every frame's best pair is
+    within the links' noise. A window's typical noise read from its frames' best pairs (the
+    rule before, here a quantile of 0) is then zero and every frame is held where it is; read
+    from the lower quartile of all its pairs, the frames are brought together."""
+    n = 9
+    errors = {k: _error(k - 1 + k % 2) for k in range(1, n)}  # 1 and 2 share frame 1's
+    zero = lambda x: np.zeros_like(x)  # noqa: E731
+    held = DisplacementField(
+        (0.0, 0.0), 1000.0, np.zeros((2, 2, 2), np.float32), np.ones((2, 2), bool)
+    )
+    frames = {0: _frame(0, zero, held, held=True)} | {k: _frame(k, errors[k]) for k in errors}
+    links = [_links(k, k + s) for s in (1, 2, 3) for k in range(n - s)]
+    own = _disagreement(frames, None, links)
+    solved = _disagreement(frames, solve_corrections(frames, links), links)
+    held_all = _disagreement(
+        frames, solve_corrections(frames, links, FieldSolveConfig(typical_quantile=0.0)), links
+    )
+    assert held_all > 0.9 * own, (own, held_all)
+    assert solved < 0.3 * own, (own, solved)
+
+
+@pytest.mark.parametrize("q", [-0.1, 1.5, float("nan")])
+def test_the_typical_quantile_must_be_a_quantile(q):
+    with pytest.raises(ValueError, match="typical_quantile must be in"):
+        FieldSolveConfig(typical_quantile=q)

@@ -86,9 +86,14 @@ def test_adjusted_frames_agree_to_the_floor(flyover, stage):
 def test_the_local_stage_keeps_frames_apart_near_the_floor(flyover):
     """Frames 5 apart, 90th percentile, measured on these frames: the adjusted global stage
     0.392 px (0.99x the floor); the local stage with the pooled fields this replaced 0.454 px
-    (1.15x), made consistent by the links 0.434 px (1.10x): within the goal of 1.15x, though
-    still above the global stage here (on all 600 frames: 1.14x against 1.14x)."""
+    (1.15x), made consistent by the links 0.434 px (1.10x) while a window's typical noise was
+    its median frame's best pair, 0.364 px (0.92x) with the pairs' lower quartile: the local
+    stage no longer makes frames 5 apart, nor consecutive ones (0.194 against 0.220 px), agree
+    less than the global stage does."""
     result, greys = flyover
-    local = _consistency(result, greys, "local", step=5)
-    assert local["p90_over_floor"] <= 1.15, local["p90_over_floor"]
-    assert local["p90_px"] < 0.454, local["p90_px"]
+    for step in (1, 5):
+        local = _consistency(result, greys, "local", step=step)
+        adjusted_global = _consistency(result, greys, "global", step=step)
+        assert local["p90_over_floor"] <= 1.15, (step, local["p90_over_floor"])
+        assert local["p90_px"] <= adjusted_global["p90_px"], (step, local, adjusted_global)
+    assert local["p90_px"] < 0.4, local["p90_px"]
