@@ -294,7 +294,6 @@ def _edge_cells(coarse: NDArray, source_size: tuple[int, int], margin: float) ->
     source can come within ``margin`` px of the ``source_size`` image's edge (bilinear
     interpolation stays within its nodes' range in each coordinate)."""
     w, h = source_size
-    finite = finite_points(coarse)
     corners = np.stack(
         [coarse[:-1, :-1], coarse[1:, :-1], coarse[:-1, 1:], coarse[1:, 1:]]
     )  # (4, gy - 1, gx - 1, 2)
@@ -305,8 +304,7 @@ def _edge_cells(coarse: NDArray, source_size: tuple[int, int], margin: float) ->
         # Not wholly inside the edge's band on the inner side.
         inner_x = (lo[..., 0] > -0.5 + margin) & (hi[..., 0] < w - 0.5 - margin)
         inner_y = (lo[..., 1] > -0.5 + margin) & (hi[..., 1] < h - 0.5 - margin)
-    all4 = finite[:-1, :-1] & finite[1:, :-1] & finite[:-1, 1:] & finite[1:, 1:]
-    return all4 & reach_x & reach_y & ~(inner_x & inner_y)
+    return _all_four(finite_points(coarse)) & reach_x & reach_y & ~(inner_x & inner_y)
 
 
 def _straddling_cells(coarse: NDArray, source_size: tuple[int, int]) -> NDArray[np.bool_]:
@@ -319,13 +317,14 @@ def _straddling_cells(coarse: NDArray, source_size: tuple[int, int]) -> NDArray[
     sx, sy = coarse[..., 0], coarse[..., 1]
     with np.errstate(invalid="ignore"):
         sides = np.stack([sx < -0.5, sx > w - 0.5, sy < -0.5, sy > h - 0.5])
-    finite = finite_points(coarse)
+    outside = _all_four(sides.any(axis=0) & finite_points(coarse))
+    return outside & ~_all_four(sides).any(axis=0)
 
-    def all4(a: NDArray) -> NDArray:
-        return a[..., :-1, :-1] & a[..., 1:, :-1] & a[..., :-1, 1:] & a[..., 1:, 1:]
 
-    outside = all4(sides.any(axis=0) & finite)
-    return outside & ~all4(sides).any(axis=0)
+def _all_four(a: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """``(..., gy - 1, gx - 1)``: whether ``a`` (``(..., gy, gx)`` over the lattice's nodes)
+    holds at all four nodes of each cell."""
+    return a[..., :-1, :-1] & a[..., 1:, :-1] & a[..., :-1, 1:] & a[..., 1:, 1:]
 
 
 def source_maps_in_boxes(

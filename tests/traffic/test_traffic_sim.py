@@ -263,3 +263,39 @@ def test_counts_across_a_road_section_match_the_true_crossings(traffic_sim, tmp_
         err = capsys.readouterr().err
         assert code == 2 and message in err and err.count("\n") == 1, err
     assert not (tmp_path / "refused").exists()
+
+
+@pytest.mark.parametrize("exact_edge", [True, False])
+def test_a_warped_frames_extent_is_its_exact_footprint(traffic_sim, monkeypatch, exact_edge):
+    """The working-grid warp interpolates the registration's inverse on a lattice, carried on
+    past the frame's edge, and inverts exactly only the pixels within 0.5 raw px of the edge:
+    its mask is the frame's exact footprint (every pixel of the box inverted exactly, eroded by
+    the warp's one pixel), none missing. Interpolated alone (``EDGE_EXACT_PX`` 0), the lens's
+    curved edge puts pixels outside the frame into it."""
+    import cv2
+
+    from registration.evaluation.traffic import truth_metric_frame
+    from registration.io import open_frames
+    from registration.render import frames as render_frames
+    from registration.synth import load_truth
+    from registration.traffic import background
+
+    if not exact_edge:
+        monkeypatch.setattr(render_frames, "EDGE_EXACT_PX", 0.0)
+    root, result = traffic_sim
+    frames = open_frames(root / "sim" / "frames")
+    metric = truth_metric_frame(load_truth(root / "sim"))
+    grid = background.WorkGrid.for_result(result, 10, metric.metres_per_base_px())
+    k = 9
+    warped = background.warp_frame(result, k, frames.get(k), grid)
+    x0, y0, x1, y1 = warped.box
+    ys, xs = np.mgrid[y0:y1, x0:x1]
+    work = np.c_[xs.ravel(), ys.ravel()].astype(np.float64)
+    raw = result.base_to_frame(k, grid.base_from_work(work), "local")
+    exact = np.isfinite(raw).all(axis=1).reshape(y1 - y0, x1 - x0)
+    exact = cv2.erode(exact.view(np.uint8), np.ones((3, 3), np.uint8)).view(np.bool_)
+    missing, extra = int((exact & ~warped.mask).sum()), int((warped.mask & ~exact).sum())
+    if exact_edge:
+        assert missing == 0 and extra <= 2, (missing, extra)
+    else:
+        assert missing + extra > 10, (missing, extra)
