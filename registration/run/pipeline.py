@@ -346,11 +346,16 @@ def _at_base_resolution(config: PipelineConfig, camera: Camera, model) -> Pipeli
     the base map's resolution (:meth:`registration.local.config.LocalConfig.for_base_scale` at the
     reference frame's scale, base px per frame px at its centre under ``model``, its
     ``base_from_corrected``). Derived from the recorded model, so a resumed run or a Dask
-    worker uses the same settings."""
+    worker uses the same settings. The reference frame's and anchors' own field takes the
+    settings for ``camera``'s lens (:meth:`PipelineConfig.reference_local_for`), resolved here
+    once: ``reference_local_beyond_harris`` is then None."""
     scale = scale_at_frame_centre(model, camera.corrected_from_raw, camera.width, camera.height)
     changes = {"local": config.local.for_base_scale(scale)}
-    if config.reference_local is not None:
-        changes["reference_local"] = config.reference_local.for_base_scale(scale)
+    reference_local = config.reference_local_for(camera.k2)
+    if reference_local is not None:
+        changes["reference_local"] = reference_local.for_base_scale(scale)
+    if config.reference_local_beyond_harris is not None:
+        changes["reference_local_beyond_harris"] = None
     if all(getattr(config, k) is v for k, v in changes.items()):
         return config
     return dataclasses.replace(config, **changes)

@@ -743,10 +743,36 @@ def test_the_reference_field_follows_a_map_finer_than_the_frames_too():
         derived = _at_base_resolution(config, camera, model)
         assert derived.reference_local.spacing_px == spacing
         assert (derived.local.cell_px, derived.local.spacing_px) == (cell, spacing)
-    assert _at_base_resolution(config, camera, model) is config
+    derived = _at_base_resolution(config, camera, model)
+    assert derived.local is config.local and derived.reference_local is config.reference_local
     paper = get_preset("paper")  # the paper's lengths whatever the map
     big = Similarity.from_rotation(0.0, 3.0, centre, (5000.0, 4000.0))
     assert _at_base_resolution(paper, camera, big) is paper
+
+
+def test_the_reference_field_bends_more_freely_beyond_harris():
+    """The reference frame's (and anchors') own field takes the settings for the lens the
+    reference frame's registration found: beyond Harris (a fourth-order term) the spline's
+    smoothness is 0.05, with the lens exactly Harris 0.1; at any map resolution. Against the truth: tests/lens/test_lens_k2.py."""
+    from registration.geometry import Similarity
+    from registration.lens import Camera
+    from registration.run import get_preset
+    from registration.run.pipeline import _at_base_resolution
+
+    config = get_preset("default")
+    harris = Camera(0.7, 640, 480)
+    centre = harris.corrected_from_raw([[319.5, 239.5]])[0]
+    for scale, spacing in ((2.38, 238), (1.2, 100)):
+        model = Similarity.from_rotation(217.0, scale, centre, (5000.0, 4000.0))
+        for camera, smoothness in ((harris, 0.1), (harris.with_k2(0.033), 0.05)):
+            derived = _at_base_resolution(config, camera, model)
+            assert derived.reference_local.spline_smoothness == smoothness
+            assert derived.reference_local.spacing_px == spacing
+            assert derived.reference_local_beyond_harris is None
+    assert config.reference_local_for(0.0) is config.reference_local
+    assert config.reference_local_for(-0.01) is config.reference_local_beyond_harris
+    paper = get_preset("paper")  # no field of its own, whatever the lens
+    assert paper.reference_local_for(0.04) is None
 
 
 def _fine_of(pos, disp):
