@@ -154,43 +154,42 @@ LOCAL_FLOW = {
     "flow_step_px": 16,
     "base_scale_above": 1.5,
 }
-# The reference frame's field from its template matches (beyond the paper): one robust,
-# regularised least-squares fit of nodes 100 px apart to every match (local.LocalConfig.fit =
-# "spline", smoothness 0.1, Tukey weights), over the frame's whole footprint. A polyprojective
-# cannot follow the terrain's relief (the best degree-2 fit to a paper-hard 1280x960 frame's
-# truth through the exact lens: 1.14 px mean, 1.17 without its rolling shutter, 0.28 without the
-# relief), nor the error of a lens estimated beyond Harris: in the corners of a paper-hard reference frame (1280x960) its error reaches 50 px within the
-# outermost raw pixels, where a per-cell consensus (affine cells of 300 px, 150 px apart,
-# REQCON to 0.5 px: the previous default) is constant and the spline continues the field's
-# slope. Reference frame, mean error over a 16 px grid of ground points, cells -> spline:
-# paper-hard 1280x960 1.02 -> 0.74, long-flight 640x480 0.71 -> 0.72, the tests' 640x480
-# sequence (exact Harris lens) 0.39 -> 0.43 (its other frames 0.52 -> 0.49, motion 0.20 ->
-# 0.18: they align to a mid base image rendered with this field). Both leave the
-# inter-sensor matches' shadow bias (~0.4 px in y on the simulated flights: the base map's
-# sun is not the frames'), which no field fitted to those matches can remove. Against a map finer
-# than the frames the node spacing grows with it as the other frames' cells do
-# (LocalConfig.base_scale_above): templates every 25 frame px are ~60 base px apart at 2.4 base
-# px per frame px, ~3 per node 100 base px apart, and the field followed their noise, which every
-# other frame's smoother field then disagreed with. Paper-hard 1280x960, 25 frames, 2x map,
-# motion after local (base px, mean) 0.821 -> 0.427 (seed 6, 217°) and 1.388 -> 0.744 (seed 7,
-# 0°), long flight 640x480, 60 frames, 0.953 -> 0.851; error after local, median 0.948 ->
-# 0.884, 1.284 -> 1.152, 1.132 -> 1.059, mean 1.499 -> 1.567, 2.631 -> 2.606, 1.447 -> 1.399
-# (nodes further apart extrapolate further into the corners).
+# The reference frame's field from its template matches (beyond the paper): one robust, regularised
+# least-squares fit of nodes 100 px apart to every match (local.LocalConfig.fit = "spline",
+# smoothness 0.1, Tukey weights), over the frame's whole footprint. A polyprojective cannot follow
+# the terrain's relief (the best degree-2 fit to a paper-hard 1280x960 frame's truth through the
+# exact lens: 1.14 px mean, 1.17 without its rolling shutter, 0.28 without the relief), nor the
+# error of a lens estimated beyond Harris: in the corners of a paper-hard reference frame
+# (1280x960) its error reaches 50 px within the outermost raw pixels, where a per-cell consensus
+# (affine cells of 300 px, 150 px apart, REQCON to 0.5 px: the previous default) is constant and
+# the spline continues the field's slope. Reference frame, mean error over a 16 px grid of ground
+# points, cells -> spline: paper-hard 1280x960 1.02 -> 0.74, long-flight 640x480 0.71 -> 0.72, the
+# tests' 640x480 sequence (exact Harris lens) 0.39 -> 0.43 (its other frames 0.52 -> 0.49, motion
+# 0.20 -> 0.18: they align to a mid base image rendered with this field). Both leave the
+# inter-sensor matches' shadow bias (~0.4 px in y on the simulated flights: the base map's sun is
+# not the frames'), which no field fitted to those matches can remove. Against a map finer than the
+# frames the node spacing grows with it as the other frames' cells do
+# (LocalConfig.base_scale_above): templates every 25 frame px are ~60 base px apart at 2.4 base px
+# per frame px, ~3 per node 100 base px apart, and the field followed their noise, which every
+# other frame's smoother field then disagreed with. Paper-hard 1280x960, 25 frames, 2x map, motion
+# after local (base px, mean) 0.821 -> 0.427 (seed 6, 217°) and 1.388 -> 0.744 (seed 7, 0°), long
+# flight 640x480, 60 frames, 0.953 -> 0.851; error after local, median 0.948 -> 0.884, 1.284 ->
+# 1.152, 1.132 -> 1.059, mean 1.499 -> 1.567, 2.631 -> 2.606, 1.447 -> 1.399 (nodes further apart
+# extrapolate further into the corners).
 # Beyond Harris, the reference frame's and anchors' field bends more freely: smoothness 0.05
 # instead of 0.1 (PipelineConfig.reference_local_beyond_harris). A paper-hard frame's error after
-# the local stage sits in its outermost raw pixels (1280x960 seed 0: 0.08 base px within 0.8 of
-# the half-diagonal, 3.4-4.5 px beyond 0.9), where the fourth-order term's estimate is least
-# sure (k2 0.0411 against the truth's 0.040: 3.3 corrected px at the corner) and the terrain's
-# relief grows fastest; the stiffer spline carried the slope past it (the reference frame's
-# nodes beyond 0.95: 6.9 px off the truth, more than the 5.2 px they should move). Mean error
-# after the local stage, 0.1 -> 0.05 for every flight: lens beyond Harris, paper-hard 1280x960 x
-# 12 seeds 0-5 0.511/0.409/0.455/0.585/0.449/0.327 -> 0.453/0.399/0.418/0.549/0.388/0.341 (mean
-# 0.456 -> 0.425), 2560x1920 x 15 0.352 -> 0.350; exact
-# Harris, default 1280x960 x 12 seeds 0/3 0.312/0.305 -> 0.302/0.298, long flight 640x480 x
-# 120 0.375 -> 0.383, the tests' 640x480 sequence (reference frame 0) 0.282 -> 0.341 for the
-# reference frame and 0.321 -> 0.375 for the others: with the lens exactly Harris a freer field
-# follows the templates' noise. Its held-out points do not tell the two apart (5 folds: 0.1308
-# against 0.1348 px trimmed RMS on that sequence, where 0.05 is worse).
+# the local stage sits in its outermost raw pixels (1280x960 seed 0: 0.08 base px within 0.8 of the
+# half-diagonal, 3.4-4.5 px beyond 0.9), where the fourth-order term's estimate is least sure (k2
+# 0.0411 against the truth's 0.040: 3.3 corrected px at the corner) and the terrain's relief grows
+# fastest; the stiffer spline carried the slope past it (the reference frame's nodes beyond 0.95:
+# 6.9 px off the truth, more than the 5.2 px they should move). Mean error after the local stage,
+# 0.1 -> 0.05 for every flight: lens beyond Harris, paper-hard 1280x960 x 12 seeds 0-5
+# 0.511/0.409/0.455/0.585/0.449/0.327 -> 0.453/0.399/0.418/0.549/0.388/0.341 (mean 0.456 -> 0.425),
+# 2560x1920 x 15 0.352 -> 0.350; exact Harris, default 1280x960 x 12 seeds 0/3 0.312/0.305 ->
+# 0.302/0.298, long flight 640x480 x 120 0.375 -> 0.383, the tests' 640x480 sequence (reference
+# frame 0) 0.282 -> 0.341 for the reference frame and 0.321 -> 0.375 for the others: with the lens
+# exactly Harris a freer field follows the templates' noise. Its held-out points do not tell the
+# two apart (5 folds: 0.1308 against 0.1348 px trimmed RMS on that sequence, where 0.05 is worse).
 REFERENCE_SMOOTHNESS_BEYOND_HARRIS = 0.05
 REFERENCE_LOCAL = LocalConfig(
     fit="spline",

@@ -753,7 +753,8 @@ def test_the_reference_field_follows_a_map_finer_than_the_frames_too():
 def test_the_reference_field_bends_more_freely_beyond_harris():
     """The reference frame's (and anchors') own field takes the settings for the lens the
     reference frame's registration found: beyond Harris (a fourth-order term) the spline's
-    smoothness is 0.05, with the lens exactly Harris 0.1; at any map resolution. Against the truth: tests/lens/test_lens_k2.py."""
+    smoothness is 0.05, with the lens exactly Harris 0.1; at any map resolution. Against the
+    truth: tests/lens/test_lens_k2.py."""
     from registration.geometry import Similarity
     from registration.lens import Camera
     from registration.run import get_preset
