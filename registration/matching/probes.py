@@ -88,17 +88,37 @@ def structure_strength(grey: NDArray, points: NDArray, half: int) -> NDArray[np.
     return _patch_strength(grey, points, half)
 
 
+# Rows of probes per band of :func:`_image_strength`.
+BAND_ROWS = 128
+
+
 def _image_strength(grey: NDArray, points: NDArray, half: int) -> NDArray[np.float64]:
-    g = grey.astype(np.float32)
-    gx = cv2.Scharr(g, cv2.CV_32F, 1, 0) / 16.0
-    gy = cv2.Scharr(g, cv2.CV_32F, 0, 1) / 16.0
+    """:func:`structure_strength` from whole-image filters, band by band of ``BAND_ROWS`` rows
+    (each with the ``half + 2`` rows beyond it that its patches and gradients read): the same
+    values to the bit as the whole image at once (OpenCV's box filter sums float images in
+    double; tested), at half the CPU (a 1280x960 frame's 2028 probes: 16.3 -> 7.8 ms), as the
+    band's arrays are small enough to be reused where the whole image's were faulted in afresh
+    by every call."""
+    h = grey.shape[0]
     k = 2 * half + 1
-    sxx = cv2.boxFilter(gx * gx, -1, (k, k))
-    syy = cv2.boxFilter(gy * gy, -1, (k, k))
-    sxy = cv2.boxFilter(gx * gy, -1, (k, k))
+    margin = half + 2
     xi, yi = points[:, 0].astype(int), points[:, 1].astype(int)
-    a, c, b = sxx[yi, xi], syy[yi, xi], sxy[yi, xi]
-    return 0.5 * (a + c - np.sqrt((a - c) ** 2 + 4 * b * b)).astype(np.float64)
+    out = np.empty(len(points))
+    for b0 in range(0, h, BAND_ROWS):
+        sel = np.flatnonzero((yi >= b0) & (yi < b0 + BAND_ROWS))
+        if not len(sel):
+            continue
+        r0 = max(0, b0 - margin)
+        g = grey[r0 : min(h, b0 + BAND_ROWS + margin)].astype(np.float32)
+        gx = cv2.Scharr(g, cv2.CV_32F, 1, 0, scale=1.0 / 16.0)
+        gy = cv2.Scharr(g, cv2.CV_32F, 0, 1, scale=1.0 / 16.0)
+        sxx = cv2.boxFilter(gx * gx, -1, (k, k))
+        syy = cv2.boxFilter(gy * gy, -1, (k, k))
+        sxy = cv2.boxFilter(gx * gy, -1, (k, k))
+        rows, cols = yi[sel] - r0, xi[sel]
+        a, c, b = sxx[rows, cols], syy[rows, cols], sxy[rows, cols]
+        out[sel] = 0.5 * (a + c - np.sqrt((a - c) ** 2 + 4 * b * b))
+    return out
 
 
 def _patch_strength(grey: NDArray, points: NDArray, half: int) -> NDArray[np.float64]:

@@ -9,6 +9,7 @@ import numpy as np
 
 from registration.matching import ProbeConfig
 from registration.matching.probes import (
+    BAND_ROWS,
     PATCHWISE_BELOW,
     _image_strength,
     _patch_strength,
@@ -69,3 +70,32 @@ def test_a_bowl_pins_both_directions_by_its_known_amount():
     bowl = (xs - 50) ** 2 + (ys - 50) ** 2
     for strength in (_patch_strength, _image_strength):
         np.testing.assert_allclose(strength(bowl, p, 15), 1280.0, rtol=1e-6)
+
+
+def _whole_image_strength(grey, points, half):
+    """The filters over the whole image at once: what ``_image_strength`` computes band by
+    band."""
+    g = grey.astype(np.float32)
+    gx = cv2.Scharr(g, cv2.CV_32F, 1, 0) / 16.0
+    gy = cv2.Scharr(g, cv2.CV_32F, 0, 1) / 16.0
+    k = 2 * half + 1
+    sxx, syy, sxy = (cv2.boxFilter(a, -1, (k, k)) for a in (gx * gx, gy * gy, gx * gy))
+    xi, yi = points[:, 0].astype(int), points[:, 1].astype(int)
+    a, c, b = sxx[yi, xi], syy[yi, xi], sxy[yi, xi]
+    return (0.5 * (a + c - np.sqrt((a - c) ** 2 + 4 * b * b))).astype(np.float64)
+
+
+def test_bands_give_the_whole_images_values_to_the_bit():
+    """Every probe of a real photo (dense grid, and probes on every row next to a band's edge
+    and the image's first and last rows) gets exactly the whole image's value."""
+    grey = _photo()
+    h, w = grey.shape
+    dense = probe_grid((w, h), ProbeConfig(grid_px=24))
+    edges = [y for b in range(0, h, BAND_ROWS) for y in (b - 1, b, b + 1) if 0 <= y < h]
+    rows = np.array(sorted({0, 1, h - 2, h - 1, *edges}), float)
+    xs = np.linspace(0, w - 1, 7)
+    at_edges = np.stack(np.meshgrid(xs, rows), axis=-1).reshape(-1, 2)
+    for p in (dense, at_edges):
+        np.testing.assert_array_equal(
+            _image_strength(grey, p, 15), _whole_image_strength(grey, p, 15)
+        )
