@@ -103,7 +103,7 @@ def _image_strength(grey: NDArray, points: NDArray, half: int) -> NDArray[np.flo
     k = 2 * half + 1
     margin = half + 2
     xi, yi = points[:, 0].astype(int), points[:, 1].astype(int)
-    out = np.empty(len(points))
+    out = np.full(len(points), np.nan)  # NaN (never textured) for a point off the image
     for b0 in range(0, h, BAND_ROWS):
         sel = np.flatnonzero((yi >= b0) & (yi < b0 + BAND_ROWS))
         if not len(sel):
