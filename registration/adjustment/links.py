@@ -23,11 +23,17 @@ from registration.adjustment.solve import FrameLinks
 from registration.matching import ProbeConfig, find_probes, textured_probes
 
 # A link survives when a homography of the pair's measured points explains it within this
-# many corrected px (RANSAC, then least squares on the inliers).
+# many corrected px (RANSAC, then least squares on the inliers), on frames of up to this
+# diagonal; on larger frames within the same share of the diagonal. What a pair's rolling
+# shutter and terrain bend away from one homography grows with the frame's pixels, as a roof's
+# parallax does: at 1 px a 2560x1920 flight's homographies left a third of its ground's links
+# out (75th percentile 1.5 px), and what they kept lay in parts of the frames.
 LINK_INLIER_PX = 1.0
+LINK_INLIER_DIAGONAL_PX = 1600.0
 MIN_LINKS = 8
-# Links by Lucas-Kanade are kept when at least this share of the probes survives; else the pair
-# is measured again by correlation.
+# Links by Lucas-Kanade are kept when it finds at least this share of the probes and the
+# homography keeps at least this share of what it found; else the pair is measured again by
+# correlation (which finds the same ground where Lucas-Kanade found it).
 FLOW_SHARE = 0.5
 # A Lucas-Kanade probe whose mean intensity difference exceeds this many times the pair's
 # median is a changed patch, not ground.
@@ -59,11 +65,11 @@ def measure_links(
     q = lens.raw_from_corrected(model_l.inverse(model_k.apply(lens.corrected_from_raw(p))))
     known = np.isfinite(q).all(axis=1)
     p, q = p[known], q[known]
-    src_k, src_l = _robust_links(grey_k, grey_l, p, q, lens, cfg, matcher)
-    if matcher == "flow" and len(src_k) < FLOW_SHARE * len(p):
+    src_k, src_l, found = _robust_links(grey_k, grey_l, p, q, lens, cfg, matcher)
+    if matcher == "flow" and (found < FLOW_SHARE * len(p) or len(src_k) < FLOW_SHARE * found):
         # Lucas-Kanade goes astray where the prediction is far off (a frame whose own
         # registration went wrong) or the patches changed: the search by correlation then.
-        src_k, src_l = _robust_links(grey_k, grey_l, p, q, lens, cfg, "ncc")
+        src_k, src_l, _ = _robust_links(grey_k, grey_l, p, q, lens, cfg, "ncc")
     return FrameLinks(k, l, src_k, src_l)
 
 
@@ -120,25 +126,35 @@ def links_from_arrays(arrays) -> dict[tuple[int, int], tuple[FrameLinks, NDArray
     return out
 
 
+def link_inlier_px(frame_size: tuple[int, int]) -> float:
+    """How far (corrected px) a link may lie from its pair's homography, for frames of
+    ``(width, height)`` px: :data:`LINK_INLIER_PX`, more on frames with a diagonal over
+    :data:`LINK_INLIER_DIAGONAL_PX`, in proportion."""
+    return LINK_INLIER_PX * max(1.0, float(np.hypot(*frame_size)) / LINK_INLIER_DIAGONAL_PX)
+
+
 def _robust_links(grey_k, grey_l, p, q, lens, cfg: ProbeConfig, matcher: str):
     """The probes ``p`` of frame k measured in frame l around ``q`` (raw px) and kept where a
-    homography of all of them explains them: ``(src_k, src_l)`` corrected px, empty when fewer
-    than ``MIN_LINKS`` survive."""
-    empty = np.zeros((0, 2)), np.zeros((0, 2))
+    homography of all of them explains them (:func:`link_inlier_px`): ``(src_k, src_l,
+    found)``, the links in corrected px (empty when fewer than ``MIN_LINKS`` survive) and how
+    many probes were found before the homography's test."""
     m, ok = (_flow_probes if matcher == "flow" else find_probes)(grey_k, grey_l, p, q, cfg)
+    found = int(ok.sum())
+    empty = np.zeros((0, 2)), np.zeros((0, 2)), found
     src_k, src_l = lens.corrected_from_raw(p[ok]), lens.corrected_from_raw(m[ok])
     if len(src_k) < MIN_LINKS:
         return empty
-    h, inl = cv2.findHomography(src_k, src_l, cv2.RANSAC, LINK_INLIER_PX, maxIters=2000)
+    tol = link_inlier_px(grey_l.shape[1::-1])
+    h, inl = cv2.findHomography(src_k, src_l, cv2.RANSAC, tol, maxIters=2000)
     if h is None:
         return empty
     inl = inl.ravel().astype(bool)
     h, _ = cv2.findHomography(src_k[inl], src_l[inl], 0)
     pred = cv2.perspectiveTransform(src_k.reshape(-1, 1, 2), h).reshape(-1, 2)
-    keep = np.hypot(*(pred - src_l).T) <= LINK_INLIER_PX
+    keep = np.hypot(*(pred - src_l).T) <= tol
     if keep.sum() < MIN_LINKS:
         return empty
-    return src_k[keep], src_l[keep]
+    return src_k[keep], src_l[keep], found
 
 
 def _flow_probes(grey_k, grey_l, p, q, cfg: ProbeConfig):
