@@ -52,7 +52,9 @@ class AdjustmentConfig:
             ``sigma_px``), base px.
         f_scale: residuals beyond this many expected noises are down-weighted (soft-L1).
         cost_tolerance: the solver stops when a step changes the robust cost by less than this
-            share of it.
+            share of it. (1e-5 took 45 steps instead of 12 on a 2560x1920 flight whose links
+            reach 2 px, crawling through the soft-L1 weights of links beyond ``f_scale``, and
+            moved its frames by 0.002 px more.)
         max_evaluations: iteration cap of the solver (Gauss-Newton steps tried).
         noise_rounds: rounds of re-estimating each frame's control-point noise from its own
             residuals after a solution (variance components): a frame whose control points
@@ -64,7 +66,7 @@ class AdjustmentConfig:
     link_sigma_px: float = 0.1
     min_control_sigma_px: float = 0.05
     f_scale: float = 3.0
-    cost_tolerance: float = 1e-5
+    cost_tolerance: float = 1e-4
     max_evaluations: int = 50
     noise_rounds: int = 2
 
