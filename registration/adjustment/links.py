@@ -35,6 +35,11 @@ MIN_LINKS = 8
 # homography keeps at least this share of what it found; else the pair is measured again by
 # correlation (which finds the same ground where Lucas-Kanade found it).
 FLOW_SHARE = 0.5
+# How links are kept, as part of their stored key (:func:`link_key`): links an earlier release
+# stored under other rules are measured again rather than mixed with this release's (2: the
+# homography's tolerance grows with frames over 1600 px of diagonal, and the correlation search
+# follows what Lucas-Kanade found).
+LINK_RULES = 2
 # A Lucas-Kanade probe whose mean intensity difference exceeds this many times the pair's
 # median is a changed patch, not ground.
 CHANGED_PATCH = 2.0
@@ -75,11 +80,12 @@ def measure_links(
 
 def link_key(model_k, model_l, lens, config: ProbeConfig, matcher: str) -> NDArray[np.uint8]:
     """``(20,)`` uint8: what :func:`measure_links` measures a pair through (the two models, the
-    lens, the probes' settings and the matcher), as a SHA-1 digest. Links stored with their
-    key stand for a measurement again exactly when the key is the same: the frames themselves
-    are the run's (a result folder checks its frames' identity)."""
+    lens, the probes' settings and the matcher, and :data:`LINK_RULES`), as a SHA-1 digest.
+    Links stored with their key stand for a measurement again exactly when the key is the same:
+    the frames themselves are the run's (a result folder checks its frames' identity)."""
     text = json.dumps(
-        [model_k.to_dict(), model_l.to_dict(), repr(lens), repr(config), matcher], sort_keys=True
+        [model_k.to_dict(), model_l.to_dict(), repr(lens), repr(config), matcher, LINK_RULES],
+        sort_keys=True,
     )
     return np.frombuffer(hashlib.sha1(text.encode()).digest(), np.uint8).copy()
 
