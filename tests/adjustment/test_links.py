@@ -66,13 +66,12 @@ def test_no_links_where_the_frames_share_no_texture():
 def _count_correlation_searches(monkeypatch) -> list:
     import registration.adjustment.links as links_module
 
-    calls = []
+    calls, original = [], links_module.find_probes
 
     def find_probes(*args, **kwargs):
         calls.append(1)
-        return links_module.find_probes.__wrapped__(*args, **kwargs)
+        return original(*args, **kwargs)
 
-    find_probes.__wrapped__ = links_module.find_probes
     monkeypatch.setattr(links_module, "find_probes", find_probes)
     return calls
 
