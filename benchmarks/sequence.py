@@ -25,17 +25,18 @@ class SimulatedSequence:
 
 
 def simulated_sequence(
-    args, out: Path, label: str, reference_frame: int = 0, *, video: bool = False
+    args, out: Path, label: str, reference_frame: int = 0, *, video: bool = False, **sim
 ) -> SimulatedSequence:
     """Render ``args.frames`` frames of ``args.size_wh`` into ``out`` (the named simulator profile
     when ``args.profile`` is set, else the default flight) and load them; ``label`` prefixes the
-    progress line on stderr. ``video``: also write the frames as ``out/sequence.mp4`` (H.264)."""
+    progress line on stderr. ``video``: also write the frames as ``out/sequence.mp4`` (H.264).
+    ``sim``: further :class:`registration.synth.SimConfig` values."""
     from registration.io import open_frames, read_image
     from registration.synth import SimConfig, load_truth, simulate
     from registration.synth.profiles import profile_config
 
     w, h = args.size_wh
-    fields = dict(frame_size=(w, h), n_frames=args.frames, seed=args.seed, video=video)
+    fields = dict(frame_size=(w, h), n_frames=args.frames, seed=args.seed, video=video, **sim)
     profile = getattr(args, "profile", None)
     config = profile_config(profile, **fields) if profile else SimConfig(**fields)
     t0 = time.perf_counter()

@@ -712,11 +712,17 @@ def _roof(img, b: Building, m: float, rng):
         _rect(img, ux, uy, ux + uw, uy + uh, (v, v, v * 0.98))
 
 
-def traffic_states(lay: Layout, seed: int, per_km: float, t: float = 0.0) -> dict[str, NDArray]:
+def traffic_states(
+    lay: Layout, seed: int, per_km: float, t: float = 0.0, min_gap_m: float | None = None
+) -> dict[str, NDArray]:
     """Every vehicle on the lanes at time ``t`` (s), as arrays of one row per vehicle.
 
     Each vehicle drives along its lane at a constant speed (8-16 m/s) and wraps around at the
-    map's edge; the same ``seed`` gives the same traffic at every ``t``. Keys: ``vehicle`` (its
+    map's edge; the same ``seed`` gives the same traffic at every ``t``. With ``min_gap_m`` None a
+    vehicle drives through a slower one ahead (the flights every registration test was measured
+    on); with a gap (metres) the vehicles of a lane share its speed (its first vehicle's) and
+    stay at least that far apart bumper to bumper, with the same sizes and colours (vehicles of
+    crossing lanes still meet at intersections, which have no signals). Keys: ``vehicle`` (its
     index, stable over time), ``lap`` (how often it wrapped since ``t`` = 0: a wrap teleports
     it, so ``(vehicle, lap)`` is one trajectory), ``x``, ``y`` (centre, px), ``axis`` (0: along
     x), ``direction`` (±1 along the axis), ``speed`` (px/s), ``length``, ``width`` (px),
@@ -735,6 +741,11 @@ def traffic_states(lay: Layout, seed: int, per_km: float, t: float = 0.0) -> dic
         vlen = np.where(kind < 0.9, rng.uniform(4.2, 5.2, n), rng.uniform(8, 12, n)) * m
         vwid = np.where(kind < 0.9, rng.uniform(1.7, 1.95, n), rng.uniform(2.4, 2.6, n)) * m
         cols = CAR_COLOURS[rng.choice(len(CAR_COLOURS), size=n, p=CAR_COLOUR_P)]
+        if min_gap_m is not None and n:
+            # One speed for the lane (its first vehicle's: the same draws, so sizes and colours
+            # stay) and room between its vehicles: one behind another keeps its distance.
+            speed = np.full(n, speed[0])
+            s0 = _spaced(s0, vlen, min_gap_m * m, length)
         travelled = s0 + direction * speed * t
         pos = np.mod(travelled, length)
         across = c + rng.normal(0, 0.15 * m, n)
@@ -755,10 +766,38 @@ def traffic_states(lay: Layout, seed: int, per_km: float, t: float = 0.0) -> dic
     return out
 
 
-def traffic_snapshot(lay: Layout, seed: int, per_km: float, t: float = 0.0) -> NDArray[np.float64]:
+def _spaced(s0: NDArray, vlen: NDArray, gap: float, length: float) -> NDArray:
+    """Positions ``s0`` along a ring lane of ``length`` px moved forward, in their order, so that
+    consecutive vehicles (lengths ``vlen`` px) are at least ``gap`` px apart bumper to bumper;
+    unchanged where they already are. A lane too full for that keeps ``s0``."""
+    n = len(s0)
+    if n < 2 or float(vlen.sum()) + n * gap > length:
+        return s0
+    order = np.argsort(s0, kind="stable")
+    pos = s0[order].copy()
+    half = vlen[order] / 2.0
+    # Around the ring until no vehicle moves (the last one's room is before the first one's
+    # next lap); it ends because the lane has room for all of them.
+    for _ in range(n + 1):
+        moved = False
+        for i in range(n):
+            ahead = pos[i - 1] - (length if i == 0 else 0.0)
+            need = ahead + half[i - 1] + half[i] + gap
+            if pos[i] < need - 1e-9:
+                pos[i], moved = need, True
+        if not moved:
+            break
+    out = np.empty_like(s0)
+    out[order] = np.mod(pos, length)
+    return out
+
+
+def traffic_snapshot(
+    lay: Layout, seed: int, per_km: float, t: float = 0.0, min_gap_m: float | None = None
+) -> NDArray[np.float64]:
     """Vehicles on the lanes at time ``t`` (s) (:func:`traffic_states`) as ``(V, 8)`` rows
     ``x, y, axis, length px, width px, r, g, b``, the form :func:`draw_car` paints."""
-    v = traffic_states(lay, seed, per_km, t)
+    v = traffic_states(lay, seed, per_km, t, min_gap_m)
     return (
         np.column_stack([v["x"], v["y"], v["axis"], v["length"], v["width"], v["rgb"]])
         .astype(np.float64)
