@@ -38,17 +38,11 @@ FLOW_SHARE = 0.5
 # How links are kept, as part of their stored key (:func:`link_key`): links an earlier release
 # stored under other rules are measured again rather than mixed with this release's (2: the
 # homography's tolerance grows with frames over 1600 px of diagonal, and the correlation search
-# follows what Lucas-Kanade found; 3: Lucas-Kanade without a coarser pyramid level).
-LINK_RULES = 3
+# follows what Lucas-Kanade found).
+LINK_RULES = 2
 # A Lucas-Kanade probe whose mean intensity difference exceeds this many times the pair's
 # median is a changed patch, not ground.
 CHANGED_PATCH = 2.0
-# Lucas-Kanade on the frames' own pixels only (no coarser pyramid level): the prediction through
-# the frames' own models is within 1-2 px, and from up to 4 px off the full-resolution search
-# lands within 0.1 px of what a two-level one finds for 97 % of the probes (6 px: 92 %; 2560x1920
-# and 1280x960 flights); a level more doubles the cost on 2560x1920 frames (its derivatives are
-# computed over the whole image). A pair Lucas-Kanade loses goes to the correlation search.
-FLOW_LEVELS = 0
 
 
 def measure_links(
@@ -170,19 +164,18 @@ def _robust_links(grey_k, grey_l, p, q, lens, cfg: ProbeConfig, matcher: str):
 
 
 def _flow_probes(grey_k, grey_l, p, q, cfg: ProbeConfig):
-    """Where each probe's patch lies in ``grey_l``: Lucas-Kanade from the prediction ``q``, the
-    patch as its window (``template_px``), within ``search_px`` of the prediction. As
+    """Where each probe's patch lies in ``grey_l``: pyramidal Lucas-Kanade from the prediction
+    ``q``, the patch as its window (``template_px``), one pyramid level over ``search_px``. As
     :func:`registration.matching.find_probes` returns: ``(N, 2)`` px, NaN where not found, and
     the found mask. 4-5x faster than the NCC search on the real flyover, within 0.06 px of it
-    at the median (0.11 at the 90th percentile); ``FLOW_LEVELS`` pyramid levels above the
-    frame's own."""
+    at the median (0.11 at the 90th percentile)."""
     if not len(p):
         return np.zeros((0, 2)), np.zeros(0, bool)
     half = cfg.template_px // 2
     found, status, err = cv2.calcOpticalFlowPyrLK(
         grey_k, grey_l, p.astype(np.float32).reshape(-1, 1, 2),
         q.astype(np.float32).reshape(-1, 1, 2).copy(), winSize=(2 * half + 1, 2 * half + 1),
-        maxLevel=FLOW_LEVELS, flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
+        maxLevel=1, flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
         criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01),
     )  # fmt: skip
     m = found.reshape(-1, 2).astype(np.float64)
