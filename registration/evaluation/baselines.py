@@ -100,6 +100,37 @@ class BaselineResult:
         return raw
 
 
+def degenerate(h: NDArray | None, camera: Camera) -> bool:
+    """Whether ``h`` (``base_from_corrected``) cannot be a view of the frame: not finite, a frame
+    corner at or beyond the horizon (w <= 0), or the frame's outline folded or collapsed on the
+    base (corners out of one turning order, or an area under 1e-6 of the frame's). A chain of
+    homographies to a frame that no longer sees the reference frame (the long flight's last
+    frames) multiplies into such a matrix, rank 2 to 15 digits."""
+    if h is None or not np.isfinite(h).all():
+        return True
+    w, hgt = camera.width, camera.height
+    corners = camera.corrected_from_raw(
+        np.array([[0.0, 0.0], [w - 1.0, 0.0], [w - 1.0, hgt - 1.0], [0.0, hgt - 1.0]])
+    )
+    q = np.c_[corners, np.ones(4)] @ np.asarray(h, np.float64).T
+    if not (q[:, 2] > 0).all() and not (q[:, 2] < 0).all():
+        return True
+    xy = q[:, :2] / q[:, 2:]
+    edges = np.roll(xy, -1, axis=0) - xy
+    turns = (
+        edges[:, 0] * np.roll(edges, -1, axis=0)[:, 1]
+        - edges[:, 1] * np.roll(edges, -1, axis=0)[:, 0]
+    )
+    area = 0.5 * abs(np.sum(xy[:, 0] * np.roll(xy[:, 1], -1) - np.roll(xy[:, 0], -1) * xy[:, 1]))
+    return not ((turns > 0).all() or (turns < 0).all()) or area < 1e-6 * w * hgt
+
+
+def _without_degenerate(out: BaselineResult) -> BaselineResult:
+    """``out`` with every :func:`degenerate` homography taken as a failed frame (None)."""
+    out.homographies = [None if degenerate(h, out.camera) else h for h in out.homographies]
+    return out
+
+
 def apply_homography(h: NDArray, xy: NDArray) -> NDArray:
     p = np.c_[xy, np.ones(len(xy))] @ h.T
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -182,7 +213,7 @@ def register_per_frame(
             sift_features(corrected_grey(frame, out.camera)), base_feats, config
         )
         out.times_s.append(time.perf_counter() - t1 + (setup_s if k == 0 else 0.0))
-    return out
+    return _without_degenerate(out)
 
 
 def register_chained(
@@ -210,7 +241,7 @@ def register_chained(
         out.homographies[k] = base_from_prev
         prev_feats = feats
         out.times_s.append(time.perf_counter() - t1 + (setup_s if k == 0 else 0.0))
-    return out
+    return _without_degenerate(out)
 
 
 def _chain_to_reference(frames, out: BaselineResult, base_from_ref, ref_from_frame, setup_s):
@@ -228,7 +259,7 @@ def _chain_to_reference(frames, out: BaselineResult, base_from_ref, ref_from_fra
                 if ref_from_k is not None:
                     out.homographies[k] = base_from_ref @ ref_from_k
         out.times_s.append(time.perf_counter() - t1 + (setup_s if k == ref else 0.0))
-    return out
+    return _without_degenerate(out)
 
 
 def warp_to_base(
