@@ -24,8 +24,11 @@ def test_traffic_bench_scores_both_registrations_against_the_truth(capsys):
         for key in ("position_rmse_m", "speed_rmse_mps", "cpu_s_per_frame"):
             assert np.isfinite(row[key]) and row[key] > 0, key
         assert row["registration_cpu_s_per_frame"] > 0
-        # Leaving out touching vehicles leaves fewer true objects, never more.
-        assert 0 < row["separable"]["truth_objects"] < row["truth_objects"]
+        # Leaving out touching vehicles leaves no more true objects (the flights' vehicles keep
+        # their distance in their lanes; they still meet at intersections).
+        assert 0 < row["separable"]["truth_objects"] <= row["truth_objects"]
+        # Every frame of the flight is scored, the ones a registration lost too.
+        assert row["frames"] == 12
     table = out["markdown"]
     assert "| aerialreg (default preset) |" in table and "| plain OpenCV stabilisation |" in table
     assert table.count(", separable vehicles |") == 2

@@ -71,6 +71,7 @@ def test_simulate_cli_errors(tmp_path, capsys, argv, needle):
         (["--base-scale", "0.01"], "base scale must be in [0.05, 8]"),
         (["--seed", "-3"], "seed must be a non-negative integer, got -3"),
         (["--lens-k2", "0.3"], "gamma + lens_k2 must be at most 0.9"),
+        (["--vehicle-gap", "-1"], "vehicle_gap_m must be in [0, 100] m, got -1.0"),
         (["--shake", "0.01", "--size", "64x48"], "shake_deg 0.01 is below"),
         (["--profile", "paper-hard", "--frames", "3"], "use more frames (paper-hard needs ~15)"),
         (["--fps", "nan"], "fps must be positive"),
@@ -95,6 +96,7 @@ def test_simulate_cli_force_profile_and_rebase(tmp_path, capsys):
     assert info["profile"] == "paper-hard" and cfg["n_frames"] == 16
     assert cfg["rolling_shutter_s"] == 0.15 and cfg["lens_k2"] == 0.04 and cfg["shake_deg"] == 0.6
     assert cfg["unregistered_px"] == pytest.approx(93.3 * 160 / 2560)
+    assert cfg["vehicle_gap_m"] is None  # vehicles at their own speeds unless asked
     first = (out / "frames" / "000000.png").read_bytes()
     # Again without --force: refused in one line, nothing touched.
     assert main([*argv, "--seed", "5", "--no-video"]) == 2
@@ -187,3 +189,13 @@ def test_simulate_cli_refuses_a_scene_too_small_for_the_flight(tmp_path, capsys)
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "upsampled" in err[0] and "scene px" in err[0], err
     assert main([*argv, "--scale", "0.5", "--force"]) == 0
+
+
+def test_simulate_cli_vehicle_gap_reaches_the_flight(tmp_path, capsys):
+    from registration.synth import load_truth
+
+    out = tmp_path / "sim"
+    argv = ["simulate", str(out), "--size", "160x120", "--frames", "2", "--vehicle-gap", "2.5"]
+    assert main([*argv, "--no-video", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["config"]["vehicle_gap_m"] == 2.5
+    assert load_truth(out).config["vehicle_gap_m"] == 2.5

@@ -54,6 +54,7 @@ _FIELDS = {
     "seed": "seed",
     "base_heading": "base_heading_deg",
     "base_scale": "base_scale",
+    "vehicle_gap": "vehicle_gap_m",
 }
 
 
@@ -171,6 +172,13 @@ def _output_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, help="random seed (default 0); same seed, same files")
     p.add_argument(
         "--no-vehicles", action="store_true", help="no moving vehicles (procedural city)"
+    )
+    p.add_argument(
+        "--vehicle-gap",
+        type=float,
+        metavar="M",
+        help="the vehicles of a lane share one speed and keep at least M metres apart, as real "
+        "traffic does (default: each at its own speed, driving through slower ones)",
     )
     p.add_argument("--no-video", action="store_true", help="do not write sequence.mp4")
     p.add_argument(
