@@ -54,11 +54,10 @@ def score_traffic(
     frame :meth:`truth_metric_frame` gives) against ``truth``'s vehicles over ``frames``.
 
     ``separable_only``: leave out, frame by frame, the true vehicles that touch or overlap
-    another (:func:`touching`; the simulator's vehicles cross at intersections, and unless its
-    ``vehicle_gap_m`` is set drive through each other, and no image tells two touching cars
-    apart), and the track points that pair
-    with them (MOT benchmarks' "ignore" regions): what the tracker does on the vehicles an image
-    can show.
+    another (:func:`touching`; the simulator's vehicles meet at intersections and, unless its
+    ``vehicle_gap_m`` is set, drive through each other; no image tells two touching cars apart),
+    and the track points that pair with them (MOT benchmarks' "ignore" regions): what the
+    tracker does on the vehicles an image can show.
 
     Raises:
         ValueError: the truth has no vehicles file.

@@ -39,7 +39,7 @@ class TrafficConfig:
             strongly differing parts, noise alone does not start a blob). 1.5: on flights whose
             vehicles keep their distance, 29 of 101 separable vehicles missed in a default
             flight's frame differed by 1-1.8 times the threshold; 1.8 -> 1.5 raised MOTA by
-            0.005-0.019 on the three simulated flights (positions 0.01-0.03 m worse), and on the
+            0.007-0.019 on the three simulated flights (positions 0.01-0.03 m worse), and on the
             real flyover kept the real car's track and lost the one false track.
         close_m: gaps up to this (metres) inside a blob are closed (windscreens, roof bars);
             below the 1.3-1.8 m between cars in neighbouring lanes.
