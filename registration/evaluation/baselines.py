@@ -101,11 +101,12 @@ class BaselineResult:
 
 
 def degenerate(h: NDArray | None, camera: Camera) -> bool:
-    """Whether ``h`` (``base_from_corrected``) cannot be a view of the frame: not finite, a frame
-    corner at or beyond the horizon (w <= 0), or the frame's outline folded or collapsed on the
-    base (corners out of one turning order, or an area under 1e-6 of the frame's). A chain of
-    homographies to a frame that no longer sees the reference frame (the long flight's last
-    frames) multiplies into such a matrix, rank 2 to 15 digits."""
+    """Whether ``h`` (``base_from_corrected``) cannot be a view of the frame: not finite, the
+    horizon through the frame (its corners' w not all of one sign: the outline folds), or the
+    outline collapsed on the base (an area under 1e-6 of the frame's). With every corner on one
+    side of the horizon the convex outline maps to a convex one, so no other fold can occur. A
+    chain of homographies to a frame that no longer sees the reference frame (the long flight's
+    last frames) multiplies into such a matrix, rank 2 to 15 digits."""
     if h is None or not np.isfinite(h).all():
         return True
     w, hgt = camera.width, camera.height
@@ -116,13 +117,8 @@ def degenerate(h: NDArray | None, camera: Camera) -> bool:
     if not (q[:, 2] > 0).all() and not (q[:, 2] < 0).all():
         return True
     xy = q[:, :2] / q[:, 2:]
-    edges = np.roll(xy, -1, axis=0) - xy
-    turns = (
-        edges[:, 0] * np.roll(edges, -1, axis=0)[:, 1]
-        - edges[:, 1] * np.roll(edges, -1, axis=0)[:, 0]
-    )
     area = 0.5 * abs(np.sum(xy[:, 0] * np.roll(xy[:, 1], -1) - np.roll(xy[:, 0], -1) * xy[:, 1]))
-    return not ((turns > 0).all() or (turns < 0).all()) or area < 1e-6 * w * hgt
+    return area < 1e-6 * w * hgt
 
 
 def _without_degenerate(out: BaselineResult) -> BaselineResult:

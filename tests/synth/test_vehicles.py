@@ -57,7 +57,7 @@ def test_vehicles_of_a_lane_keep_their_distance(layout, t):
     assert len({s.pop() for s in lanes.values()}) > 3  # the lanes' speeds differ
 
 
-def test_a_lane_too_full_keeps_its_vehicles_where_they_were():
+def test_spacing_moves_only_vehicles_too_close_and_leaves_a_full_lane_as_drawn():
     s0 = np.array([10.0, 30.0, 50.0])
     assert np.array_equal(citymod._spaced(s0, np.full(3, 30.0), 5.0, 100.0), s0)
     moved = citymod._spaced(s0, np.full(3, 15.0), 5.0, 100.0)
