@@ -1,5 +1,6 @@
 """The vehicle detector on planted frames of known content: a dark car with a few coloured
-pixels, two cars that blur joins, and a burnt-in logo that moves over the map with the camera."""
+pixels, two cars that blur joins, two cars in a row joined by a narrow neck, a bus with a dark windscreen, and a
+burnt-in logo that moves over the map with the camera."""
 
 from __future__ import annotations
 
@@ -20,13 +21,14 @@ CELL_M = 0.3  # metres per working pixel (one base px per working px)
 ASPHALT = 80
 
 
-def _detect(image, still):
+def _detect(image, still, config=None):
     """Detections of ``image`` against the still road ``still`` on a 1:1 grid at CELL_M."""
     h, w = image.shape[:2]
     frame = WarpedFrame(0, image, np.ones((h, w), bool), (0, 0, w, h))
     count = np.full((h, w), 12, np.int32)
     background = Background(still, count, np.full((h, w), 2.0, np.float32), (0, 0, w, h))
-    return detect_vehicles(frame, background, WorkGrid(1.0, (w, h)), CELL_M, TrafficConfig())
+    config = config or TrafficConfig()
+    return detect_vehicles(frame, background, WorkGrid(1.0, (w, h)), CELL_M, config)
 
 
 def _road(rng, h=60, w=80):
@@ -74,6 +76,42 @@ def test_cars_side_by_side_that_blur_joins_are_cut_apart(rng):
     for d, (cx, cy) in zip(dets, [(37.0, 22.5), (38.0, 32.5)], strict=True):
         assert np.hypot(d.x - cx, d.y - cy) * CELL_M < 0.4, d
         assert d.width_m < 3.5, d
+
+
+def _white_car(image, y0, x0, length_px=15, width_px=6):
+    image[y0 : y0 + width_px, x0 : x0 + length_px] = (235, 235, 235)
+
+
+def test_two_cars_in_a_row_joined_by_a_narrow_neck_are_two_vehicles(rng):
+    # Two white cars of 4.5 x 1.8 m (15 x 6 px) in one lane, 2.1 m (7 px) apart, joined by a
+    # strip one pixel wide (what blur and a shadow leave in the gap): one blob 11 m long, within
+    # a bus's limits. It narrows to 1 px of 6 at the gap: two vehicles at the cars' centres.
+    still, image = _road(rng, w=100)
+    _white_car(image, 27, 20)
+    _white_car(image, 27, 42)
+    image[30, 35:42] = (200, 200, 200)
+    dets = sorted(_detect(image, still), key=lambda d: d.x)
+    assert len(dets) == 2, dets
+    for d, cx in zip(dets, (27.0, 49.0), strict=True):
+        assert np.hypot(d.x - cx, d.y - 29.5) * CELL_M < 0.3, d
+        assert 3.6 < d.length_m < 6.3, d  # a car and at most half the gap
+    # Without the cut (the rule switched off by its length) it is one vehicle between them.
+    off = TrafficConfig(waist_min_length_m=TrafficConfig().max_length_m + 1)
+    (one,) = _detect(image, still, off)
+    assert abs(one.x - 38.0) < 1.0 and one.length_m > 10.0, one
+
+
+def test_a_bus_whose_windscreen_narrows_its_blob_is_one_vehicle(rng):
+    # A white bus of 10.5 x 2.4 m (35 x 8 px) whose dark windscreen, 1.8 m long and as dark as
+    # the road, spans its width but for one pixel on each side: its blob narrows to 2 px of 8
+    # there, 2 : 5 of the way along. The two sides are a bus's front and back, not two cars.
+    still, image = _road(rng)
+    image[20:28, 20:55] = (235, 235, 235)
+    image[21:27, 41:47] = ASPHALT
+    (bus,) = _detect(image, still)
+    assert np.hypot(bus.x - 37.0, bus.y - 23.5) * CELL_M < 0.4 and bus.length_m > 9.5, bus
+    # It is the balance test that keeps it whole.
+    assert len(_detect(image, still, TrafficConfig(waist_balance=0.3))) == 2
 
 
 class _Identity:
