@@ -33,6 +33,7 @@ from registration.traffic.track import (
     RawTrack,
     SmoothTrack,
     blob_noise,
+    lost_end_noise,
     smooth_track,
     track_detections,
 )
@@ -190,6 +191,7 @@ def tracks_from_detections(
         noise = blob_noise(
             np.array([d.length_m for d in dets]), _axes_in_metres(dets, metric), config
         )
+        noise = lost_end_noise(noise, r.frames, use, config)
         s = smooth_track(r, use, times, config, noise)
         if not _moving_vehicle(s, config):
             continue

@@ -273,6 +273,33 @@ def blob_noise(
     return np.eye(2)[None] * config.measurement_sigma_m**2 + along
 
 
+def lost_end_noise(
+    noise: NDArray[np.float64], frames: NDArray[np.int64], use: list[int], config: TrafficConfig
+) -> NDArray[np.float64]:
+    """``noise`` ``(M, 2, 2)`` (:func:`blob_noise`) of a track seen in ``frames`` ``(M,)``, with
+    the first and the last ``config.end_detections`` detections trusted ``end_noise_factor``
+    times less (their noise scaled by its square), unless the track begins at the first or ends
+    at the last of the usable frames ``use``, or is too short to keep the ends' speed from its
+    middle (at most ``2 * end_detections + 2`` detections).
+
+    A track that begins or ends inside the flight does so where the detector lost its vehicle
+    (it left the view, a neighbour's blob took it, it faded into the road), and the blobs just
+    before were failing already: on the default simulated flight the smoothed speed was off by
+    2.09 m/s RMS (0.80 m/s too slow on average) within 2 frames of an end where the vehicle was
+    still in view, 1.75 m/s at a start where it was already in view, against 0.67 m/s where it
+    left the view and 0.70 m/s 3 or more frames from an end."""
+    n_end = config.end_detections
+    if len(frames) <= 2 * n_end + 2 or config.end_noise_factor == 1.0:
+        return noise
+    out = np.array(noise, np.float64)
+    scale = config.end_noise_factor**2
+    if int(frames[0]) != use[0]:
+        out[:n_end] *= scale
+    if int(frames[-1]) != use[-1]:
+        out[-n_end:] *= scale
+    return out
+
+
 def smooth_track(
     raw: RawTrack,
     frames: list[int],
