@@ -90,9 +90,9 @@ class TrafficConfig:
             (:func:`~registration.traffic.track.lost_end_noise`): the detector was losing its
             vehicle there. 2 and 8 lowered the speed RMSE by 0.12-0.13 m/s and the position
             RMSE by 0.014-0.021 m on the three simulated flights of ``bench traffic`` (MOTA
-            -0.002 to +0.004); one detection at 8: speeds 0.09-0.11 m/s better. On the real flyover
-            (30 frames/s, 2 detections = 0.07 s) the real car's speeds moved by at most 0.25
-            m/s at its ends, none elsewhere.
+            -0.002 to +0.004); one detection at 8: speeds 0.09-0.11 m/s better. On the real
+            flyover (30 frames/s, 2 detections = 0.07 s) the real car's speeds moved by at most
+            0.25 m/s at its ends, none elsewhere.
         accel_sigma_mps2: how fast a vehicle's velocity may change while it is followed, m/s²
             per √s (the tracker's constant-velocity model: generous, so that a braking or
             turning vehicle stays within its gate).

@@ -288,7 +288,7 @@ def lost_end_noise(
     2.09 m/s RMS (0.80 m/s too slow on average) within 2 frames of an end where the vehicle was
     still in view, 1.75 m/s at a start where it was already in view, against 0.67 m/s where it
     left the view and 0.70 m/s 3 or more frames from an end."""
-    n_end = config.end_detections
+    n_end = int(config.end_detections)
     if len(frames) <= 2 * n_end + 2 or config.end_noise_factor == 1.0:
         return noise
     out = np.array(noise, np.float64)
