@@ -20,8 +20,12 @@ import numpy as np
 
 # The flights' vehicles keep their distance in their lanes, as real traffic does (the
 # simulator's default lets a vehicle drive through a slower one: 27 % of the vehicle instances of
-# a 640x480 default flight touched another, 3 % with this gap, at intersections).
+# a 640x480 default flight touched another, 3 % with this gap, at intersections), and keep
+# 1 s behind the vehicle ahead beyond that (car-following models' s0 + v T; with 2 m alone a lane
+# at 16 m/s ran 0.13 s apart, and at 5 frames/s a queue moving half its spacing per frame
+# looks as if it stood still or ran backwards).
 VEHICLE_GAP_M = 2.0
+VEHICLE_HEADWAY_S = 1.0
 
 TITLE = "Traffic: vehicles tracked on aerialreg's registration vs plain OpenCV stabilisation"
 
@@ -75,7 +79,10 @@ def run(args) -> dict:
     from registration.traffic.sequence import usable_frames
 
     tmp = Path(tempfile.mkdtemp(prefix="aerialreg-bench-traffic-"))
-    seq = simulated_sequence(args, tmp / "sim", "bench traffic", vehicle_gap_m=VEHICLE_GAP_M)
+    seq = simulated_sequence(
+        args, tmp / "sim", "bench traffic",
+        vehicle_gap_m=VEHICLE_GAP_M, vehicle_headway_s=VEHICLE_HEADWAY_S,
+    )  # fmt: skip
     cpu = _cpu()
     result = register_sequence(
         seq.frames, seq.base, seq.truth.gamma, tmp / "reg", config=get_preset("default"),
@@ -109,7 +116,8 @@ def _markdown(rows: dict, args) -> str:
     flight = f"profile {args.profile}" if args.profile else "default flight"
     lines = [
         f"{args.frames} simulated frames {w}x{h} ({flight}, vehicles at least {VEHICLE_GAP_M:g} m "
-        f"apart in their lanes), seed {args.seed}; scored against "
+        f"+ {VEHICLE_HEADWAY_S:g} s of their speed apart in their lanes), seed {args.seed}; "
+        "scored against "
         "the simulator's vehicle truth (motmetrics, pairs within 2 m); CPU = user + system "
         "seconds per frame of this process.",
         "",

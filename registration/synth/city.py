@@ -713,7 +713,12 @@ def _roof(img, b: Building, m: float, rng):
 
 
 def traffic_states(
-    lay: Layout, seed: int, per_km: float, t: float = 0.0, min_gap_m: float | None = None
+    lay: Layout,
+    seed: int,
+    per_km: float,
+    t: float = 0.0,
+    min_gap_m: float | None = None,
+    headway_s: float = 0.0,
 ) -> dict[str, NDArray]:
     """Every vehicle on the lanes at time ``t`` (s), as arrays of one row per vehicle.
 
@@ -722,7 +727,10 @@ def traffic_states(
     vehicle drives through a slower one ahead (the flights every registration test was measured
     on); with a gap (metres) the vehicles of a lane share its speed (its first vehicle's) and
     stay at least that far apart bumper to bumper, with the same sizes and colours (vehicles of
-    crossing lanes still meet at intersections, which have no signals). Keys: ``vehicle`` (its
+    crossing lanes still meet at intersections, which have no signals); ``headway_s`` adds the
+    distance the lane's speed covers in that time (the desired gap of car-following models,
+    ``s0 + v T``: drivers keep about 1-2 s behind the vehicle ahead, not 2 m at 16 m/s; a lane
+    too full for it shares out the room it has). Keys: ``vehicle`` (its
     index, stable over time), ``lap`` (how often it wrapped since ``t`` = 0: a wrap teleports
     it, so ``(vehicle, lap)`` is one trajectory), ``x``, ``y`` (centre, px), ``axis`` (0: along
     x), ``direction`` (±1 along the axis), ``speed`` (px/s), ``length``, ``width`` (px),
@@ -745,7 +753,10 @@ def traffic_states(
             # One speed for the lane (its first vehicle's: the same draws, so sizes and colours
             # stay) and room between its vehicles: one behind another keeps its distance.
             speed = np.full(n, speed[0])
-            s0 = _spaced(s0, vlen, min_gap_m * m, length)
+            gap = min_gap_m * m + headway_s * speed[0]
+            # A lane too full for the headway keeps what room it has (at least the gap).
+            room = (length - float(vlen.sum())) / n
+            s0 = _spaced(s0, vlen, max(min_gap_m * m, min(gap, 0.999 * room)), length)
         travelled = s0 + direction * speed * t
         pos = np.mod(travelled, length)
         across = c + rng.normal(0, 0.15 * m, n)
@@ -793,11 +804,16 @@ def _spaced(s0: NDArray, vlen: NDArray, gap: float, length: float) -> NDArray:
 
 
 def traffic_snapshot(
-    lay: Layout, seed: int, per_km: float, t: float = 0.0, min_gap_m: float | None = None
+    lay: Layout,
+    seed: int,
+    per_km: float,
+    t: float = 0.0,
+    min_gap_m: float | None = None,
+    headway_s: float = 0.0,
 ) -> NDArray[np.float64]:
     """Vehicles on the lanes at time ``t`` (s) (:func:`traffic_states`) as ``(V, 8)`` rows
     ``x, y, axis, length px, width px, r, g, b``, the form :func:`draw_car` paints."""
-    v = traffic_states(lay, seed, per_km, t, min_gap_m)
+    v = traffic_states(lay, seed, per_km, t, min_gap_m, headway_s)
     return (
         np.column_stack([v["x"], v["y"], v["axis"], v["length"], v["width"], v["rgb"]])
         .astype(np.float64)

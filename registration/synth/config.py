@@ -60,6 +60,10 @@ class SimConfig:
             (the flights the registration's tests and figures were measured on); metres: the
             vehicles of a lane share one speed and keep at least this gap bumper to bumper, as
             real traffic does (`aerialreg bench traffic`'s flights: 2.0).
+        vehicle_headway_s: with ``vehicle_gap_m``, the gap grows by the distance the lane's
+            speed covers in this time, s (car-following models' ``s0 + v T``; drivers keep 1-2
+            s behind the vehicle ahead). 0 = the fixed gap alone (`aerialreg bench traffic`'s
+            flights: 1.0 since 2026-12-01; 0 before).
         blur_px: optical blur (Gaussian sigma) in raw pixels.
         noise_dn: sensor noise (Gaussian sigma) in 8-bit digital numbers.
         jpeg_quality: JPEG quality of the camera's compression (0 = none).
@@ -107,6 +111,7 @@ class SimConfig:
     vehicles: bool = True
     traffic_per_km: float = 25.0
     vehicle_gap_m: float | None = None
+    vehicle_headway_s: float = 0.0
     blur_px: float = 0.6
     noise_dn: float = 2.0
     jpeg_quality: int = 85
@@ -211,6 +216,15 @@ class SimConfig:
             math.isfinite(self.vehicle_gap_m) and 0 <= self.vehicle_gap_m <= 100
         ):
             raise ValueError(f"vehicle_gap_m must be in [0, 100] m, got {self.vehicle_gap_m}")
+        if not (math.isfinite(self.vehicle_headway_s) and 0 <= self.vehicle_headway_s <= 10):
+            raise ValueError(
+                f"vehicle_headway_s must be in [0, 10] s, got {self.vehicle_headway_s}"
+            )
+        if self.vehicle_headway_s > 0 and self.vehicle_gap_m is None:
+            raise ValueError(
+                f"vehicle_headway_s ({self.vehicle_headway_s}) needs vehicle_gap_m: without a "
+                "gap the vehicles drive through each other"
+            )
         if self.flyover_footprints > 100:
             raise ValueError(
                 f"flyover_footprints must be at most 100, got {self.flyover_footprints}"

@@ -162,7 +162,12 @@ class FrameRenderer:
             az, el = np.radians(look.sun_azimuth_deg), np.radians(look.sun_elevation_deg)
             shadow = np.array([np.cos(az), np.sin(az)]) / np.tan(el) * 1.4 / cfg.gsd_m
             for v in citymod.traffic_snapshot(
-                self.layout, cfg.seed, cfg.traffic_per_km, t_mid, cfg.vehicle_gap_m
+                self.layout,
+                cfg.seed,
+                cfg.traffic_per_km,
+                t_mid,
+                cfg.vehicle_gap_m,
+                cfg.vehicle_headway_s,
             ):
                 cx, cy = v[0] - x0, v[1] - y0
                 if -20 <= cx <= img.shape[1] + 20 and -20 <= cy <= img.shape[0] + 20:

@@ -46,7 +46,9 @@ def frame_vehicles(layout, cfg, geom, k: int) -> dict[str, NDArray]:
     """The vehicles frame ``k`` sees (centre inside the raw frame) at its mid-exposure, as
     :func:`~registration.synth.city.traffic_states` arrays plus ``time_s`` and ``track_id``."""
     t_mid = float(geom.frame_times[k] + 0.5 * geom.readout_s)
-    v = citymod.traffic_states(layout, cfg.seed, cfg.traffic_per_km, t_mid, cfg.vehicle_gap_m)
+    v = citymod.traffic_states(
+        layout, cfg.seed, cfg.traffic_per_km, t_mid, cfg.vehicle_gap_m, cfg.vehicle_headway_s
+    )
     centres = np.column_stack([v["x"], v["y"]])
     raw = geom.raw_from_scene(k, centres) if len(centres) else np.zeros((0, 2))
     with np.errstate(invalid="ignore"):

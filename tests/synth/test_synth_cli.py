@@ -72,6 +72,7 @@ def test_simulate_cli_errors(tmp_path, capsys, argv, needle):
         (["--seed", "-3"], "seed must be a non-negative integer, got -3"),
         (["--lens-k2", "0.3"], "gamma + lens_k2 must be at most 0.9"),
         (["--vehicle-gap", "-1"], "vehicle_gap_m must be in [0, 100] m, got -1.0"),
+        (["--vehicle-headway", "1"], "vehicle_headway_s (1.0) needs vehicle_gap_m"),
         (["--shake", "0.01", "--size", "64x48"], "shake_deg 0.01 is below"),
         (["--profile", "paper-hard", "--frames", "3"], "use more frames (paper-hard needs ~15)"),
         (["--fps", "nan"], "fps must be positive"),
@@ -199,3 +200,8 @@ def test_simulate_cli_vehicle_gap_reaches_the_flight(tmp_path, capsys):
     assert main([*argv, "--no-video", "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["config"]["vehicle_gap_m"] == 2.5
     assert load_truth(out).config["vehicle_gap_m"] == 2.5
+    out = tmp_path / "sim_headway"
+    argv = ["simulate", str(out), "--size", "160x120", "--frames", "2", "--vehicle-gap", "2"]
+    assert main([*argv, "--vehicle-headway", "1.5", "--no-video", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["config"]["vehicle_headway_s"] == 1.5
+    assert load_truth(out).config["vehicle_headway_s"] == 1.5

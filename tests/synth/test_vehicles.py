@@ -1,4 +1,5 @@
-"""The simulator's moving vehicles: lanes whose vehicles keep their distance (``vehicle_gap_m``)."""
+"""The simulator's moving vehicles: lanes whose vehicles keep their distance (``vehicle_gap_m``),
+and a time headway beyond it (``vehicle_headway_s``)."""
 
 from __future__ import annotations
 
@@ -32,6 +33,22 @@ def _same_lane_gaps(v: dict, lay) -> np.ndarray:
     return np.array(gaps)
 
 
+def _same_lane_speeds(v: dict, lay) -> np.ndarray:
+    """The speed (px/s) of each vehicle that :func:`_same_lane_gaps` measures, in its order."""
+    across = np.where(v["axis"] == 0, v["y"], v["x"])
+    out = []
+    for i in range(len(across)):
+        same = (
+            (v["axis"] == v["axis"][i])
+            & (v["direction"] == v["direction"][i])
+            & (np.abs(across - across[i]) < 1.0 / lay.gsd)
+        )
+        same[i] = False
+        if same.any():
+            out.append(v["speed"][i])
+    return np.array(out)
+
+
 @pytest.fixture(scope="module")
 def layout():
     return citymod.make_layout(1400, 1100, gsd=0.3, seed=4)
@@ -55,6 +72,33 @@ def test_vehicles_of_a_lane_keep_their_distance(layout, t):
         lanes.setdefault(key, set()).add(round(float(kept["speed"][i]), 6))
     assert max(len(s) for s in lanes.values()) == 1
     assert len({s.pop() for s in lanes.values()}) > 3  # the lanes' speeds differ
+
+
+@pytest.mark.parametrize("t", [0.0, 3.7, 61.0])
+def test_vehicles_keep_a_time_headway_behind_the_one_ahead(layout, t):
+    # 2 m and 1 s of the lane's speed (8-16 m/s): 10-18 m bumper to bumper, in every lane (25
+    # vehicles a km, the simulator's default: every lane has room for it).
+    gap_only = citymod.traffic_states(layout, 0, 25.0, t, min_gap_m=2.0)
+    kept = citymod.traffic_states(layout, 0, 25.0, t, min_gap_m=2.0, headway_s=1.0)
+    gaps = _same_lane_gaps(kept, layout) * layout.gsd
+    lane_speed = _same_lane_speeds(kept, layout) * layout.gsd
+    assert len(gaps) > 20
+    assert np.all(gaps >= 2.0 + 1.0 * lane_speed - 1e-6), (gaps - lane_speed).min()
+    assert _same_lane_gaps(gap_only, layout).min() * layout.gsd < 8.0  # 2 m alone is closer
+    for key in ("vehicle", "speed", "length", "width", "rgb"):
+        np.testing.assert_array_equal(kept[key], gap_only[key])
+    # 60 a km leaves some lanes too little room for 1 s: they share it out, 2 m at least.
+    dense = citymod.traffic_states(layout, 0, 60.0, t, min_gap_m=2.0, headway_s=1.0)
+    dense_gaps = _same_lane_gaps(dense, layout) * layout.gsd
+    assert dense_gaps.min() >= 2.0 - 1e-6
+    assert np.any(dense_gaps < 2.0 + _same_lane_speeds(dense, layout) * layout.gsd)
+
+
+def test_a_headway_needs_a_gap():
+    with pytest.raises(ValueError, match="vehicle_headway_s .1.0. needs vehicle_gap_m"):
+        SimConfig(vehicle_headway_s=1.0).validate()
+    with pytest.raises(ValueError, match="vehicle_headway_s must be in"):
+        SimConfig(vehicle_gap_m=2.0, vehicle_headway_s=-1.0).validate()
 
 
 def test_spacing_moves_only_vehicles_too_close_and_leaves_a_full_lane_as_drawn():

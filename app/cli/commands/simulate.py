@@ -55,6 +55,7 @@ _FIELDS = {
     "base_heading": "base_heading_deg",
     "base_scale": "base_scale",
     "vehicle_gap": "vehicle_gap_m",
+    "vehicle_headway": "vehicle_headway_s",
 }
 
 
@@ -179,6 +180,13 @@ def _output_arguments(p: argparse.ArgumentParser) -> None:
         metavar="M",
         help="the vehicles of a lane share one speed and keep at least M metres apart, as real "
         "traffic does (default: each at its own speed, driving through slower ones)",
+    )
+    p.add_argument(
+        "--vehicle-headway",
+        type=float,
+        metavar="S",
+        help="with --vehicle-gap, the gap grows by what the lane's speed covers in S seconds "
+        "(drivers keep 1-2 s behind the vehicle ahead; default 0)",
     )
     p.add_argument("--no-video", action="store_true", help="do not write sequence.mp4")
     p.add_argument(
