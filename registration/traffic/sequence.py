@@ -73,7 +73,9 @@ def background_blocks(
 ) -> list[Block]:
     """Consecutive usable ``frames`` grouped into :data:`BLOCK_S` blocks, each with the frames
     nearest in time to ``background_samples`` evenly spaced instants on either side of it within
-    ``background_span_s`` (distinct, ascending)."""
+    ``background_span_s`` (distinct, ascending). A frame nearest to an instant but further than
+    ``background_span_s + BLOCK_S`` from the block (across a run of failed frames) is not
+    taken: it is not this block's background, and :func:`detect_sequence` no longer holds it."""
     if not frames:
         return []
     t = np.asarray([times[k] for k in frames])
@@ -89,7 +91,9 @@ def background_blocks(
         for want in np.concatenate([tc - offsets, tc + offsets]):
             if want < t[0] - BLOCK_S or want > t[-1] + BLOCK_S:
                 continue
-            picks.add(frames[int(np.argmin(np.abs(t - want)))])
+            i = int(np.argmin(np.abs(t - want)))
+            if abs(t[i] - tc) <= config.background_span_s + BLOCK_S:
+                picks.add(frames[i])
         blocks.append(Block(tuple(members), tuple(sorted(picks))))
     return blocks
 
@@ -145,7 +149,7 @@ def detect_sequence(
                     warped[k] = warp_frame(result, k, frames.get(k), grid, exclude, keep)
             # Only what later blocks can still sample stays.
             t_keep = times[block.frames[0]] - config.background_span_s - BLOCK_S
-            for k in [k for k in warped if times[k] < t_keep]:
+            for k in [k for k in warped if times[k] < t_keep and k not in block.samples]:
                 del warped[k]
             targets = [warped[k] for k in todo if warped[k] is not None]
             samples = [warped[k] for k in block.samples if warped[k] is not None]

@@ -17,6 +17,7 @@ from registration.traffic.outputs import (
     write_ind_csvs,
     write_trajectory_layers,
 )
+from registration.traffic.sequence import background_blocks
 from registration.traffic.track import (
     blob_noise,
     lost_end_noise,
@@ -191,6 +192,26 @@ def test_blobs_that_lost_part_of_their_vehicle_count_less_along_their_axis():
             out.append((position, np.sqrt(np.mean((s.velocity[:, 0] - speed) ** 2))))
     plain, aware = np.mean(plain_err, axis=0), np.mean(aware_err, axis=0)
     assert aware[0] < 0.7 * plain[0] and aware[1] < 0.6 * plain[1], (plain, aware)
+
+
+def test_background_samples_stay_within_the_span_across_failed_frames():
+    # Frames 10-29 failed (4 s at 5 frames/s). Frame 30's block used to take frame 9 (1.8 s
+    # before the 2.4 s instant it looked for, 4.2 s from the block), which the detector had
+    # already let go: the long simulated flight's OpenCV run stopped on a KeyError there.
+    cfg = TrafficConfig()
+    times = np.arange(41) / 5.0
+    use = list(range(10)) + list(range(30, 41))
+    reach = cfg.background_span_s + 0.4
+    for block in background_blocks(use, times, cfg):
+        centre = 0.5 * (times[block.frames[0]] + times[block.frames[-1]])
+        assert all(abs(times[k] - centre) <= reach + 1e-9 for k in block.samples), block
+        assert set(block.samples) <= set(use)
+    (after_gap,) = [b for b in background_blocks(use, times, cfg) if 30 in b.frames]
+    assert min(after_gap.samples) >= 30 and len(after_gap.samples) >= cfg.min_samples
+    # Without failed frames the samples are the nearest frames to the instants, as before.
+    whole = background_blocks(list(range(41)), times, cfg)
+    block = next(b for b in whole if 20 in b.frames)
+    assert block.samples == (8, 10, 12, 14, 16, 18, 22, 24, 26, 28, 30, 32), block
 
 
 def test_a_track_lost_inside_the_flight_trusts_its_last_blobs_less(rng):
