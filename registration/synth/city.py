@@ -803,17 +803,15 @@ def _spaced(s0: NDArray, vlen: NDArray, gap: float, length: float) -> NDArray:
     return out
 
 
-def traffic_snapshot(
-    lay: Layout,
-    seed: int,
-    per_km: float,
-    t: float = 0.0,
-    min_gap_m: float | None = None,
-    headway_s: float = 0.0,
-) -> NDArray[np.float64]:
-    """Vehicles on the lanes at time ``t`` (s) (:func:`traffic_states`) as ``(V, 8)`` rows
-    ``x, y, axis, length px, width px, r, g, b``, the form :func:`draw_car` paints."""
-    v = traffic_states(lay, seed, per_km, t, min_gap_m, headway_s)
+def traffic_snapshot(lay: Layout, seed: int, per_km: float, t: float = 0.0) -> NDArray[np.float64]:
+    """Vehicles on the lanes at time ``t`` (s) (:func:`traffic_states`, each at its own speed)
+    as :func:`car_rows`."""
+    return car_rows(traffic_states(lay, seed, per_km, t))
+
+
+def car_rows(v: dict[str, NDArray]) -> NDArray[np.float64]:
+    """:func:`traffic_states`' vehicles ``v`` as ``(V, 8)`` rows ``x, y, axis, length px, width
+    px, r, g, b``, the form :func:`draw_car` paints."""
     return (
         np.column_stack([v["x"], v["y"], v["axis"], v["length"], v["width"], v["rgb"]])
         .astype(np.float64)

@@ -19,6 +19,7 @@ from registration.geometry import warp
 from registration.synth import city as citymod
 from registration.synth.camera import SequenceGeometry
 from registration.synth.config import SimConfig
+from registration.synth.vehicles import moving_vehicles
 
 # Bump when the same SimConfig renders different frames or base (caches such as the demo's
 # compare it and rebuild).
@@ -161,14 +162,7 @@ class FrameRenderer:
             look = citymod.Look()
             az, el = np.radians(look.sun_azimuth_deg), np.radians(look.sun_elevation_deg)
             shadow = np.array([np.cos(az), np.sin(az)]) / np.tan(el) * 1.4 / cfg.gsd_m
-            for v in citymod.traffic_snapshot(
-                self.layout,
-                cfg.seed,
-                cfg.traffic_per_km,
-                t_mid,
-                cfg.vehicle_gap_m,
-                cfg.vehicle_headway_s,
-            ):
+            for v in citymod.car_rows(moving_vehicles(self.layout, cfg, t_mid)):
                 cx, cy = v[0] - x0, v[1] - y0
                 if -20 <= cx <= img.shape[1] + 20 and -20 <= cy <= img.shape[0] + 20:
                     citymod.draw_car(img, cx, cy, int(v[2]), v[3], v[4], v[5:8], shadow=shadow)

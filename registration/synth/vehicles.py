@@ -42,13 +42,19 @@ COLUMNS = (
 LAPS = 1000
 
 
+def moving_vehicles(layout, cfg, t: float) -> dict[str, NDArray]:
+    """The flight's moving vehicles at time ``t`` (s), as ``cfg`` (a :class:`SimConfig`) drives
+    them: :func:`~registration.synth.city.traffic_states` with its traffic and spacing."""
+    return citymod.traffic_states(
+        layout, cfg.seed, cfg.traffic_per_km, t, cfg.vehicle_gap_m, cfg.vehicle_headway_s
+    )
+
+
 def frame_vehicles(layout, cfg, geom, k: int) -> dict[str, NDArray]:
     """The vehicles frame ``k`` sees (centre inside the raw frame) at its mid-exposure, as
     :func:`~registration.synth.city.traffic_states` arrays plus ``time_s`` and ``track_id``."""
     t_mid = float(geom.frame_times[k] + 0.5 * geom.readout_s)
-    v = citymod.traffic_states(
-        layout, cfg.seed, cfg.traffic_per_km, t_mid, cfg.vehicle_gap_m, cfg.vehicle_headway_s
-    )
+    v = moving_vehicles(layout, cfg, t_mid)
     centres = np.column_stack([v["x"], v["y"]])
     raw = geom.raw_from_scene(k, centres) if len(centres) else np.zeros((0, 2))
     with np.errstate(invalid="ignore"):

@@ -11,10 +11,11 @@ from registration.synth import SimConfig, load_truth, simulate
 from registration.synth import city as citymod
 
 
-def _same_lane_gaps(v: dict, lay) -> np.ndarray:
-    """Bumper-to-bumper gaps (px) between vehicles of one lane (same axis and direction, centres
-    within 1 m across), along the lane and around its wrap; the smallest per vehicle."""
-    gaps = []
+def _lane_gaps(v: dict, lay) -> tuple[np.ndarray, np.ndarray]:
+    """``(gaps px, index)``: for each vehicle with another in its lane (same axis and direction,
+    centres within 1 m across), the smallest bumper-to-bumper gap to them, along the lane and
+    around its wrap, and that vehicle's index into ``v``."""
+    gaps, index = [], []
     along = np.where(v["axis"] == 0, v["x"], v["y"])
     across = np.where(v["axis"] == 0, v["y"], v["x"])
     for i in range(len(along)):
@@ -30,23 +31,13 @@ def _same_lane_gaps(v: dict, lay) -> np.ndarray:
         d = np.abs(along[same] - along[i])
         d = np.minimum(d, length - d)  # around the wrap
         gaps.append(np.min(d - (v["length"][same] + v["length"][i]) / 2.0))
-    return np.array(gaps)
+        index.append(i)
+    return np.array(gaps), np.array(index, np.intp)
 
 
-def _same_lane_speeds(v: dict, lay) -> np.ndarray:
-    """The speed (px/s) of each vehicle that :func:`_same_lane_gaps` measures, in its order."""
-    across = np.where(v["axis"] == 0, v["y"], v["x"])
-    out = []
-    for i in range(len(across)):
-        same = (
-            (v["axis"] == v["axis"][i])
-            & (v["direction"] == v["direction"][i])
-            & (np.abs(across - across[i]) < 1.0 / lay.gsd)
-        )
-        same[i] = False
-        if same.any():
-            out.append(v["speed"][i])
-    return np.array(out)
+def _same_lane_gaps(v: dict, lay) -> np.ndarray:
+    """The gaps (px) of :func:`_lane_gaps`."""
+    return _lane_gaps(v, lay)[0]
 
 
 @pytest.fixture(scope="module")
@@ -80,8 +71,8 @@ def test_vehicles_keep_a_time_headway_behind_the_one_ahead(layout, t):
     # vehicles a km, the simulator's default: every lane has room for it).
     gap_only = citymod.traffic_states(layout, 0, 25.0, t, min_gap_m=2.0)
     kept = citymod.traffic_states(layout, 0, 25.0, t, min_gap_m=2.0, headway_s=1.0)
-    gaps = _same_lane_gaps(kept, layout) * layout.gsd
-    lane_speed = _same_lane_speeds(kept, layout) * layout.gsd
+    gaps, index = _lane_gaps(kept, layout)
+    gaps, lane_speed = gaps * layout.gsd, kept["speed"][index] * layout.gsd
     assert len(gaps) > 20
     assert np.all(gaps >= 2.0 + 1.0 * lane_speed - 1e-6), (gaps - lane_speed).min()
     assert _same_lane_gaps(gap_only, layout).min() * layout.gsd < 8.0  # 2 m alone is closer
@@ -89,9 +80,10 @@ def test_vehicles_keep_a_time_headway_behind_the_one_ahead(layout, t):
         np.testing.assert_array_equal(kept[key], gap_only[key])
     # 60 a km leaves some lanes too little room for 1 s: they share it out, 2 m at least.
     dense = citymod.traffic_states(layout, 0, 60.0, t, min_gap_m=2.0, headway_s=1.0)
-    dense_gaps = _same_lane_gaps(dense, layout) * layout.gsd
+    dense_gaps, index = _lane_gaps(dense, layout)
+    dense_gaps = dense_gaps * layout.gsd
     assert dense_gaps.min() >= 2.0 - 1e-6
-    assert np.any(dense_gaps < 2.0 + _same_lane_speeds(dense, layout) * layout.gsd)
+    assert np.any(dense_gaps < 2.0 + dense["speed"][index] * layout.gsd)
 
 
 def test_a_headway_needs_a_gap():

@@ -1,6 +1,6 @@
 """The vehicle detector on planted frames of known content: a dark car with a few coloured
-pixels, two cars that blur joins, two cars in a row joined by a narrow neck, a bus with a dark windscreen, and a
-burnt-in logo that moves over the map with the camera."""
+pixels, two cars that blur joins, two cars in a row joined by a narrow neck, a bus with a dark
+windscreen, and a burnt-in logo that moves over the map with the camera."""
 
 from __future__ import annotations
 
