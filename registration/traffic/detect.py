@@ -3,13 +3,16 @@
 Pixels that leave the background's local range by more than the frame's noise threshold form
 blobs (hysteresis: a blob needs a core that differs strongly, :class:`TrafficConfig`); small gaps
 inside a car close; each blob the size and shape of a vehicle becomes a :class:`Detection` with
-its centre, size and orientation in base pixels and metres.
+its centre, size and orientation in base pixels and metres. Each one's pixels are matched in the
+frame before (:func:`motion_since`): its motion to a fraction of a pixel, where its blob's centre
+is only as good as its outline, and pieces of one long vehicle that moved together are joined
+(:func:`join_moving`).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass, fields
 
 import cv2
 import numpy as np
@@ -39,6 +42,8 @@ class Detection:
             in [0, 180) (a blob has an axis, not a direction of travel).
         area_m2: its area, square metres.
         contrast: its strongest difference to the background over the threshold (x).
+        shift_x, shift_y: how far its pixels moved since the previous usable frame, base px
+            (:func:`motion_since`); NaN where not measured.
     """
 
     k: int
@@ -49,20 +54,33 @@ class Detection:
     axis_deg: float
     area_m2: float
     contrast: float
+    shift_x: float = math.nan
+    shift_y: float = math.nan
 
     def to_dict(self) -> dict:
-        return {
-            key: (round(v, 4) if isinstance(v, float) else v) for key, v in asdict(self).items()
-        }
+        # JSON has no NaN: an unmeasured shift is null.
+        return {f.name: _json_value(getattr(self, f.name)) for f in fields(self)}
 
     @classmethod
     def from_dict(cls, d: dict) -> Detection:
+        def shift(name: str) -> float:
+            v = d.get(name)
+            return math.nan if v is None else float(v)
+
         return cls(
             int(d["k"]),
             *(float(d[n]) for n in ("x", "y", "length_m", "width_m", "axis_deg")),
             float(d["area_m2"]),
             float(d["contrast"]),
+            shift("shift_x"),
+            shift("shift_y"),
         )
+
+
+def _json_value(v):
+    if isinstance(v, float):
+        return None if math.isnan(v) else round(v, 4)
+    return v
 
 
 def shadow_mask(image: NDArray[np.uint8], background: NDArray[np.uint8]) -> NDArray[np.bool_]:
@@ -151,9 +169,13 @@ def detect_vehicles(
     grid: WorkGrid,
     metres_per_base_px: float,
     config: TrafficConfig,
+    previous: WarpedFrame | None = None,
+    dt_s: float = 0.0,
 ) -> list[Detection]:
     """Vehicle candidates of ``frame`` (:class:`Detection`, sorted by position) against its
-    ``background`` (over ``frame.box``)."""
+    ``background`` (over ``frame.box``). With ``previous`` (the usable frame ``dt_s`` seconds
+    before, on the same grid) each one's shift since then is measured (:func:`motion_since`),
+    and pieces of one long vehicle that move together are joined (:func:`join_moving`)."""
     cell_m = metres_per_base_px * grid.cell_base_px
     valid = frame.mask & (background.count >= config.min_samples)
     labels, n, ratio = foreground(frame, background, valid, config, cell_m)
@@ -165,30 +187,212 @@ def detect_vehicles(
     np.maximum.at(peak, labels[fg], ratio[fg])
     area_px = np.bincount(labels[fg], minlength=n)
     worth = (peak >= config.seed_factor) & (area_px >= config.min_area_m2 / cell_m**2)
-    out = []
     x0, y0 = frame.box[:2]
+    reach = int(math.ceil(config.gate_speed_mps * dt_s / cell_m))
+    pieces = []
     for lab, sl in enumerate(ndimage.find_objects(labels), start=1):
         if sl is None or not worth[lab]:
             continue
         for ys, xs, shape in vehicle_pieces(labels[sl] == lab, ratio[sl], config, cell_m):
-            length, width, axis = shape
-            contrast = ratio[sl][ys, xs]
-            centre_work = np.array([[xs.mean() + sl[1].start + x0, ys.mean() + sl[0].start + y0]])
-            cx, cy = grid.base_from_work(centre_work)[0]
-            out.append(
-                Detection(
-                    frame.k,
-                    float(cx),
-                    float(cy),
-                    float(length),
-                    float(width),
-                    float(math.fmod(axis + 360.0, 180.0)),
-                    float(len(xs) * cell_m**2),
-                    float(contrast.max()),
-                )
+            gy, gx = ys + sl[0].start + y0, xs + sl[1].start + x0
+            moved = None
+            if previous is not None:
+                moved = motion_since(frame, previous, gy, gx, reach)
+            pieces.append(_Piece(gy, gx, shape, float(ratio[sl][ys, xs].max()), moved))
+    if previous is not None:
+        pieces = join_moving(pieces, frame, previous, reach, cell_m, config)
+    out = []
+    for pc in pieces:
+        length, width, axis = pc.shape
+        centre = pc.centre if pc.centre is not None else (pc.gx.mean(), pc.gy.mean())
+        cx, cy = grid.base_from_work(np.array([centre], np.float64))[0]
+        shift = (math.nan, math.nan)
+        if pc.moved is not None:
+            shift = (pc.moved[0] / grid.scale, pc.moved[1] / grid.scale)
+        out.append(
+            Detection(
+                frame.k,
+                float(cx),
+                float(cy),
+                float(length),
+                float(width),
+                float(math.fmod(axis + 360.0, 180.0)),
+                float(len(pc.gx) * cell_m**2),
+                pc.contrast,
+                *shift,
             )
+        )
     out.sort(key=lambda d: (d.y, d.x))
     return out
+
+
+@dataclass
+class _Piece:
+    """A vehicle candidate's pixels ``(gy, gx)`` (working grid), :func:`blob_shape`, strongest
+    contrast, shift since the frame before (working px, or None) and, for joined pieces, the
+    centre of their rectangle (else the pixels' mean is the centre)."""
+
+    gy: NDArray
+    gx: NDArray
+    shape: tuple[float, float, float]
+    contrast: float
+    moved: tuple[float, float] | None
+    centre: tuple[float, float] | None = None
+
+
+def join_moving(
+    pieces: list[_Piece],
+    frame: WarpedFrame,
+    previous: WarpedFrame,
+    reach: int,
+    cell_m: float,
+    config: TrafficConfig,
+) -> list[_Piece]:
+    """``pieces`` with those of one long vehicle joined: two pieces that moved alike since the
+    frame before (within ``config.join_shift_m``, both at least ``join_min_move_m``), lie in
+    line along that motion (centres within ``join_lateral_m`` of one line) with at most
+    ``join_gap_m`` between them, and together stay within one vehicle's limits.
+
+    A truck or bus whose roof is close to the road's colour shows only its windscreen, roof
+    bars and rear window against the background, as two to four blobs a few metres apart; each
+    was taken for a car of its own, or dropped, and a tracker hopped between them. Its pieces
+    move exactly together. Two cars in a row at the same speed keep a headway of metres more."""
+    moving = np.array([i for i, p in enumerate(pieces) if p.moved is not None], np.intp)
+    if len(moving) < 2:
+        return pieces
+    step = np.array([pieces[i].moved for i in moving], np.float64)
+    far = np.linalg.norm(step, axis=1) * cell_m >= config.join_min_move_m
+    moving, step = moving[far], step[far]
+    if len(moving) < 2:
+        return pieces
+    centre = np.array([[pieces[i].gx.mean(), pieces[i].gy.mean()] for i in moving])
+    # Every pair at once (a few hundred pieces a frame): alike in motion, near and in line.
+    rel = centre[None, :, :] - centre[:, None, :]
+    u = step[:, None, :] + step[None, :, :]
+    u /= np.maximum(np.linalg.norm(u, axis=2, keepdims=True), 1e-12)
+    near = np.linalg.norm(rel, axis=2) <= config.max_length_m / cell_m
+    alike = np.linalg.norm(step[:, None, :] - step[None, :, :], axis=2) * cell_m
+    lateral = np.abs(rel[..., 0] * u[..., 1] - rel[..., 1] * u[..., 0]) * cell_m
+    ok = near & (alike <= config.join_shift_m) & (lateral <= config.join_lateral_m)
+    ia, ib = np.nonzero(np.triu(ok, 1))
+    along = np.abs((rel[ia, ib] * u[ia, ib]).sum(axis=1))
+    pairs = sorted(
+        zip(
+            along.tolist(),
+            moving[ia].tolist(),
+            moving[ib].tolist(),
+            ia.tolist(),
+            ib.tolist(),
+            strict=True,
+        )
+    )
+    group = {i: [i] for i in range(len(pieces))}
+    owner = list(range(len(pieces)))
+    for _, a, b, sa, sb in pairs:
+        ga, gb = owner[a], owner[b]
+        if ga == gb:
+            continue
+        members = group[ga] + group[gb]
+        gx = np.concatenate([pieces[m].gx for m in members])
+        gy = np.concatenate([pieces[m].gy for m in members])
+        ua = u[sa, sb]
+        along = gx * ua[0] + gy * ua[1]
+        if not _in_line_gaps(
+            along, [len(pieces[m].gx) for m in members], config.join_gap_m / cell_m
+        ):
+            continue
+        length, width, _ = blob_shape(gy, gx, cell_m)
+        if (
+            length > config.max_length_m
+            or width > config.max_width_m
+            or len(gx) * cell_m**2 > config.max_area_m2
+        ):
+            continue
+        group[ga] = members
+        del group[gb]
+        for m in members:
+            owner[m] = ga
+    out = []
+    for _, members in sorted(group.items()):
+        if len(members) == 1:
+            out.append(pieces[members[0]])
+            continue
+        gx = np.concatenate([pieces[m].gx for m in members])
+        gy = np.concatenate([pieces[m].gy for m in members])
+        (cx, cy), _, _ = cv2.minAreaRect(np.column_stack([gx, gy]).astype(np.float32))
+        moved = motion_since(frame, previous, gy, gx, reach)
+        out.append(
+            _Piece(
+                gy,
+                gx,
+                blob_shape(gy, gx, cell_m),
+                max(pieces[m].contrast for m in members),
+                moved,
+                (float(cx), float(cy)),
+            )
+        )
+    return out
+
+
+def _in_line_gaps(along: NDArray, sizes: list[int], max_gap: float) -> bool:
+    """Whether the pieces (``along``: their pixels' positions along the motion, piece after
+    piece, ``sizes`` pixels each) leave no gap longer than ``max_gap`` px between them."""
+    spans = []
+    start = 0
+    for n in sizes:
+        seg = along[start : start + n]
+        spans.append((float(seg.min()), float(seg.max())))
+        start += n
+    spans.sort()
+    end = spans[0][1]
+    for lo, hi in spans[1:]:
+        if lo - end > max_gap:
+            return False
+        end = max(end, hi)
+    return True
+
+
+def motion_since(
+    frame: WarpedFrame, previous: WarpedFrame, gy: NDArray, gx: NDArray, reach: int
+) -> tuple[float, float] | None:
+    """How far the pixels ``(gy, gx)`` (working grid) of a vehicle in ``frame`` moved since
+    ``previous``: ``(dx, dy)`` working px, or None where that frame does not hold the whole
+    search or the match is not clear.
+
+    The vehicle's own pixels (its colours, masked: the road around it stands still and would
+    pull the match to no motion) are matched over ``previous`` within ``reach`` px by the sum
+    of squared differences, to a fraction of a pixel by a parabola through the best and its
+    neighbours. A blob's outline changes from frame to frame (a windscreen or a shadow's side
+    taken for background or not), its pattern does not."""
+    x0, y0 = int(gx.min()), int(gy.min())
+    x1, y1 = int(gx.max()) + 1, int(gy.max()) + 1
+    px0, py0, px1, py1 = previous.box
+    sx0, sy0, sx1, sy1 = x0 - reach, y0 - reach, x1 + reach, y1 + reach
+    if sx0 < px0 or sy0 < py0 or sx1 > px1 or sy1 > py1:
+        return None
+    fx0, fy0 = frame.box[:2]
+    region = (slice(sy0 - py0, sy1 - py0), slice(sx0 - px0, sx1 - px0))
+    if not previous.mask[region].all():
+        return None
+    template = frame.image[y0 - fy0 : y1 - fy0, x0 - fx0 : x1 - fx0]
+    mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
+    mask[gy - y0, gx - x0] = 1
+    # 8-bit images and a one-channel mask: OpenCV sums the three channels' squared
+    # differences in float, the same values as from float copies, in 60 % of the time.
+    cost = cv2.matchTemplate(previous.image[region], template, cv2.TM_SQDIFF, mask=mask)
+    iy, ix = np.unravel_index(int(np.argmin(cost)), cost.shape)
+    if not (0 < iy < cost.shape[0] - 1 and 0 < ix < cost.shape[1] - 1):
+        return None  # at the edge of the reach: a faster or another vehicle
+    dx = _parabola_peak(cost[iy, ix - 1], cost[iy, ix], cost[iy, ix + 1])
+    dy = _parabola_peak(cost[iy - 1, ix], cost[iy, ix], cost[iy + 1, ix])
+    # The template's corner sat at (x0, y0) in this frame and at reach - (i + d) before it.
+    return float(reach - ix - dx), float(reach - iy - dy)
+
+
+def _parabola_peak(a: float, b: float, c: float) -> float:
+    """Offset (-0.5..0.5) of the extremum of the parabola through (-1, a), (0, b), (1, c)."""
+    den = a - 2.0 * b + c
+    return 0.0 if den == 0 else float(np.clip(0.5 * (a - c) / den, -0.5, 0.5))
 
 
 def blob_shape(ys: NDArray, xs: NDArray, cell_m: float) -> tuple[float, float, float]:

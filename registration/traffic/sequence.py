@@ -127,7 +127,9 @@ def detect_sequence(
 ) -> Iterator[tuple[int, list[Detection]]]:
     """Detect vehicles in every usable frame, block by block, yielding ``(k, detections)`` in
     frame order; each frame's detections are written to ``folder/KKKKKK.json`` (atomically)
-    before they are yielded, and frames already there are read, not redone.
+    before they are yielded, and frames already there are read, not redone. Each frame's
+    vehicles are matched in the usable frame before it (warped again when a resumed run
+    stored that one: a resumed run detects what a whole one does).
 
     ``frames``: the registered frames (``get(k)`` BGR). ``exclude``: working-grid mask of places
     never to look at (the analyst's regions).
@@ -137,6 +139,7 @@ def detect_sequence(
     blocks = background_blocks(use, times, config)
     warped: dict[int, WarpedFrame | None] = {}
     keep = frame_keep_mask(result)
+    matched = motion_frames(use, times, config)
     done = 0
     for block in blocks:
         if cancel is not None and cancel():
@@ -144,12 +147,14 @@ def detect_sequence(
         stored = {k: read_detections(folder, k) for k in block.frames}
         todo = [k for k in block.frames if stored[k] is None]
         if todo:
-            for k in sorted(set(block.samples) | set(todo)):
+            # Each frame's vehicles are matched in a usable frame before it.
+            before = {k: matched[k] for k in todo if k in matched}
+            for k in sorted(set(block.samples) | set(todo) | set(before.values())):
                 if k not in warped:
                     warped[k] = warp_frame(result, k, frames.get(k), grid, exclude, keep)
             # Only what later blocks can still sample stays.
             t_keep = times[block.frames[0]] - config.background_span_s - BLOCK_S
-            for k in [k for k in warped if times[k] < t_keep]:
+            for k in [k for k in warped if times[k] < t_keep and k not in before.values()]:
                 del warped[k]
             targets = [warped[k] for k in todo if warped[k] is not None]
             samples = [warped[k] for k in block.samples if warped[k] is not None]
@@ -161,7 +166,9 @@ def detect_sequence(
                 w = warped[k]
                 found = []
                 if w is not None:
-                    found = detect_vehicles(w, background.crop(w.box), grid, mpp, config)
+                    prev = warped.get(before[k]) if k in before else None
+                    dt = float(times[k] - times[before[k]]) if prev is not None else 0.0
+                    found = detect_vehicles(w, background.crop(w.box), grid, mpp, config, prev, dt)
                 doc = {"k": k, "detections": [d.to_dict() for d in found]}
                 write_bytes_atomic(detections_path(folder, k), json.dumps(doc).encode() + b"\n")
                 # As stored (rounded): a resumed run then tracks exactly what a whole one does.
@@ -188,15 +195,23 @@ def tracks_from_detections(
         for k, ds in detections.items()
     }
     tracks, sizes = [], {}
-    for r in track_detections(use, times, xy, config):
+    dt_before = {
+        k: float(times[k] - times[j]) for k, j in motion_frames(use, times, config).items()
+    }
+    velocities = {k: shift_velocities(ds, dt_before.get(k), metric) for k, ds in detections.items()}
+    for r in track_detections(use, times, xy, config, velocities):
         dets = [
             detections[k][i] for k, i in zip(r.frames.tolist(), r.det_index.tolist(), strict=True)
         ]
+        measured = np.array(
+            [velocities[k][i] for k, i in zip(r.frames.tolist(), r.det_index.tolist(), strict=True)]
+        )
         noise = blob_noise(
             np.array([d.length_m for d in dets]), _axes_in_metres(dets, metric), config
         )
         noise = lost_end_noise(noise, r.frames, use, config)
-        s = smooth_track(r, use, times, config, noise)
+        velocity = checked_velocities(r, measured, times, dt_before, config)
+        s = smooth_track(r, use, times, config, noise, velocity)
         if not _moving_vehicle(s, config):
             continue
         if sideways(s, r, dets, metric, config):
@@ -208,6 +223,80 @@ def tracks_from_detections(
         )
         tracks.append(s)
     return tracks, sizes
+
+
+def shift_velocities(
+    dets: list[Detection], dt: float | None, metric: MetricFrame
+) -> NDArray[np.float64]:
+    """``(N, 2)`` m/s: the velocity each of a frame's detections measured by matching its
+    pixels in the usable frame ``dt`` seconds before (``Detection.shift_x`` / ``shift_y``, base
+    px); NaN where it did not, or there is no frame before (``dt`` None)."""
+    out = np.full((len(dets), 2), np.nan)
+    if dt is None or not dets:
+        return out
+    at = np.array([[d.x, d.y] for d in dets], np.float64)
+    shift = np.array([[d.shift_x, d.shift_y] for d in dets], np.float64)
+    ok = np.isfinite(shift).all(axis=1)
+    if ok.any():
+        moved = metric.metres_from_base(at[ok]) - metric.metres_from_base(at[ok] - shift[ok])
+        out[ok] = moved / dt
+    return out
+
+
+def motion_frames(
+    use: list[int], times: NDArray[np.float64], config: TrafficConfig
+) -> dict[int, int]:
+    """For each usable frame, the usable frame its vehicles' pixels are matched in: the latest
+    one at least ``config.motion_baseline_s`` before it (the first frame when none is), and
+    none beyond ``config.max_gap_s`` (after failed frames a vehicle may be anywhere). At the
+    paper's 5 frames/s that is the frame before; at 30 frames/s six frames back, so that a
+    vehicle has moved by far more than the match's error (0.1 m)."""
+    out = {}
+    # Frame times from a rate are sums of rounded steps: 0.2 s may come out 0.19999999999999998.
+    baseline = config.motion_baseline_s * (1.0 - 1e-9)
+    for i, k in enumerate(use):
+        j = i - 1
+        while j > 0 and times[k] - times[use[j]] < baseline:
+            j -= 1
+        if j >= 0 and times[k] - times[use[j]] <= config.max_gap_s:
+            out[k] = use[j]
+    return out
+
+
+def checked_velocities(
+    raw: RawTrack,
+    measured: NDArray[np.float64],
+    times: NDArray[np.float64],
+    dt_before: dict[int, float],
+    config: TrafficConfig,
+) -> dict[int, tuple[NDArray, NDArray]]:
+    """By frame, the measured velocities ``measured`` ``(M, 2)`` m/s of ``raw``'s detections
+    (:func:`shift_velocities`) that the track's blob centres confirm, with their noise ``(2,
+    2)`` (m/s)²: ``config.shift_sigma_m`` over ``dt_before[k]``, the time since the frame the
+    match was made in.
+
+    A match is kept only where it agrees within ``config.shift_gate_m`` (over that time) with
+    how fast the track's blob centres moved between this detection and the one of the same
+    track nearest to that time before or after it (within half to twice of it): a vehicle's
+    pixels matched on another vehicle or the road are far off that. A detection with no such
+    neighbour in its track keeps none."""
+    out = {}
+    t = times[raw.frames]
+    for i, k in enumerate(raw.frames.tolist()):
+        if not np.isfinite(measured[i]).all():
+            continue
+        dt = dt_before[k]
+        span = np.abs(t - t[i])
+        fits = np.nonzero((span >= 0.5 * dt) & (span <= 2.0 * dt))[0]
+        if not len(fits):
+            continue
+        # Nearest to the match's own interval; of two alike, the earlier.
+        j = int(fits[np.argmin(np.abs(span[fits] - dt))])
+        centres = (raw.xy[j] - raw.xy[i]) / float(t[j] - t[i])
+        if np.linalg.norm(measured[i] - centres) * dt > config.shift_gate_m:
+            continue
+        out[k] = (measured[i], np.eye(2) * (config.shift_sigma_m / dt) ** 2)
+    return out
 
 
 def _axes_in_metres(dets: list[Detection], metric: MetricFrame) -> NDArray[np.float64]:
