@@ -79,6 +79,13 @@ class TrafficConfig:
             5 frames/s its next detection may be 4 m on. Either way it must also lie within the
             prediction's own 99 % ellipse. Also how far a vehicle's pixels are looked for in
             the frame before (:func:`~registration.traffic.detect.motion_since`).
+        velocity_gate_mps: a detection whose measured velocity (its pixels matched in a
+            frame before) lies outside the 99 % ellipse of a track's predicted velocity, its
+            uncertainty widened by this (m/s, 1 sigma), does not join that track: an oncoming
+            or crossing vehicle's blob next to the prediction. On the three simulated flights of
+            ``bench traffic`` ID switches 90 -> 72, 102 -> 87, 125 -> 115, speed RMSE 0.02-0.03
+            m/s lower, MOTA +0.003 to +0.008; at 3 m/s alike, at 2 m/s tracks break (recall
+            0.77 -> 0.60 on the default flight).
         max_gap_s: a track not seen for longer than this ends.
         min_hits: detections before a track counts (fewer = noise).
         min_travel_m: a track whose smoothed path ends less than this far from where it began
@@ -149,6 +156,7 @@ class TrafficConfig:
     join_gap_m: float = 3.0
     gate_m: float = 3.0
     gate_speed_mps: float = 20.0
+    velocity_gate_mps: float = 4.0
     max_gap_s: float = 1.0
     min_hits: int = 3
     min_travel_m: float = 4.0

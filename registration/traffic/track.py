@@ -93,7 +93,9 @@ def track_detections(
     """Follow vehicles through ``frames`` (ascending; frames left out, e.g. failed ones, are
     simply gaps) at ``times[k]`` (s) given each frame's detections ``(N_k, 2)`` metres and,
     optionally, their measured velocities ``(N_k, 2)`` m/s (NaN where none): a track begun
-    on a detection with one starts at that velocity (1-sigma ``INITIAL_VELOCITY_SIGMA``).
+    on a detection with one starts at that velocity (1-sigma ``INITIAL_VELOCITY_SIGMA``), and
+    a detection whose velocity disagrees with a track's (:func:`_velocities_agree`,
+    ``config.velocity_gate_mps``) does not join it.
 
     Returns the tracks with at least ``config.min_hits`` detections, in order of their first
     detection (ids count from 1 in that order; ties broken by position: reproducible).
@@ -139,7 +141,10 @@ def track_detections(
                 ]
             )
             reach = np.where(fresh, max(gate, config.gate_speed_mps * (t - t_prev)), gate)
-            cost = np.where((dist <= reach[:, None]) & (d2 <= GATE_CHI2), dist, _FAR)
+            ok = (dist <= reach[:, None]) & (d2 <= GATE_CHI2)
+            if velocities is not None:
+                ok &= _velocities_agree(preds, velocities[k], config.velocity_gate_mps)
+            cost = np.where(ok, dist, _FAR)
         rows, cols = linear_sum_assignment(cost) if cost.size else ([], [])
         used = set()
         for r, c in zip(rows, cols, strict=True):
@@ -182,6 +187,18 @@ def track_detections(
         )
         for i, tr in enumerate(kept)
     ]
+
+
+def _velocities_agree(preds: list, measured: NDArray, slack_mps: float) -> NDArray[np.bool_]:
+    """``(tracks, detections)`` bool: whether each detection's measured velocity ``(N, 2)`` m/s
+    lies within the 99 % ellipse of each track's predicted velocity, its uncertainty widened by
+    ``slack_mps`` (1 sigma: the match's own error, a vehicle braking or turning). A detection
+    with no measured velocity (NaN) agrees with every track."""
+    pv = np.array([p[0][2:4] for p in preds])
+    s_inv = np.linalg.inv(np.array([p[1][2:4, 2:4] for p in preds]) + np.eye(2) * slack_mps**2)
+    resid = measured[None, :, :] - pv[:, None, :]
+    d2 = np.einsum("tdi,tij,tdj->td", resid, s_inv, resid)
+    return ~(d2 > GATE_CHI2)  # NaN compares False: agrees
 
 
 # Two tracks that share frames and stay this close (m) in every one of them follow one vehicle.

@@ -538,8 +538,9 @@ def test_measured_velocities_steady_a_short_tracks_speed_and_a_wrong_one_is_left
     1.6 s), their blob centres 0.3 m off (about ``measurement_sigma_m``), their motion since the
     frame before measured from their pixels (:func:`~registration.traffic.detect.
     motion_since`) 0.1 m off, except in frame 4, where the match caught an oncoming car (-12
-    m/s). With the measured velocities the speeds are closer to the truth; the wrong one is
-    left out by the blob centres' own motion, and by the smoother's gate."""
+    m/s). The tracker leaves that blob out of the car's track; tracked on positions alone, the
+    track holds it, and with the measured velocities the speeds are closer to the truth: the
+    wrong one is left out by the blob centres' own motion, and by the smoother's gate."""
     from registration.traffic.sequence import checked_velocities
 
     cfg = TrafficConfig()
@@ -555,7 +556,11 @@ def test_measured_velocities_steady_a_short_tracks_speed_and_a_wrong_one_is_left
         measured[0] = np.nan  # the first frame has no frame before
         measured[4] = (-12.0, 0.0)
         dets = {k: xy[k : k + 1] for k in use}
+        # Given to the tracker, frame 4's blob moving the other way is not this car's.
         (raw,) = track_detections(use, times, dets, cfg, {k: measured[k : k + 1] for k in use})
+        assert raw.frames.tolist() == [k for k in use if k != 4]
+        # Tracked on positions alone, the smoother is handed the wrong velocity too.
+        (raw,) = track_detections(use, times, dets, cfg)
         assert raw.frames.tolist() == use
         kept = checked_velocities(raw, measured, times, dt_before, cfg)
         assert sorted(kept) == [k for k in use if k not in (0, 4)]
@@ -606,3 +611,32 @@ def test_vehicles_are_matched_a_fifth_of_a_second_back_at_any_frame_rate():
     use = [k for k in range(30) if not 10 <= k < 20]
     gap = motion_frames(use, np.arange(30) / 5.0, cfg)
     assert 20 not in gap and gap[21] == 20 and gap[9] == 8
+
+
+def test_a_track_does_not_take_an_oncoming_cars_blob():
+    """Car A drives +x at 12 m/s (5 frames/s) and is missed in frame 6, where car B, driving
+    the other way 0.8 m to the side, is first seen right at A's predicted position. Without
+    their measured velocities A's track takes B's blob; with them (B's -12 m/s against A's
+    +12: ``velocity_gate_mps``) B's blob begins B's own track."""
+    cfg = TrafficConfig()
+    times = np.arange(13) / 5.0
+    a = np.c_[12.0 * times, np.zeros(13)]
+    b = np.c_[14.4 - 12.0 * (times - 1.2), np.full(13, 0.8)]
+    dets, vel = {}, {}
+    for k in range(13):
+        rows, v = [], []
+        if k != 6:
+            rows.append(a[k])
+            v.append([12.0, 0.0])
+        if k >= 6:
+            rows.append(b[k])
+            v.append([-12.0, 0.0])
+        dets[k], vel[k] = np.array(rows), np.array(v)
+    frames = list(range(13))
+    for velocities in (None, vel):
+        raw = track_detections(frames, times, dets, cfg, velocities)
+        track_a = next(r for r in raw if r.frames[0] == 0)
+        took_b = 6 in track_a.frames.tolist()
+        assert took_b == (velocities is None), track_a.frames
+    track_b = next(r for r in raw if r.frames[0] != 0)
+    assert track_b.frames.tolist() == list(range(6, 13))
