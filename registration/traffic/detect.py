@@ -257,45 +257,18 @@ def join_moving(
     bars and rear window against the background, as two to four blobs a few metres apart; each
     was taken for a car of its own, or dropped, and a tracker hopped between them. Its pieces
     move exactly together. Two cars in a row at the same speed keep a headway of metres more."""
-    moving = np.array([i for i, p in enumerate(pieces) if p.moved is not None], np.intp)
-    if len(moving) < 2:
+    pairs = _pairs_moving_alike(pieces, cell_m, config)
+    if not pairs:
         return pieces
-    step = np.array([pieces[i].moved for i in moving], np.float64)
-    far = np.linalg.norm(step, axis=1) * cell_m >= config.join_min_move_m
-    moving, step = moving[far], step[far]
-    if len(moving) < 2:
-        return pieces
-    centre = np.array([[pieces[i].gx.mean(), pieces[i].gy.mean()] for i in moving])
-    # Every pair at once (a few hundred pieces a frame): alike in motion, near and in line.
-    rel = centre[None, :, :] - centre[:, None, :]
-    u = step[:, None, :] + step[None, :, :]
-    u /= np.maximum(np.linalg.norm(u, axis=2, keepdims=True), 1e-12)
-    near = np.linalg.norm(rel, axis=2) <= config.max_length_m / cell_m
-    alike = np.linalg.norm(step[:, None, :] - step[None, :, :], axis=2) * cell_m
-    lateral = np.abs(rel[..., 0] * u[..., 1] - rel[..., 1] * u[..., 0]) * cell_m
-    ok = near & (alike <= config.join_shift_m) & (lateral <= config.join_lateral_m)
-    ia, ib = np.nonzero(np.triu(ok, 1))
-    along = np.abs((rel[ia, ib] * u[ia, ib]).sum(axis=1))
-    pairs = sorted(
-        zip(
-            along.tolist(),
-            moving[ia].tolist(),
-            moving[ib].tolist(),
-            ia.tolist(),
-            ib.tolist(),
-            strict=True,
-        )
-    )
     group = {i: [i] for i in range(len(pieces))}
     owner = list(range(len(pieces)))
-    for _, a, b, sa, sb in pairs:
+    for _, a, b, ua in pairs:
         ga, gb = owner[a], owner[b]
         if ga == gb:
             continue
         members = group[ga] + group[gb]
         gx = np.concatenate([pieces[m].gx for m in members])
         gy = np.concatenate([pieces[m].gy for m in members])
-        ua = u[sa, sb]
         along = gx * ua[0] + gy * ua[1]
         if not _in_line_gaps(
             along, [len(pieces[m].gx) for m in members], config.join_gap_m / cell_m
@@ -332,6 +305,39 @@ def join_moving(
             )
         )
     return out
+
+
+def _pairs_moving_alike(
+    pieces: list[_Piece], cell_m: float, config: TrafficConfig
+) -> list[tuple[float, int, int, NDArray]]:
+    """The pairs of ``pieces`` that may be one vehicle, nearest along their motion first: ``(
+    distance along it px, i, j, its direction (2,))`` for two pieces each moving at least
+    ``config.join_min_move_m``, alike within ``join_shift_m``, centres within ``max_length_m``
+    and within ``join_lateral_m`` of one line along their mean motion."""
+    moving = np.array([i for i, p in enumerate(pieces) if p.moved is not None], np.intp)
+    if len(moving) < 2:
+        return []
+    step = np.array([pieces[i].moved for i in moving], np.float64)
+    far = np.linalg.norm(step, axis=1) * cell_m >= config.join_min_move_m
+    moving, step = moving[far], step[far]
+    if len(moving) < 2:
+        return []
+    centre = np.array([[pieces[i].gx.mean(), pieces[i].gy.mean()] for i in moving])
+    # Every pair at once (a few hundred pieces a frame).
+    rel = centre[None, :, :] - centre[:, None, :]
+    u = step[:, None, :] + step[None, :, :]
+    u /= np.maximum(np.linalg.norm(u, axis=2, keepdims=True), 1e-12)
+    near = np.linalg.norm(rel, axis=2) <= config.max_length_m / cell_m
+    alike = np.linalg.norm(step[:, None, :] - step[None, :, :], axis=2) * cell_m
+    lateral = np.abs(rel[..., 0] * u[..., 1] - rel[..., 1] * u[..., 0]) * cell_m
+    ok = near & (alike <= config.join_shift_m) & (lateral <= config.join_lateral_m)
+    ia, ib = np.nonzero(np.triu(ok, 1))
+    along = np.abs((rel[ia, ib] * u[ia, ib]).sum(axis=1))
+    # Sorted by distance, then by index: the same joins on every run.
+    order = sorted(
+        zip(along.tolist(), moving[ia].tolist(), moving[ib].tolist(), range(len(ia)), strict=True)
+    )
+    return [(d, i, j, u[ia[n], ib[n]]) for d, i, j, n in order]
 
 
 def _in_line_gaps(along: NDArray, sizes: list[int], max_gap: float) -> bool:

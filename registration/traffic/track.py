@@ -14,6 +14,7 @@ Everything here is in metres and seconds (:class:`~registration.traffic.timing.M
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -23,7 +24,7 @@ from scipy.optimize import linear_sum_assignment
 
 from registration.traffic.config import TrafficConfig
 
-# A track begun on a detection whose pixels were matched in the frame before starts at that
+# A track begun on a detection whose pixels were matched in a frame before starts at that
 # velocity with this uncertainty (m/s): the match's own error (0.1 m median over 0.2 s) and the
 # few that caught another vehicle's pixels.
 INITIAL_VELOCITY_SIGMA = 2.0
@@ -61,15 +62,19 @@ class RawTrack:
     det_index: NDArray[np.int64]
 
 
+@functools.lru_cache(maxsize=256)
 def _cv_matrices(dt: float, q: float) -> tuple[NDArray, NDArray]:
     """Constant-velocity transition and process noise (white acceleration of spectral density
-    ``q`` m²/s³) for state ``[x, y, vx, vy]``."""
+    ``q`` m²/s³) for state ``[x, y, vx, vy]``. Cached (a flight has few distinct frame
+    intervals; built afresh they were a tenth of the tracker's time), hence read-only."""
     f = np.eye(4)
     f[0, 2] = f[1, 3] = dt
     q1 = q * np.array([[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]])
     qm = np.zeros((4, 4))
     qm[np.ix_([0, 2], [0, 2])] = q1
     qm[np.ix_([1, 3], [1, 3])] = q1
+    f.flags.writeable = False
+    qm.flags.writeable = False
     return f, qm
 
 
@@ -110,6 +115,13 @@ def track_detections(
     for k in frames:
         t = float(times[k])
         dets = np.asarray(detections.get(k, np.zeros((0, 2))), np.float64).reshape(-1, 2)
+        measured = None if velocities is None else velocities.get(k)
+        if measured is not None:
+            measured = np.asarray(measured, np.float64).reshape(-1, 2)
+            if len(measured) != len(dets):
+                raise ValueError(
+                    f"frame {k}: {len(measured)} measured velocities for {len(dets)} detections"
+                )
         # End the tracks not seen for too long.
         still = []
         for tr in live:
@@ -142,8 +154,8 @@ def track_detections(
             )
             reach = np.where(fresh, max(gate, config.gate_speed_mps * (t - t_prev)), gate)
             ok = (dist <= reach[:, None]) & (d2 <= GATE_CHI2)
-            if velocities is not None:
-                ok &= _velocities_agree(preds, velocities[k], config.velocity_gate_mps)
+            if measured is not None:
+                ok &= _velocities_agree(preds, measured, config.velocity_gate_mps)
             cost = np.where(ok, dist, _FAR)
         rows, cols = linear_sum_assignment(cost) if cost.size else ([], [])
         used = set()
@@ -165,8 +177,8 @@ def track_detections(
                 continue
             next_id += 1
             tr = _Live(next_id, _new_filter(dets[c], config), t)
-            if velocities is not None and np.isfinite(velocities[k][c]).all():
-                tr.kf.x[2:4] = velocities[k][c]
+            if measured is not None and np.isfinite(measured[c]).all():
+                tr.kf.x[2:4] = measured[c]
                 tr.kf.P[2:4, 2:4] = np.eye(2) * INITIAL_VELOCITY_SIGMA**2
                 tr.velocity_known = True
             tr.frames.append(k)
