@@ -128,6 +128,16 @@ def test_traffic_resumes_and_refuses_another_run(traffic_sim, tmp_path):
     fresh = run_traffic(result, frames, tmp_path / "fresh", fps=5.0, gsd_m=0.3)
     assert (tmp_path / "fresh" / "tracks.csv").read_bytes() == tracks
     assert fresh["n_tracks"] == full["n_tracks"]
+    # Each frame's vehicles are matched in a frame before: where that one was stored by the
+    # cancelled run, the resumed run warps it again and detects the same, to the byte.
+    for p in sorted((out / "detections").glob("*.json")):
+        assert p.read_bytes() == (tmp_path / "fresh" / "detections" / p.name).read_bytes(), p.name
+    measured = [
+        d["shift_x"] is not None
+        for p in (out / "detections").glob("*.json")
+        for d in json.loads(p.read_text())["detections"]
+    ]
+    assert sum(measured) > len(measured) / 2, (sum(measured), len(measured))
     with pytest.raises(FileExistsError, match="frame times differ"):
         run_traffic(result, frames, out, fps=6.0, gsd_m=0.3)
     with pytest.raises(ValueError, match="frame times unknown"):
