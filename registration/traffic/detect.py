@@ -198,14 +198,14 @@ def detect_vehicles(
             moved = None
             if previous is not None:
                 moved = motion_since(frame, previous, gy, gx, reach)
-            pieces.append(_Piece(gy, gx, shape, float(ratio[sl][ys, xs].max()), moved))
+            centre = (float(gx.mean()), float(gy.mean()))
+            pieces.append(_Piece(gy, gx, shape, float(ratio[sl][ys, xs].max()), moved, centre))
     if previous is not None:
         pieces = join_moving(pieces, frame, previous, reach, cell_m, config)
     out = []
     for pc in pieces:
         length, width, axis = pc.shape
-        centre = pc.centre if pc.centre is not None else (pc.gx.mean(), pc.gy.mean())
-        cx, cy = grid.base_from_work(np.array([centre], np.float64))[0]
+        cx, cy = grid.base_from_work(np.array([pc.centre], np.float64))[0]
         shift = (math.nan, math.nan)
         if pc.moved is not None:
             shift = (pc.moved[0] / grid.scale, pc.moved[1] / grid.scale)
@@ -229,15 +229,15 @@ def detect_vehicles(
 @dataclass
 class _Piece:
     """A vehicle candidate's pixels ``(gy, gx)`` (working grid), :func:`blob_shape`, strongest
-    contrast, shift since the frame before (working px, or None) and, for joined pieces, the
-    centre of their rectangle (else the pixels' mean is the centre)."""
+    contrast, shift since the frame before (working px, or None) and centre (working px: the
+    pixels' mean; for joined pieces the centre of their rectangle)."""
 
     gy: NDArray
     gx: NDArray
     shape: tuple[float, float, float]
     contrast: float
     moved: tuple[float, float] | None
-    centre: tuple[float, float] | None = None
+    centre: tuple[float, float]
 
 
 def join_moving(
@@ -322,7 +322,7 @@ def _pairs_moving_alike(
     moving, step = moving[far], step[far]
     if len(moving) < 2:
         return []
-    centre = np.array([[pieces[i].gx.mean(), pieces[i].gy.mean()] for i in moving])
+    centre = np.array([pieces[i].centre for i in moving])
     # Every pair at once (a few hundred pieces a frame).
     rel = centre[None, :, :] - centre[:, None, :]
     u = step[:, None, :] + step[None, :, :]

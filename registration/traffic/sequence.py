@@ -154,7 +154,8 @@ def detect_sequence(
                     warped[k] = warp_frame(result, k, frames.get(k), grid, exclude, keep)
             # Only what later blocks can still sample stays.
             t_keep = times[block.frames[0]] - config.background_span_s - BLOCK_S
-            for k in [k for k in warped if times[k] < t_keep and k not in before.values()]:
+            matched_in = set(before.values())
+            for k in [k for k in warped if times[k] < t_keep and k not in matched_in]:
                 del warped[k]
             targets = [warped[k] for k in todo if warped[k] is not None]
             samples = [warped[k] for k in block.samples if warped[k] is not None]
