@@ -351,8 +351,8 @@ def _quartile_spread(planes, low, count) -> NDArray[np.float32]:
 
 def difference_image(
     image: NDArray[np.uint8], background: NDArray[np.uint8], tolerance_px: int
-) -> NDArray[np.float32]:
-    """``(h, w)`` float32: how far each pixel's colour lies outside the background's range over
+) -> NDArray[np.uint8]:
+    """``(h, w)`` uint8: how far each pixel's colour lies outside the background's range over
     ``tolerance_px`` (max over channels, 8-bit levels; 0 inside the range)."""
     if tolerance_px > 0:
         k = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * tolerance_px + 1, 2 * tolerance_px + 1))
@@ -361,7 +361,7 @@ def difference_image(
         lo = hi = background
     # Saturating uint8 differences: above the range, below it, 0 inside.
     over = cv2.max(cv2.subtract(image, hi), cv2.subtract(lo, image))
-    return channel_max(over).astype(np.float32)
+    return channel_max(over)
 
 
 def channel_max(a: NDArray) -> NDArray:
@@ -380,7 +380,13 @@ def noise_sigma(image: NDArray[np.uint8], background: NDArray[np.uint8], valid) 
     )
     # The median from the levels' histogram (np.median's value, the two middle ones' mean for
     # an even count, at a quarter of its cost: a partition of millions of pixels).
-    cumulative = np.cumsum(np.bincount(d[valid], minlength=256))
+    if d.size < 1 << 24:
+        # Counted by OpenCV under the mask, in 40 % less time: float32 counts, exact below 2^24.
+        mask = np.ascontiguousarray(valid).view(np.uint8)
+        hist = cv2.calcHist([d], [0], mask, [256], [0, 256]).ravel().astype(np.int64)
+    else:
+        hist = np.bincount(d[valid], minlength=256)
+    cumulative = np.cumsum(hist)
     n = int(cumulative[-1])
     lo, hi = np.searchsorted(cumulative, [(n - 1) // 2, n // 2], side="right")
     return float(1.4826 * ((lo + hi) / 2))

@@ -227,18 +227,32 @@ def merge_parallel(tracks: list[_Live]) -> list[_Live]:
     and both may end too short. Merging them on the simulated flights: MOTA +0.017 to +0.036,
     precision +0.02 to +0.07, recall unchanged (docs/traffic.md)."""
     tracks = sorted(tracks, key=lambda tr: (tr.frames[0], tr.xy[0][1], tr.xy[0][0]))
-    merged = [False] * len(tracks)
+    first = np.array([tr.frames[0] for tr in tracks])
+    # Each track's bounding box: a pair whose boxes lie more than PARALLEL_M apart has no
+    # position within it and is passed over at once (most pairs: other vehicles).
+    lo = np.array([np.min(tr.xy, axis=0) for tr in tracks]).reshape(-1, 2)
+    hi = np.array([np.max(tr.xy, axis=0) for tr in tracks]).reshape(-1, 2)
+    merged = np.zeros(len(tracks), np.bool_)
     out = []
     for i, a in enumerate(tracks):
         if merged[i]:
             continue
         at = {k: xy for k, xy in zip(a.frames, a.xy, strict=True)}
         j = i + 1
-        while j < len(tracks) and tracks[j].frames[0] <= a.frames[-1]:
-            if not merged[j] and _parallel(at, tracks[j]):
-                _absorb(a, tracks[j])
-                at = {k: xy for k, xy in zip(a.frames, a.xy, strict=True)}
-                merged[j] = True
+        while True:
+            end = int(np.searchsorted(first, a.frames[-1], side="right"))
+            a_lo, a_hi = np.min(a.xy, axis=0), np.max(a.xy, axis=0)
+            near = (lo[j:end] <= a_hi + PARALLEL_M).all(axis=1)
+            near &= (hi[j:end] >= a_lo - PARALLEL_M).all(axis=1) & ~merged[j:end]
+            cand = (j + int(c) for c in np.flatnonzero(near))
+            hit = next((c for c in cand if _parallel(at, tracks[c])), None)
+            if hit is None:
+                break
+            # The merged one changes the track: the later ones are looked at again after it.
+            j = hit
+            _absorb(a, tracks[j])
+            at = {k: xy for k, xy in zip(a.frames, a.xy, strict=True)}
+            merged[j] = True
             j += 1
         out.append(a)
     return out
