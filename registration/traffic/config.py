@@ -100,9 +100,16 @@ class TrafficConfig:
         min_observed: least share of the frames a track spans that it was detected in; a
             track seen less is mostly the filter coasting between detections chained by chance
             (the real flyover: one at 32 m/s seen in 8 of 32 frames).
-        measurement_sigma_m: a detection's position noise, metres (tracker and smoother): the
-            scatter of detected centres about the true ones on the simulator, 0.37 m per axis
-            (blur, a shadow's side, a windscreen cut off).
+        measurement_sigma_m: a detection's position noise for the tracker, metres: the part
+            of a blob centre's error that changes from one frame to the next (0.39-0.40 m RMS
+            per axis at 5 frames/s on the simulated flights, less at 30, where a blob changes
+            little between frames; blur, a shadow's side, a windscreen cut off). Wider gates
+            (0.45-0.55) tracked more of the simulated vehicles (MOTA +0.015 to +0.04) but let a
+            known false track at the real flyover's edge back in.
+        smooth_sigma_m: a detection's position noise for the forward-backward smoother,
+            metres: the whole scatter of blob centres about the true ones, 0.55-0.60 m RMS per
+            axis on the simulated flights (half of it stays from frame to frame: consecutive
+            errors correlate by 0.49). Speeds 0.007-0.030 m/s closer than with 0.35.
         shift_sigma_m: the error of a vehicle's motion since a frame before measured by
             matching its pixels there (metres; 0.11 m median, 0.25 m 75th percentile on the
             default simulated flight, where its blob centres scatter by 0.8 m). A track begins
@@ -165,6 +172,7 @@ class TrafficConfig:
     max_speed_mps: float = 45.0
     min_observed: float = 0.5
     measurement_sigma_m: float = 0.35
+    smooth_sigma_m: float = 0.55
     shift_sigma_m: float = 0.2
     shift_gate_m: float = 2.5
     motion_baseline_s: float = 0.2

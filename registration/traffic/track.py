@@ -78,13 +78,14 @@ def _cv_matrices(dt: float, q: float) -> tuple[NDArray, NDArray]:
     return f, qm
 
 
-def _new_filter(xy: NDArray, config: TrafficConfig) -> KalmanFilter:
+def _new_filter(xy: NDArray, sigma_m: float) -> KalmanFilter:
+    """A constant-velocity filter at ``xy`` (m) with position noise ``sigma_m``."""
     kf = KalmanFilter(dim_x=4, dim_z=2)
     kf.x = np.array([xy[0], xy[1], 0.0, 0.0])
     # Unknown velocity: anything up to ~30 m/s (1 sigma 15 m/s).
-    kf.P = np.diag([config.measurement_sigma_m**2] * 2 + [15.0**2] * 2)
+    kf.P = np.diag([sigma_m**2] * 2 + [15.0**2] * 2)
     kf.H = np.array([[1.0, 0, 0, 0], [0, 1.0, 0, 0]])
-    kf.R = np.eye(2) * config.measurement_sigma_m**2
+    kf.R = np.eye(2) * sigma_m**2
     return kf
 
 
@@ -176,7 +177,7 @@ def track_detections(
             if c in used:
                 continue
             next_id += 1
-            tr = _Live(next_id, _new_filter(dets[c], config), t)
+            tr = _Live(next_id, _new_filter(dets[c], config.measurement_sigma_m), t)
             if measured is not None and np.isfinite(measured[c]).all():
                 tr.kf.x[2:4] = measured[c]
                 tr.kf.P[2:4, 2:4] = np.eye(2) * INITIAL_VELOCITY_SIGMA**2
@@ -332,7 +333,7 @@ class SmoothTrack:
 def blob_noise(
     lengths: NDArray[np.float64], axes: NDArray[np.float64], config: TrafficConfig
 ) -> NDArray[np.float64]:
-    """``(M, 2, 2)`` each detection's position noise (m²): ``config.measurement_sigma_m`` all
+    """``(M, 2, 2)`` each detection's position noise (m²): ``config.smooth_sigma_m`` all
     round, plus, along its blob's axis (``axes`` ``(M, 2)`` unit vectors in metres), half the
     length by which its blob is shorter than the track's median blob (``lengths`` ``(M,)`` m):
     a blob that lost one end of its vehicle (a dark windscreen or roof taken for background)
@@ -343,7 +344,7 @@ def blob_noise(
     travel far enough to pass for a vehicle."""
     off = 0.5 * np.maximum(np.median(lengths) - lengths, 0.0)
     along = np.einsum("mi,mj->mij", axes, axes) * (off**2)[:, None, None]
-    return np.eye(2)[None] * config.measurement_sigma_m**2 + along
+    return np.eye(2)[None] * config.smooth_sigma_m**2 + along
 
 
 def lost_end_noise(
@@ -385,7 +386,7 @@ def smooth_track(
     ``frames`` (the usable frames, ascending) with a constant-velocity model whose velocity
     wanders by ``config.smooth_accel_sigma_mps2``; the acceleration is the smoothed velocity's
     derivative over time (central differences). ``noise``: ``(M, 2, 2)`` each detection's
-    position noise (:func:`blob_noise`); None = ``config.measurement_sigma_m`` for all.
+    position noise (:func:`blob_noise`); None = ``config.smooth_sigma_m`` for all.
     ``velocity``: by frame, a measured velocity ``(2,)`` m/s and its noise ``(2, 2)`` (m/s)²
     (the vehicle's own pixels matched in the frame before, :func:`vehicle_velocities`), used
     with the position where it agrees with the filter's prediction (99 % ellipse)."""
@@ -393,10 +394,10 @@ def smooth_track(
     span = [k for k in frames if first <= k <= last]
     seen = dict(zip(raw.frames.tolist(), raw.xy, strict=True))
     if noise is None:
-        noise = np.broadcast_to(np.eye(2) * config.measurement_sigma_m**2, (len(raw.frames), 2, 2))
+        noise = np.broadcast_to(np.eye(2) * config.smooth_sigma_m**2, (len(raw.frames), 2, 2))
     noise_at = dict(zip(raw.frames.tolist(), noise, strict=True))
     q = config.smooth_accel_sigma_mps2**2
-    kf = _new_filter(raw.xy[0], config)
+    kf = _new_filter(raw.xy[0], config.smooth_sigma_m)
     kf.P[:2, :2] = noise_at[first]
     xs, ps, fs, qs = [], [], [], []
     t_prev = float(times[span[0]])

@@ -87,6 +87,22 @@ def _white_car(image, y0, x0, length_px=15, width_px=6):
     image[y0 : y0 + width_px, x0 : x0 + length_px] = (235, 235, 235)
 
 
+def test_a_car_with_a_hole_in_its_blob_is_at_its_outlines_centre(rng):
+    # A white car of 15 x 6 px whose rear window (6 x 4 px, inside the outline) is the road's
+    # colour: its blob has a hole the closing does not fill. The pixels' mean lies 1.3 px
+    # (0.38 m) towards the front; the vehicle is at the centre of its outline.
+    still, image = _road(rng)
+    _white_car(image, 27, 30)
+    image[28:32, 31:37] = ASPHALT
+    (det,) = _detect(image, still)
+    assert np.hypot(det.x - 37.0, det.y - 29.5) * CELL_M < 0.1, det
+    blob = np.zeros(image.shape[:2], bool)
+    blob[27:33, 30:45] = True
+    blob[28:32, 31:37] = False
+    ys, xs = np.nonzero(blob)
+    assert (xs.mean() - 37.0) * CELL_M > 0.3  # what the mean would give
+
+
 def test_two_cars_in_a_row_joined_by_a_narrow_neck_are_two_vehicles(rng):
     # Two white cars of 4.5 x 1.8 m (15 x 6 px) in one lane, 2.1 m (7 px) apart, joined by a
     # strip one pixel wide (what blur and a shadow leave in the gap): one blob 11 m long, within
