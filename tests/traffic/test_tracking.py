@@ -143,9 +143,9 @@ def test_smoother_follows_a_vehicle_that_brakes_and_pulls_away(rng):
     assert len(s.frames) == len(times)
     err = s.velocity[:, 0] - speed
     # Within 0.4 m/s at the median, 1.5 m/s at worst (where braking starts and ends), against
-    # the 0.35 m x 5 /s x sqrt(2) = 2.5 m/s of differencing two detections (measured: 0.20
-    # and 0.74 m/s here, 0.19-0.23 and 0.55-1.20 with seeds 0-2; a smoother held at 0.3 m/s²
-    # per √s lags by up to 1.9 m/s, at 0.1 by 3.5).
+    # the 0.35 m x 5 /s x sqrt(2) = 2.5 m/s of differencing two detections (measured with the
+    # smoother's 0.55 m noise: 0.22 and 0.93 m/s here, 0.18-0.21 and 0.54-1.35 with seeds 0-2;
+    # a smoother held at 0.3 m/s² per √s lags by up to 1.9 m/s, at 0.1 by 3.5).
     assert np.median(np.abs(err)) < 0.4, err
     assert np.abs(err).max() < 1.5, err
     # Braking (-3 m/s²) and pulling away (2 m/s²) are seen as such in the acceleration.
