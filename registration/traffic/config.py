@@ -104,7 +104,7 @@ class TrafficConfig:
             of a blob centre's error that changes from one frame to the next (0.39-0.40 m RMS
             per axis at 5 frames/s on the simulated flights, less at 30, where a blob changes
             little between frames; blur, a shadow's side, a windscreen cut off). Wider gates
-            (0.45-0.55) tracked more of the simulated vehicles (MOTA +0.015 to +0.04) but let a
+            (0.45-0.55) tracked more of the simulated vehicles (MOTA +0.015 to +0.03) but let a
             known false track at the real flyover's edge back in.
         smooth_sigma_m: a detection's position noise for the forward-backward smoother,
             metres: the whole scatter of blob centres about the true ones, 0.55-0.60 m RMS per
