@@ -138,14 +138,15 @@ def foreground(
     ratio = np.zeros(diff.shape, np.float32)
     ratio.ravel()[moving_at] = level[level > 1.0]
     # The shadow test on the moving pixels only.
-    shadow = np.zeros(diff.shape, np.bool_)
     pixels, still_pixels = frame.image.reshape(-1, 3), still.reshape(-1, 3)
-    shadow.ravel()[moving_at] = shadow_mask(pixels[moving_at], still_pixels[moving_at])
-    moving = np.zeros(diff.shape, np.bool_)
-    moving.ravel()[moving_at] = True
+    is_shadow = shadow_mask(pixels[moving_at], still_pixels[moving_at])
+    shadow = np.zeros(diff.shape, np.bool_)
+    shadow.ravel()[moving_at] = is_shadow
+    coloured = np.zeros(diff.shape, np.uint8)
+    coloured.ravel()[moving_at[~is_shadow]] = 1
     r = max(1, int(round(config.close_m / cell_m / 2.0)))
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
-    core = cv2.morphologyEx((moving & ~shadow).view(np.uint8), cv2.MORPH_CLOSE, kernel)
+    core = cv2.morphologyEx(coloured, cv2.MORPH_CLOSE, kernel)
     core &= valid.view(np.uint8)
     n_core, labels, core_at, core_area = _labelled(core)
     # Coloured pieces too small to be a vehicle's body are the few pixels of a dark car that
@@ -165,7 +166,7 @@ def foreground(
         attached = np.zeros(n_dark, np.bool_)
         attached[dark_flat[dark_at[near.ravel()[dark_at] > 0]]] = True
         # A dark car is mostly dark: coloured speckle that the closing joined is not one.
-        darkest = np.bincount(dark_flat[moving_at[shadow.ravel()[moving_at]]], minlength=n_dark)
+        darkest = np.bincount(dark_flat[moving_at[is_shadow]], minlength=n_dark)
         keep = ~attached & (darkest >= DARK_SHARE * total)
         keep[0] = False
         own = dark_at[keep[dark_flat[dark_at]] & ~body.ravel()[dark_at]]

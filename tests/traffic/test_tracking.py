@@ -643,7 +643,7 @@ def test_a_track_does_not_take_an_oncoming_cars_blob():
     assert track_b.frames.tolist() == list(range(6, 13))
 
 
-def test_the_smoother_takes_the_blob_centres_whole_scatter(rng):
+def test_the_smoother_takes_the_blob_centres_whole_scatter():
     # Blob centres scatter about their vehicle as measured on the simulated flights: 0.56 m RMS
     # per axis, half of it kept from one frame to the next (AR(1), correlation 0.49). The
     # tracker's noise (0.35 m: the part that changes between frames) understates that for the
